@@ -1,0 +1,94 @@
+"""Shared Warp device functions: OpenCV distortion, projection into the projector, bilinear taps.
+
+Conventions follow `slwarp.scanner`: mm, OpenCV axes, pixel centres at integer coordinates, X_p = R X_c + T.
+"""
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+
+@wp.struct
+class ProjectorParams:
+    """A projector for kernels: pose, intrinsics, distortion and the image size (float px)."""
+
+    R: wp.mat33
+    T: wp.vec3
+    f: wp.vec2  # fx, fy (px)
+    c: wp.vec2  # cx, cy (px)
+    k: wp.vec3  # k1, k2, k3
+    p: wp.vec2  # p1, p2
+    size: wp.vec2  # width, height (px)
+    max_r2: float  # squared normalised radius beyond which OpenCV's polynomial is not trusted (it can fold)
+
+
+def projector_params(projector) -> ProjectorParams:
+    """Pack a `slwarp.Projector` for kernels."""
+    prm = ProjectorParams()
+    prm.R = wp.mat33(*np.asarray(projector.R, np.float32).ravel())
+    prm.T = wp.vec3(*np.asarray(projector.T, np.float32))
+    prm.f = wp.vec2(projector.fx, projector.fy)
+    prm.c = wp.vec2(projector.cx, projector.cy)
+    d = projector.dist
+    prm.k = wp.vec3(float(d[0]), float(d[1]), float(d[4]))
+    prm.p = wp.vec2(float(d[2]), float(d[3]))
+    prm.size = wp.vec2(float(projector.width), float(projector.height))
+    prm.max_r2 = float(projector.max_normalized_r2)
+    return prm
+
+
+@wp.func
+def distort(x: float, y: float, k: wp.vec3, p: wp.vec2) -> wp.vec2:
+    """OpenCV radial-tangential distortion of normalised coordinates."""
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k[0] + r2 * (k[1] + r2 * k[2]))
+    xd = x * radial + 2.0 * p[0] * x * y + p[1] * (r2 + 2.0 * x * x)
+    yd = y * radial + p[0] * (r2 + 2.0 * y * y) + 2.0 * p[1] * x * y
+    return wp.vec2(xd, yd)
+
+
+@wp.func
+def distort_jacobian(x: float, y: float, k: wp.vec3, p: wp.vec2) -> wp.vec4:
+    """d(xd, yd)/d(x, y) as (dxd/dx, dxd/dy, dyd/dx, dyd/dy)."""
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k[0] + r2 * (k[1] + r2 * k[2]))
+    dradial = k[0] + r2 * (2.0 * k[1] + 3.0 * k[2] * r2)
+    jxx = radial + 2.0 * x * x * dradial + 2.0 * p[0] * y + 6.0 * p[1] * x
+    jxy = 2.0 * x * y * dradial + 2.0 * p[0] * x + 2.0 * p[1] * y
+    jyy = radial + 2.0 * y * y * dradial + 6.0 * p[0] * y + 2.0 * p[1] * x
+    return wp.vec4(jxx, jxy, jxy, jyy)
+
+
+@wp.func
+def project_to_projector(prm: ProjectorParams, xc: wp.vec3) -> wp.vec3:
+    """Camera-frame point (mm) -> (u, v, ok) in projector pixels; ok = 1 in front of the lens and inside
+    the trusted distortion radius, else 0 (and u = v = -1e6, outside any image)."""
+    xp = prm.R * xc + prm.T
+    if xp[2] <= 1.0e-6:
+        return wp.vec3(-1.0e6, -1.0e6, 0.0)
+    xn = xp[0] / xp[2]
+    yn = xp[1] / xp[2]
+    if xn * xn + yn * yn > prm.max_r2:
+        return wp.vec3(-1.0e6, -1.0e6, 0.0)
+    d = distort(xn, yn, prm.k, prm.p)
+    return wp.vec3(prm.f[0] * d[0] + prm.c[0], prm.f[1] * d[1] + prm.c[1], 1.0)
+
+
+@wp.func
+def project_to_projector_grad(prm: ProjectorParams, xc: wp.vec3, du: float, dv: float) -> wp.vec3:
+    """Vector-Jacobian product: d(du * u + dv * v)/d xc for the projection above (zero where not ok)."""
+    xp = prm.R * xc + prm.T
+    if xp[2] <= 1.0e-6:
+        return wp.vec3(0.0, 0.0, 0.0)
+    inv_z = 1.0 / xp[2]
+    xn = xp[0] * inv_z
+    yn = xp[1] * inv_z
+    if xn * xn + yn * yn > prm.max_r2:
+        return wp.vec3(0.0, 0.0, 0.0)
+    J = distort_jacobian(xn, yn, prm.k, prm.p)
+    gxd = du * prm.f[0]
+    gyd = dv * prm.f[1]
+    gxn = gxd * J[0] + gyd * J[2]
+    gyn = gxd * J[1] + gyd * J[3]
+    gxp = wp.vec3(gxn * inv_z, gyn * inv_z, -(gxn * xn + gyn * yn) * inv_z)
+    return wp.transpose(prm.R) * gxp

@@ -1,0 +1,149 @@
+"""Virtual scanner kernels: camera rays against a triangle-mesh BVH, shadows toward the projector, and
+bilinear sampling of (defocused) patterns at the projected hit points.
+
+cast_camera_rays: one thread per camera pixel.
+    first hit along the (unit) camera ray -> depth z (mm), smooth normal, albedo (with texture);
+    lit = facing the projector, not shadowed (second ray toward the projector centre), and inside the
+    projector image; shade = albedo * cos(angle to projector) * (ref_dist / dist_to_projector)^2.
+sample_patterns: one thread per (frame, pixel): the defocused pattern value at the projector pixel.
+"""
+from __future__ import annotations
+
+import warp as wp
+
+from .geometry import ProjectorParams, project_to_projector
+
+
+@wp.func
+def texture_value(x: wp.vec3, period: float) -> float:
+    """Smooth 3-D sinusoidal texture in [0, 1] with the given period (mm)."""
+    w = 6.283185307 / period
+    return 0.5 + 0.5 * wp.sin(w * x[0]) * wp.sin(w * x[1] + 1.3) * wp.sin(w * x[2] + 0.7)
+
+
+@wp.kernel
+def cast_camera_rays(
+    mesh: wp.uint64,
+    dirs: wp.array(dtype=wp.vec3),
+    face_object: wp.array(dtype=wp.int32),
+    obj_albedo: wp.array(dtype=float),
+    obj_texture: wp.array(dtype=float),
+    obj_period: wp.array(dtype=float),
+    prm: ProjectorParams,
+    proj_center: wp.vec3,
+    ref_dist: float,
+    shadow_eps: float,
+    depth: wp.array(dtype=float),
+    normal: wp.array(dtype=wp.vec3),
+    uv_proj: wp.array(dtype=wp.vec2),
+    z_proj: wp.array(dtype=float),
+    lit: wp.array(dtype=wp.int32),
+    shade: wp.array(dtype=float),
+    albedo: wp.array(dtype=float),
+):
+    i = wp.tid()
+    d = dirs[i]
+    nan = wp.nan
+    q = wp.mesh_query_ray(mesh, wp.vec3(0.0, 0.0, 0.0), d, 1.0e7)
+    lit[i] = 0
+    shade[i] = 0.0
+    uv_proj[i] = wp.vec2(-1.0e6, -1.0e6)
+    z_proj[i] = 0.0
+    if not q.result:
+        depth[i] = nan
+        normal[i] = wp.vec3(nan, nan, nan)
+        albedo[i] = 0.0
+        return
+    x = d * q.t
+    depth[i] = x[2]
+    fn = q.normal
+    if wp.dot(fn, d) > 0.0:  # face normal toward the camera (meshes may be open or inverted)
+        fn = -fn
+    n = wp.normalize(wp.mesh_eval_velocity(mesh, q.face, q.u, q.v))  # smooth normal (vertex normals)
+    if wp.dot(n, fn) < 0.0:
+        n = -n
+    normal[i] = n
+    o = face_object[q.face]
+    a = obj_albedo[o]
+    if obj_texture[o] > 0.0:
+        a = a * (1.0 - obj_texture[o] + obj_texture[o] * texture_value(x, obj_period[o]))
+    albedo[i] = a
+
+    to_p = proj_center - x
+    dist = wp.length(to_p)
+    l = to_p / dist
+    cos_p = wp.dot(n, l)
+    if cos_p <= 0.0 or wp.dot(fn, l) <= 0.0:
+        return
+    start = x + fn * shadow_eps
+    qs = wp.mesh_query_ray(mesh, start, l, dist - shadow_eps)
+    if qs.result:
+        return
+    uvo = project_to_projector(prm, x)
+    if uvo[2] == 0.0:
+        return
+    if uvo[0] < -0.5 or uvo[0] > prm.size[0] - 0.5 or uvo[1] < -0.5 or uvo[1] > prm.size[1] - 0.5:
+        return
+    xp = prm.R * x + prm.T
+    lit[i] = 1
+    uv_proj[i] = wp.vec2(uvo[0], uvo[1])
+    z_proj[i] = xp[2]
+    falloff = ref_dist / dist
+    shade[i] = a * cos_p * falloff * falloff
+
+
+@wp.func
+def bilinear_zero(img: wp.array3d(dtype=float), level: int, u: float, v: float) -> float:
+    """Bilinear value of img[level] at continuous (u, v); taps outside the image count as 0."""
+    h = img.shape[1]
+    w = img.shape[2]
+    u0 = wp.floor(u)
+    v0 = wp.floor(v)
+    fu = u - u0
+    fv = v - v0
+    iu = int(u0)
+    iv = int(v0)
+    acc = float(0.0)
+    for dy in range(2):
+        for dx in range(2):
+            x = iu + dx
+            y = iv + dy
+            if x >= 0 and x < w and y >= 0 and y < h:
+                wx = wp.where(dx == 0, 1.0 - fu, fu)
+                wy = wp.where(dy == 0, 1.0 - fv, fv)
+                acc += wx * wy * img[level, y, x]
+    return acc
+
+
+@wp.kernel
+def sample_patterns(
+    blurred: wp.array(dtype=wp.float32, ndim=4),  # [L, N, Hp, Wp]: the patterns blurred at L sigmas
+    level_sigma: wp.array(dtype=float),  # [L] ascending
+    uv_proj: wp.array(dtype=wp.vec2),
+    z_proj: wp.array(dtype=float),
+    lit: wp.array(dtype=wp.int32),
+    sigma0: float,
+    sigma_slope: float,
+    focus_dist: float,
+    out: wp.array2d(dtype=float),  # [N, P]: pattern value seen at each pixel (0 where unlit)
+):
+    n, i = wp.tid()
+    if lit[i] == 0:
+        out[n, i] = 0.0
+        return
+    sigma = sigma0 + sigma_slope * wp.abs(z_proj[i] - focus_dist) / focus_dist
+    L = level_sigma.shape[0]
+    lo = int(0)
+    for j in range(L - 1):
+        if level_sigma[j + 1] <= sigma:
+            lo = j + 1
+    hi = wp.min(lo + 1, L - 1)
+    t = float(0.0)
+    if hi != lo:
+        t = wp.clamp((sigma - level_sigma[lo]) / (level_sigma[hi] - level_sigma[lo]), 0.0, 1.0)
+    uv = uv_proj[i]
+    a = bilinear_zero(blurred[lo], n, uv[0], uv[1])
+    b = a
+    if hi != lo:
+        b = bilinear_zero(blurred[hi], n, uv[0], uv[1])
+    out[n, i] = (1.0 - t) * a + t * b

@@ -1,0 +1,246 @@
+"""Projector pattern sets: the paper's random multi-scale binary squares and the classical codes.
+
+Every generator returns a `PatternSet`: `patterns` [N, H, W] float32 in [0, 1] in projector pixels
+(pixel (u, v) = column, row; centre of pixel (0, 0) at (0, 0)) and one frame name per pattern.
+Frame names are the contract between patterns, scans and decoders:
+
+    rand{size}_{i}          random binary squares of `size` px, i-th pattern of that scale
+    gc_{col|row}_b{k}       Gray code bit k, k = 0 the most significant bit
+    gc_{col|row}_b{k}_inv   its inverse
+    white, black            full-on and full-off frames
+    ps_{col|row}_p{P}_s{k}of{N}   N-step phase shift with period P px, step k:
+                            0.5 + 0.5 cos(2 pi u / P - 2 pi k / N)
+
+Gray code with n bits cuts the axis into 2^n stripes of W / 2^n px (10 px for 7 bits on 1280 columns);
+pixel u lies in stripe floor(u 2^n / W) and bit k is bit (n-1-k) of that stripe's Gray code g = s ^ (s >> 1).
+The first m bits of an n-bit code are themselves the m-bit code, so any prefix of bits decodes.
+"""
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "PatternSet",
+    "random_binary",
+    "gray_code",
+    "white_black",
+    "phase_shift",
+    "complementary_gray_code",
+    "hierarchical_pmp",
+    "number_theoretic_pmp",
+    "ground_truth_set",
+    "named_set",
+    "NAMED_SETS",
+    "gray_to_binary",
+    "binary_to_gray",
+]
+
+
+@dataclass
+class PatternSet:
+    """patterns [N, H, W] float32 in [0, 1] and their frame names."""
+
+    patterns: np.ndarray
+    names: list[str]
+
+    def __post_init__(self):
+        self.patterns = np.asarray(self.patterns, dtype=np.float32)
+        if self.patterns.ndim != 3 or len(self.names) != self.patterns.shape[0]:
+            raise ValueError(f"PatternSet: {self.patterns.shape} patterns for {len(self.names)} names")
+        if len(set(self.names)) != len(self.names):
+            raise ValueError(f"PatternSet: duplicate frame names in {self.names}")
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def __add__(self, other: "PatternSet") -> "PatternSet":
+        dup = [n for n in other.names if n in self.names]
+        other = other.subset([n for n in other.names if n not in dup])  # a combined set keeps one copy
+        return PatternSet(np.concatenate([self.patterns, other.patterns]), self.names + other.names)
+
+    def subset(self, names: list[str]) -> "PatternSet":
+        idx = [self.names.index(n) for n in names]
+        return PatternSet(self.patterns[idx], list(names))
+
+    @property
+    def width(self) -> int:
+        return int(self.patterns.shape[2])
+
+    @property
+    def height(self) -> int:
+        return int(self.patterns.shape[1])
+
+
+def random_binary(width: int, height: int, scales=(20, 10, 5), per_scale: int = 2, seed: int = 0) -> PatternSet:
+    """The paper's random multi-scale binary patterns.
+
+    The projector plane is cut into squares of each size (aligned at pixel 0), each square black or white
+    with probability 1/2. Order: one pattern of each scale in turn (20, 10, 5, 20, 10, 5, ...), so that any
+    prefix (as in incremental training) covers all scales as early as possible.
+    """
+    rng = np.random.default_rng(seed)
+    pats, names = [], []
+    for i in range(per_scale):
+        for s in scales:
+            cells = rng.integers(0, 2, size=(math.ceil(height / s), math.ceil(width / s)))
+            img = np.repeat(np.repeat(cells, s, axis=0), s, axis=1)[:height, :width]
+            pats.append(img.astype(np.float32))
+            names.append(f"rand{s}_{i}")
+    return PatternSet(np.stack(pats), names)
+
+
+def binary_to_gray(b):
+    return b ^ (b >> 1)
+
+
+def gray_to_binary(g):
+    """Inverse of g = b ^ (b >> 1) for integer arrays (any width up to 32 bits)."""
+    b = np.array(g, dtype=np.int64, copy=True)
+    shift = 1
+    while shift < 32:
+        b ^= b >> shift
+        shift *= 2
+    return b
+
+
+def stripe_index(coord: np.ndarray, size: int, bits: int) -> np.ndarray:
+    """Stripe of integer pixel coordinate(s) along an axis of `size` px in an n-bit code."""
+    return (np.asarray(coord, dtype=np.int64) * (1 << bits)) // size
+
+
+def gray_code(width: int, height: int, bits: int, axis: str = "col", inverse: bool = False) -> PatternSet:
+    """Gray code over columns (axis='col') or rows ('row'), most significant bit first.
+
+    White (1) where the bit is set. With `inverse`, each bit is followed by its inverse.
+    """
+    if axis not in ("col", "row"):
+        raise ValueError(f"axis must be 'col' or 'row', got {axis!r}")
+    size = width if axis == "col" else height
+    if bits < 1 or (1 << bits) > 4 * size:
+        raise ValueError(f"{bits} Gray code bits do not fit {size} projector pixels")
+    g = binary_to_gray(stripe_index(np.arange(size), size, bits))
+    pats, names = [], []
+    for k in range(bits):
+        bit = ((g >> (bits - 1 - k)) & 1).astype(np.float32)
+        img = np.broadcast_to(bit[None, :], (height, width)) if axis == "col" else np.broadcast_to(bit[:, None], (height, width))
+        pats.append(np.array(img))
+        names.append(f"gc_{axis}_b{k}")
+        if inverse:
+            pats.append(1.0 - pats[-1])
+            names.append(f"gc_{axis}_b{k}_inv")
+    return PatternSet(np.stack(pats), names)
+
+
+def white_black(width: int, height: int) -> PatternSet:
+    return PatternSet(np.stack([np.ones((height, width), np.float32), np.zeros((height, width), np.float32)]), ["white", "black"])
+
+
+def _fmt_period(period: float) -> str:
+    return f"{period:g}"
+
+
+def phase_shift(width: int, height: int, period: float, steps: int, axis: str = "col") -> PatternSet:
+    """N-step phase shifting: 0.5 + 0.5 cos(2 pi u / period - 2 pi k / steps), k = 0..steps-1."""
+    if steps < 3:
+        raise ValueError("phase shifting needs at least 3 steps")
+    if period <= 0:
+        raise ValueError("period must be positive")
+    size = width if axis == "col" else height
+    coord = np.arange(size, dtype=np.float64)
+    pats, names = [], []
+    for k in range(steps):
+        prof = 0.5 + 0.5 * np.cos(2 * np.pi * coord / period - 2 * np.pi * k / steps)
+        img = np.broadcast_to(prof[None, :], (height, width)) if axis == "col" else np.broadcast_to(prof[:, None], (height, width))
+        pats.append(np.array(img, dtype=np.float32))
+        names.append(f"ps_{axis}_p{_fmt_period(period)}_s{k}of{steps}")
+    return PatternSet(np.stack(pats), names)
+
+
+def complementary_gray_code(width: int, height: int, gray_bits: int = 3, steps: int = 3) -> PatternSet:
+    """CGC: `gray_bits` Gray code patterns + `steps`-step phase shift with period W / 2^(gray_bits - 1).
+
+    The Gray code's last bit splits each phase period in half; it corrects the period-edge jumps.
+    The paper's 6-pattern set is (3, 3), the 7-pattern set (4, 3).
+    """
+    period = width / (1 << (gray_bits - 1))
+    return gray_code(width, height, gray_bits) + phase_shift(width, height, period, steps)
+
+
+def hierarchical_pmp(width: int, height: int, short_period: float = 80.0, steps: int = 3) -> PatternSet:
+    """H-PMP: one `steps`-step set with a single period across the width, one with a short period."""
+    return phase_shift(width, height, float(width), steps) + phase_shift(width, height, short_period, steps)
+
+
+def number_theoretic_pmp(width: int, height: int, periods=(48, 70), steps: int = 3) -> PatternSet:
+    """N-PMP: two `steps`-step sets with integer periods, co-prime in units of their greatest common
+    divisor, whose least common multiple (the unambiguous range) covers the width: 48 and 70 px -> 1680 px."""
+    p1, p2 = (int(p) for p in periods)
+    g = math.gcd(p1, p2)
+    if g in (p1, p2):
+        raise ValueError(f"N-PMP periods must be co-prime (in units of their gcd), got {p1} and {p2}")
+    if p1 * p2 // g < width:
+        raise ValueError(f"N-PMP periods {p1}, {p2} are unambiguous over only {p1 * p2 // g} px < width {width}")
+    return phase_shift(width, height, p1, steps) + phase_shift(width, height, p2, steps)
+
+
+def ground_truth_set(width: int, height: int) -> PatternSet:
+    """7 Gray code patterns with inverses + 4-step phase shift with a 40 px period (18 patterns)."""
+    return gray_code(width, height, 7, inverse=True) + phase_shift(width, height, 40.0, 4)
+
+
+# ----------------------------------------------------------------------------------------------
+# Named sets (CLI): a name, or several joined with '+', e.g. "random6+gray7+gt".
+
+NAMED_SETS = {
+    "randomN": "the paper's random binary squares of 20, 10, 5 px, N/3 per scale (random6 = paper, random9)",
+    "grayN": "N-bit column Gray code, no inverses (gray6, gray7, ...)",
+    "grayNinv": "N-bit column Gray code, each bit followed by its inverse (gray7inv: 14 patterns)",
+    "grayrowN / grayrowNinv": "the same over projector rows",
+    "whiteblack": "all-white and all-black frames",
+    "psN": "N-step phase shift with one period across the width",
+    "cgc6 / cgc7": "complementary Gray code: 3 (4) Gray code bits + 3-step phase shift, period W/4 (W/8)",
+    "hpmp6": "hierarchical PMP: 3-step at period W + 3-step at 80 px",
+    "npmp6": "number-theoretic PMP: 3-step at 48 px + 3-step at 70 px",
+    "gt": "ground truth set: gray7inv + 4-step phase shift, period 40 px (18 patterns)",
+}
+
+
+def _one_named(name: str, width: int, height: int, seed: int) -> PatternSet:
+    m = re.fullmatch(r"random(\d+)", name)
+    if m:
+        n = int(m.group(1))
+        if n < 3 or n % 3:
+            raise ValueError(f"pattern set {name!r}: randomN needs N a positive multiple of 3 (one per scale)")
+        return random_binary(width, height, per_scale=n // 3, seed=seed)
+    m = re.fullmatch(r"gray(row)?(\d+)(inv)?", name)
+    if m:
+        return gray_code(width, height, int(m.group(2)), axis="row" if m.group(1) else "col", inverse=bool(m.group(3)))
+    m = re.fullmatch(r"ps(\d+)", name)
+    if m:
+        return phase_shift(width, height, float(width), int(m.group(1)))
+    fixed = {
+        "whiteblack": lambda: white_black(width, height),
+        "cgc6": lambda: complementary_gray_code(width, height, 3),
+        "cgc7": lambda: complementary_gray_code(width, height, 4),
+        "hpmp6": lambda: hierarchical_pmp(width, height),
+        "npmp6": lambda: number_theoretic_pmp(width, height),
+        "gt": lambda: ground_truth_set(width, height),
+    }
+    if name in fixed:
+        return fixed[name]()
+    raise ValueError(f"unknown pattern set {name!r}; known: " + ", ".join(NAMED_SETS))
+
+
+def named_set(spec: str, width: int, height: int, seed: int = 0) -> PatternSet:
+    """A named pattern set (see NAMED_SETS), or several joined with '+' (duplicate frames kept once)."""
+    parts = [p.strip() for p in spec.split("+") if p.strip()]
+    if not parts:
+        raise ValueError("empty pattern set name")
+    out = _one_named(parts[0], width, height, seed)
+    for p in parts[1:]:
+        out = out + _one_named(p, width, height, seed)
+    return out

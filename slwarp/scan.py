@@ -1,0 +1,542 @@
+"""Scan: a calibrated camera + projector rig and its frames (captured image + projected pattern).
+
+On disk, the native layout is a folder holding `scan.yaml` (see `Scan.save`), the images and patterns
+(PNG/TIFF, 8- or 16-bit, colour converted to gray) and optionally `gt_depth` (.npy float32 mm, or 16-bit
+PNG in 0.1 mm, 0 = invalid) and `mask`. `load_scan` also imports the authors' NeSS layout (config.ini)
+and the procam-calibration layout (calibration_result.xml + capture_N/ + graycode_pattern/).
+
+In memory: images [N, H, W] and patterns [N, Hp, Wp] float32 in [0, 1]; gt_depth [H, W] float32 mm with
+NaN where invalid; mask [H, W] bool. Bad input raises `ScanError` naming the file and the problem.
+"""
+from __future__ import annotations
+
+import configparser
+import fnmatch
+import math
+import os
+import re
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from .scanner import CalibrationError, Camera, Projector, check_rotation
+
+__all__ = ["Scan", "ScanError", "load_scan", "read_image", "read_depth", "write_depth_png"]
+
+SCAN_FILE = "scan.yaml"
+
+
+class ScanError(ValueError):
+    """A scan on disk (or in memory) that cannot be used: the message names the file and the problem."""
+
+
+# ----------------------------------------------------------------------------------------------
+# image I/O
+
+
+def read_image(path: str | os.PathLike, what: str = "image") -> np.ndarray:
+    """Read an 8/16-bit or float PNG/TIFF as float32 gray in [0, 1] (colour converted to gray)."""
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise ScanError(f"{what} not found: {path}")
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ScanError(f"{what} is unreadable or corrupt (not a PNG/TIFF image OpenCV can decode): {path}")
+    if img.ndim == 3:
+        if img.shape[2] == 4:
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY)
+        elif img.shape[2] == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        elif img.shape[2] == 1:
+            img = img[..., 0]
+        else:
+            raise ScanError(f"{what} has {img.shape[2]} channels (need gray, BGR or BGRA): {path}")
+    if img.dtype == np.uint8:
+        return img.astype(np.float32) / 255.0
+    if img.dtype == np.uint16:
+        return img.astype(np.float32) / 65535.0
+    if img.dtype in (np.float32, np.float64):
+        out = img.astype(np.float32)
+        if not np.all(np.isfinite(out)):
+            raise ScanError(f"{what} holds non-finite values: {path}")
+        return out
+    raise ScanError(f"{what} has unsupported pixel type {img.dtype} (need 8- or 16-bit or float): {path}")
+
+
+def write_image(path: Path, img: np.ndarray, bits: int = 8) -> None:
+    """Write float [0, 1] gray as an 8- or 16-bit PNG."""
+    import cv2
+
+    scale = 255 if bits == 8 else 65535
+    dtype = np.uint8 if bits == 8 else np.uint16
+    q = np.clip(np.rint(np.asarray(img, np.float64) * scale), 0, scale).astype(dtype)
+    if not cv2.imwrite(str(path), q):
+        raise ScanError(f"could not write image: {path}")
+
+
+def read_depth(path: str | os.PathLike, what: str = "depth") -> np.ndarray:
+    """Depth map in mm, float32, NaN invalid: a .npy (float, mm) or 16-bit PNG (0.1 mm, 0 invalid)."""
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise ScanError(f"{what} not found: {path}")
+    if path.suffix.lower() == ".npy":
+        try:
+            d = np.load(path).astype(np.float32)
+        except Exception as e:  # noqa: BLE001 - any numpy failure is a corrupt file for the user
+            raise ScanError(f"{what} is not a readable .npy array ({e}): {path}") from None
+        if d.ndim != 2:
+            raise ScanError(f"{what} must be a 2-D array, got shape {d.shape}: {path}")
+        d[~np.isfinite(d) | (d <= 0)] = np.nan
+        return d
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ScanError(f"{what} is unreadable or corrupt: {path}")
+    if img.ndim != 2 or img.dtype != np.uint16:
+        raise ScanError(f"{what} PNG must be single-channel 16-bit (depth in 0.1 mm), got {img.dtype} {img.shape}: {path}")
+    d = img.astype(np.float32) / 10.0
+    d[img == 0] = np.nan
+    return d
+
+
+def write_depth_png(path: str | os.PathLike, depth: np.ndarray) -> None:
+    """Write depth (mm, NaN invalid) as a 16-bit PNG in 0.1 mm units, 0 = invalid."""
+    import cv2
+
+    d = np.asarray(depth, np.float64)
+    q = np.where(np.isfinite(d) & (d > 0), np.clip(np.rint(d * 10.0), 1, 65535), 0).astype(np.uint16)
+    if not cv2.imwrite(str(path), q):
+        raise ScanError(f"could not write depth PNG: {path}")
+
+
+def _read_mask(path: Path) -> np.ndarray:
+    return read_image(path, "mask") > 0.5
+
+
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Scan:
+    """A calibrated rig and its frames.
+
+    camera, projector: the rig (X_p = R X_c + T, mm); images [N, H, W] and patterns [N, Hp, Wp] float32 in
+    [0, 1]; names: one frame name per pair (see `slwarp.patterns`); depth_range: (near, far) mm or None;
+    gt_depth [H, W] mm (NaN invalid) or None; mask [H, W] bool or None; source: where it was loaded from.
+    """
+
+    camera: Camera
+    projector: Projector
+    images: np.ndarray
+    patterns: np.ndarray
+    names: list[str]
+    depth_range: tuple[float, float] | None = None
+    gt_depth: np.ndarray | None = None
+    mask: np.ndarray | None = None
+    source: str | None = None
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.images = np.asarray(self.images, np.float32)
+        self.patterns = np.asarray(self.patterns, np.float32)
+        self.names = [str(n) for n in self.names]
+        self.validate()
+
+    # --- validation ---------------------------------------------------------------------------
+    def validate(self) -> None:
+        where = self.source or "scan"
+        n = len(self.names)
+        if n == 0:
+            raise ScanError(f"{where}: the frame list is empty")
+        if self.images.ndim != 3 or self.images.shape[0] != n:
+            raise ScanError(f"{where}: {self.images.shape[0] if self.images.ndim == 3 else '?'} images for {n} frames")
+        if self.patterns.ndim != 3 or self.patterns.shape[0] != n:
+            raise ScanError(f"{where}: image count ({n}) != pattern count ({self.patterns.shape[0]})")
+        if self.images.shape[1:] != (self.camera.height, self.camera.width):
+            raise ScanError(
+                f"{where}: image size {self.images.shape[2]}x{self.images.shape[1]} != camera size "
+                f"{self.camera.width}x{self.camera.height}"
+            )
+        if self.patterns.shape[1:] != (self.projector.height, self.projector.width):
+            raise ScanError(
+                f"{where}: pattern size {self.patterns.shape[2]}x{self.patterns.shape[1]} != projector size "
+                f"{self.projector.width}x{self.projector.height}"
+            )
+        if len(set(self.names)) != n:
+            dup = sorted({x for x in self.names if self.names.count(x) > 1})
+            raise ScanError(f"{where}: duplicate frame names {dup}")
+        if self.depth_range is not None:
+            near, far = (float(x) for x in self.depth_range)
+            if not (math.isfinite(near) and math.isfinite(far) and 0 < near < far):
+                raise ScanError(f"{where}: depth_range must be 0 < near < far (mm), got {self.depth_range}")
+            self.depth_range = (near, far)
+        for name, arr in (("gt_depth", self.gt_depth), ("mask", self.mask)):
+            if arr is not None and arr.shape != (self.camera.height, self.camera.width):
+                raise ScanError(f"{where}: {name} shape {arr.shape} != camera size {self.camera.height}x{self.camera.width}")
+
+    # --- frames -------------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def frame_indices(self, frames) -> list[int]:
+        """Resolve a frame selection to indices.
+
+        `frames`: an int, a name, or a list of them, or a comma-separated string of tokens; a token is an
+        index, a slice `a:b`, a frame name or a glob (`gc_col_b*`). Order is kept, duplicates dropped.
+        """
+        if isinstance(frames, (int, np.integer)):
+            tokens = [int(frames)]
+        elif isinstance(frames, str):
+            tokens = [t.strip() for t in frames.split(",") if t.strip()]
+        else:
+            tokens = list(frames)
+        out: list[int] = []
+        n = len(self.names)
+        for tok in tokens:
+            hits: list[int]
+            if isinstance(tok, (int, np.integer)) or (isinstance(tok, str) and re.fullmatch(r"-?\d+", tok)):
+                i = int(tok)
+                if not -n <= i < n:
+                    raise ScanError(f"{self.source or 'scan'}: frame index {i} out of range (0..{n - 1})")
+                hits = [i % n]
+            elif isinstance(tok, str) and re.fullmatch(r"-?\d*:-?\d*", tok):
+                a, b = tok.split(":")
+                hits = list(range(n))[slice(int(a) if a else None, int(b) if b else None)]
+            elif tok in self.names:
+                hits = [self.names.index(tok)]
+            else:
+                hits = [i for i, nm in enumerate(self.names) if fnmatch.fnmatchcase(nm, str(tok))]
+                if not hits:
+                    raise ScanError(
+                        f"{self.source or 'scan'}: no frame matches {tok!r}; frames are: {', '.join(self.names)}"
+                    )
+            out.extend(h for h in hits if h not in out)
+        if not out:
+            raise ScanError(f"{self.source or 'scan'}: the frame selection {frames!r} is empty")
+        return out
+
+    def select(self, frames) -> "Scan":
+        """A scan with a subset of the frames (see `frame_indices`), sharing calibration and ground truth."""
+        idx = self.frame_indices(frames)
+        return replace(self, images=self.images[idx], patterns=self.patterns[idx], names=[self.names[i] for i in idx])
+
+    def has(self, *names: str) -> bool:
+        return all(n in self.names for n in names)
+
+    def frame(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """(image, pattern) of the frame called `name`."""
+        i = self.names.index(name)
+        return self.images[i], self.patterns[i]
+
+    def image(self, name: str) -> np.ndarray:
+        return self.images[self.names.index(name)]
+
+    # --- summary ------------------------------------------------------------------------------
+    def summary(self) -> str:
+        lines = [
+            f"scan: {self.source or '(in memory)'}",
+            f"  camera:    {self.camera.describe()}",
+            f"  projector: {self.projector.describe()}",
+            f"  depth range: {self.depth_range[0]:.1f} .. {self.depth_range[1]:.1f} mm" if self.depth_range else "  depth range: not given",
+            f"  frames: {len(self.names)}",
+        ]
+        for group, members in _group_names(self.names):
+            lines.append(f"    {group}: {members}")
+        if self.gt_depth is not None:
+            valid = np.isfinite(self.gt_depth)
+            if valid.any():
+                lo, hi = np.nanmin(self.gt_depth), np.nanmax(self.gt_depth)
+                lines.append(f"  ground truth depth: yes ({valid.mean() * 100:.1f}% valid, {lo:.1f} .. {hi:.1f} mm)")
+            else:
+                lines.append("  ground truth depth: yes (no valid pixel)")
+        else:
+            lines.append("  ground truth depth: no")
+        lines.append(f"  mask: {'yes (%.1f%% set)' % (self.mask.mean() * 100) if self.mask is not None else 'no'}")
+        return "\n".join(lines)
+
+    # --- saving -------------------------------------------------------------------------------
+    def save(self, folder: str | os.PathLike, bits: int = 8) -> Path:
+        """Write the native layout: scan.yaml, images/, patterns/, gt_depth.npy + gt_depth.png, mask.png.
+
+        bits: bit depth of the camera images (8 or 16). Patterns are 8-bit when binary, else 16-bit.
+        """
+        import yaml
+
+        folder = Path(folder)
+        (folder / "images").mkdir(parents=True, exist_ok=True)
+        (folder / "patterns").mkdir(parents=True, exist_ok=True)
+        frames = []
+        for i, name in enumerate(self.names):
+            img_rel = f"images/{i:03d}_{name}.png"
+            pat_rel = f"patterns/{name}.png"
+            write_image(folder / img_rel, self.images[i], bits)
+            pat = self.patterns[i]
+            binary = bool(np.all((pat == 0) | (pat == 1)))
+            write_image(folder / pat_rel, pat, 8 if binary else 16)
+            frames.append({"name": name, "image": img_rel, "pattern": pat_rel})
+        doc = {
+            "units": "mm",
+            "camera": self.camera.to_dict(),
+            "projector": self.projector.to_dict(),
+            "extrinsics": self.projector.extrinsics_dict(),
+        }
+        if self.depth_range is not None:
+            doc["depth_range"] = [float(self.depth_range[0]), float(self.depth_range[1])]
+        doc["frames"] = frames
+        if self.gt_depth is not None:
+            np.save(folder / "gt_depth.npy", self.gt_depth.astype(np.float32))
+            write_depth_png(folder / "gt_depth.png", self.gt_depth)
+            doc["gt_depth"] = "gt_depth.npy"
+        if self.mask is not None:
+            write_image(folder / "mask.png", self.mask.astype(np.float32), 8)
+            doc["mask"] = "mask.png"
+        if self.meta:
+            doc["meta"] = self.meta
+        with open(folder / SCAN_FILE, "w") as f:
+            yaml.safe_dump(doc, f, sort_keys=False, default_flow_style=None, width=120)
+        return folder
+
+
+def _group_names(names: list[str]) -> list[tuple[str, str]]:
+    """Frame names grouped by family for the summary, e.g. ('gray code, columns', 'gc_col_b0..b9 (+inv)')."""
+    groups: dict[str, list[str]] = {}
+    for n in names:
+        m = re.match(r"(rand|gc_col|gc_row|ps_col_p[\d.]+|ps_row_p[\d.]+)", n)
+        key = m.group(1) if m else n
+        groups.setdefault(key, []).append(n)
+    label = {"rand": "random squares", "gc_col": "Gray code, columns", "gc_row": "Gray code, rows"}
+    out = []
+    for key, members in groups.items():
+        if key.startswith("ps_"):
+            lab = f"phase shift {key[3:6]}s, period {key.split('_p')[1]} px"
+        else:
+            lab = label.get(key, "frame")
+        shown = ", ".join(members) if len(members) <= 6 else f"{', '.join(members[:3])}, ... {members[-1]}"
+        out.append((lab, f"{len(members)}: {shown}"))
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# loading
+
+
+def load_scan(path: str | os.PathLike, frames=None, capture: int | str | None = None) -> Scan:
+    """Load a scan, detecting the layout: native (scan.yaml), NeSS (config.ini) or procam
+    (calibration_result.xml). `frames` selects a subset (see `Scan.frame_indices`); `capture` picks
+    capture_N in the procam layout (default: the first one)."""
+    path = Path(path)
+    if not path.exists():
+        raise ScanError(f"scan not found: {path}")
+    if path.is_file():
+        if path.name == SCAN_FILE:
+            path = path.parent
+        else:
+            raise ScanError(f"a scan is a folder (with {SCAN_FILE}, config.ini or calibration_result.xml), got a file: {path}")
+    if (path / SCAN_FILE).is_file():
+        scan = _load_native(path)
+    elif (path / "config.ini").is_file():
+        scan = _load_ness(path)
+    elif (path / "calibration_result.xml").is_file():
+        scan = _load_procam(path, capture)
+    elif path.name.startswith("capture_") and (path.parent / "calibration_result.xml").is_file():
+        scan = _load_procam(path.parent, path.name)
+    else:
+        raise ScanError(
+            f"{path}: no scan found: missing {SCAN_FILE} (native layout), config.ini (NeSS layout) or "
+            "calibration_result.xml (procam layout)"
+        )
+    return scan.select(frames) if frames is not None else scan
+
+
+def _load_stack(files: list[tuple[Path, str]], shape: tuple[int, int], kind: str, size_name: str) -> np.ndarray:
+    """Read images of one kind and check their size against `shape` (height, width)."""
+    out = np.empty((len(files), *shape), np.float32)
+    for i, (f, what) in enumerate(files):
+        img = read_image(f, what)
+        if img.shape != shape:
+            raise ScanError(
+                f"{kind} size {img.shape[1]}x{img.shape[0]} != {size_name} size {shape[1]}x{shape[0]}: {f}"
+            )
+        out[i] = img
+    return out
+
+
+def _wrap_calibration(where: Path, fn):
+    try:
+        return fn()
+    except CalibrationError as e:
+        raise ScanError(f"{where}: {e}") from None
+
+
+def _load_native(folder: Path) -> Scan:
+    import yaml
+
+    f = folder / SCAN_FILE
+    try:
+        doc = yaml.safe_load(f.read_text())
+    except yaml.YAMLError as e:
+        raise ScanError(f"{f}: not valid YAML ({e})") from None
+    if not isinstance(doc, dict):
+        raise ScanError(f"{f}: expected a mapping with camera, projector, extrinsics and frames")
+    for key in ("camera", "projector", "extrinsics", "frames"):
+        if key not in doc:
+            raise ScanError(f"{f}: missing key {key!r}")
+    units = doc.get("units", "mm")
+    if units != "mm":
+        raise ScanError(f"{f}: units must be 'mm', got {units!r}")
+    camera = _wrap_calibration(f, lambda: Camera.from_dict(doc["camera"], "camera"))
+    projector = _wrap_calibration(f, lambda: Projector.from_dicts(doc["projector"], doc["extrinsics"]))
+    frames = doc["frames"]
+    if not isinstance(frames, list) or not frames:
+        raise ScanError(f"{f}: the frame list is empty")
+    img_files, pat_files, names = [], [], []
+    for i, fr in enumerate(frames):
+        if not isinstance(fr, dict) or "image" not in fr or "pattern" not in fr:
+            raise ScanError(f"{f}: frame {i} needs 'image' and 'pattern' entries, got {fr!r}")
+        img_files.append((folder / fr["image"], f"image of frame {i}"))
+        pat_files.append((folder / fr["pattern"], f"pattern of frame {i}"))
+        names.append(str(fr.get("name", f"frame{i}")))
+    images = _load_stack(img_files, (camera.height, camera.width), "image", "camera")
+    patterns = _load_stack(pat_files, (projector.height, projector.width), "pattern", "projector")
+    gt = read_depth(folder / doc["gt_depth"], "gt_depth") if doc.get("gt_depth") else None
+    if gt is not None and gt.shape != (camera.height, camera.width):
+        raise ScanError(f"gt_depth size {gt.shape[1]}x{gt.shape[0]} != camera size {camera.width}x{camera.height}: {folder / doc['gt_depth']}")
+    mask = _read_mask(folder / doc["mask"]) if doc.get("mask") else None
+    if mask is not None and mask.shape != (camera.height, camera.width):
+        raise ScanError(f"mask size {mask.shape[1]}x{mask.shape[0]} != camera size: {folder / doc['mask']}")
+    dr = doc.get("depth_range")
+    if dr is not None and (not isinstance(dr, (list, tuple)) or len(dr) != 2):
+        raise ScanError(f"{f}: depth_range must be [near, far] in mm, got {dr!r}")
+    try:
+        return Scan(camera, projector, images, patterns, names, depth_range=tuple(dr) if dr else None,
+                    gt_depth=gt, mask=mask, source=str(folder), meta=doc.get("meta") or {})
+    except ScanError as e:
+        raise ScanError(f"{f}: {e}") from None
+
+
+# --- NeSS layout (the authors' data): config.ini [RawCalib] + img/ + pat/ + gt/ -------------------
+
+
+def _floats(cfg_file: Path, section, key: str, count: int | None) -> np.ndarray:
+    if key not in section:
+        raise ScanError(f"{cfg_file}: [{section.name}] is missing {key!r}")
+    try:
+        vals = np.array([float(x) for x in re.split(r"[,\s]+", section[key].strip()) if x], np.float64)
+    except ValueError:
+        raise ScanError(f"{cfg_file}: [{section.name}] {key} is not a list of numbers: {section[key]!r}") from None
+    if count is not None and vals.size != count:
+        raise ScanError(f"{cfg_file}: [{section.name}] {key} needs {count} numbers, got {vals.size}")
+    return vals
+
+
+def _natural_key(s: str):
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", s)]
+
+
+def _load_ness(folder: Path) -> Scan:
+    cfg_file = folder / "config.ini"
+    cfg = configparser.ConfigParser()
+    try:
+        cfg.read(cfg_file, encoding="utf-8")
+    except configparser.Error as e:
+        raise ScanError(f"{cfg_file}: not a valid INI file ({e})") from None
+    sec_name = next((s for s in ("RawCalib", "Calibration") if s in cfg), None)
+    if sec_name is None:
+        raise ScanError(f"{cfg_file}: missing section [RawCalib]")
+    sec = cfg[sec_name]
+    img_w, img_h = _floats(cfg_file, sec, "img_size", 2).astype(int)
+    pat_w, pat_h = _floats(cfg_file, sec, "pat_size", 2).astype(int)
+    fx, fy, cx, cy = _floats(cfg_file, sec, "img_intrin", 4)
+    pfx, pfy, pcx, pcy = _floats(cfg_file, sec, "pat_intrin", 4)
+    R = _floats(cfg_file, sec, "ext_rot", 9).reshape(3, 3)
+    T = _floats(cfg_file, sec, "ext_tran", 3)
+    zr = _floats(cfg_file, sec, "z_range", 2) if "z_range" in sec else None
+    camera = _wrap_calibration(cfg_file, lambda: Camera(img_w, img_h, [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]))
+    projector = _wrap_calibration(
+        cfg_file, lambda: Projector(pat_w, pat_h, [[pfx, 0, pcx], [0, pfy, pcy], [0, 0, 1]], R=check_rotation(R, "ext_rot"), T=T)
+    )
+    pats = {p.stem[4:]: p for p in (folder / "pat").glob("pat_*.png")}
+    imgs = {p.stem[4:]: p for p in (folder / "img").glob("img_*.png")}
+    if not pats:
+        raise ScanError(f"{folder / 'pat'}: no pattern images pat_<tag>.png")
+    missing = sorted(set(pats) - set(imgs), key=_natural_key)
+    if missing:
+        raise ScanError(f"{folder / 'img'}: image count != pattern count: no img_<tag>.png for tags {missing}")
+    tags = sorted(pats, key=_natural_key)
+    images = _load_stack([(imgs[t], f"image img_{t}") for t in tags], (img_h, img_w), "image", "camera")
+    patterns = _load_stack([(pats[t], f"pattern pat_{t}") for t in tags], (pat_h, pat_w), "pattern", "projector")
+    gt = read_depth(folder / "gt" / "depth.png", "gt/depth.png") if (folder / "gt" / "depth.png").is_file() else None
+    mask = _read_mask(folder / "gt" / "mask_occ.png") if (folder / "gt" / "mask_occ.png").is_file() else None
+    try:
+        return Scan(camera, projector, images, patterns, [f"ness_{t}" for t in tags],
+                    depth_range=tuple(zr) if zr is not None else None, gt_depth=gt, mask=mask, source=str(folder))
+    except ScanError as e:
+        raise ScanError(f"{folder}: {e}") from None
+
+
+# --- procam-calibration layout (OpenCV structured_light.GrayCodePattern captures) ------------------
+
+
+def _procam_names(width: int, height: int) -> list[str]:
+    """Frame order of OpenCV's GrayCodePattern: column bits (MSB first, each + inverse), row bits, white, black."""
+    ncol, nrow = math.ceil(math.log2(width)), math.ceil(math.log2(height))
+    names = []
+    for axis, n in (("col", ncol), ("row", nrow)):
+        for k in range(n):
+            names += [f"gc_{axis}_b{k}", f"gc_{axis}_b{k}_inv"]
+    return names + ["white", "black"]
+
+
+def _load_procam(folder: Path, capture) -> Scan:
+    import cv2
+
+    xml = folder / "calibration_result.xml"
+    fs = cv2.FileStorage(str(xml), cv2.FILE_STORAGE_READ)
+    if not fs.isOpened():
+        raise ScanError(f"{xml}: not a readable OpenCV FileStorage file")
+
+    def mat(*keys):
+        for k in keys:
+            node = fs.getNode(k)
+            if not node.empty():
+                m = node.mat()
+                if m is None:
+                    raise ScanError(f"{xml}: {k} is not a matrix")
+                return np.asarray(m, np.float64)
+        raise ScanError(f"{xml}: missing {' or '.join(keys)}")
+
+    cam_K, cam_d = mat("cam_int"), mat("cam_dist")
+    prj_K, prj_d = mat("proj_int"), mat("proj_dist")
+    R, T = mat("rotation", "roration"), mat("translation")
+    fs.release()
+    caps = sorted((p for p in folder.glob("capture_*") if p.is_dir()), key=lambda p: _natural_key(p.name))
+    if not caps:
+        raise ScanError(f"{folder}: no capture_N folder")
+    if capture is None:
+        cap = caps[0]
+    else:
+        cap = folder / (capture if isinstance(capture, str) else f"capture_{capture}")
+        if not cap.is_dir():
+            raise ScanError(f"{folder}: capture folder {cap.name} not found (have {[c.name for c in caps]})")
+    pat_files = sorted((folder / "graycode_pattern").glob("pattern_*.png"), key=lambda p: _natural_key(p.name))
+    img_files = sorted(cap.glob("graycode_*.png"), key=lambda p: _natural_key(p.name))
+    if not pat_files:
+        raise ScanError(f"{folder / 'graycode_pattern'}: no pattern_NN.png files")
+    if len(img_files) != len(pat_files):
+        raise ScanError(f"{cap}: image count ({len(img_files)}) != pattern count ({len(pat_files)})")
+    first = read_image(img_files[0], "image")
+    first_pat = read_image(pat_files[0], "pattern")
+    camera = _wrap_calibration(xml, lambda: Camera(first.shape[1], first.shape[0], cam_K, cam_d))
+    projector = _wrap_calibration(
+        xml, lambda: Projector(first_pat.shape[1], first_pat.shape[0], prj_K, prj_d, R=check_rotation(R, "rotation"), T=T.ravel())
+    )
+    names = _procam_names(projector.width, projector.height)
+    if len(names) != len(pat_files):
+        names = [f"frame{i:02d}" for i in range(len(pat_files))]  # not OpenCV's Gray code order: keep generic names
+    images = _load_stack([(f, "image") for f in img_files], (camera.height, camera.width), "image", "camera")
+    patterns = _load_stack([(f, "pattern") for f in pat_files], (projector.height, projector.width), "pattern", "projector")
+    return Scan(camera, projector, images, patterns, names, source=str(cap))

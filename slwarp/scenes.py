@@ -1,0 +1,172 @@
+"""Built-in scenes of the virtual scanner: procedural objects in front of a wall, in the camera frame (mm).
+
+Modelled on the paper's setup: objects 550 to 900 mm from the camera in front of a wall at about 950 mm.
+Everything is generated here (trimesh primitives, surfaces of revolution, an implicit blobby shape
+through marching cubes); nothing is downloaded.
+
+    spheres   three spheres of different sizes and albedos
+    torus     a tilted torus and a small sphere
+    boxes     three rotated boxes with textured faces (sharp edges, planes)
+    bunny     a smooth blobby "bunny-like" shape (body, head, ears) built as an implicit surface
+    vase      a textured surface of revolution and a lying cylinder
+    steps     a staircase receding in depth, a cone and a capsule
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+SCENE_NAMES = ("spheres", "torus", "boxes", "bunny", "vase", "steps")
+DEFAULT_SCENE = "bunny"
+
+
+@dataclass
+class SceneObject:
+    """A mesh (camera frame, mm, outward normals) with its reflectance.
+
+    albedo: Lambertian albedo in [0, 1]; texture: amplitude in [0, 1] of a smooth 3-D sinusoidal albedo
+    texture (0 = uniform), texture_period: its period in mm.
+    """
+
+    name: str
+    mesh: "object"  # trimesh.Trimesh
+    albedo: float = 0.7
+    texture: float = 0.0
+    texture_period: float = 40.0
+
+
+def _transform(translation=(0, 0, 0), rx=0.0, ry=0.0, rz=0.0) -> np.ndarray:
+    """4x4 rigid transform: rotations about x, y, z (degrees, applied in that order), then translation."""
+    import trimesh
+
+    T = trimesh.transformations.euler_matrix(np.radians(rx), np.radians(ry), np.radians(rz), "sxyz")
+    T[:3, 3] = translation
+    return T
+
+
+def _wall(z: float = 950.0, tilt_deg: float = 8.0, albedo: float = 0.65) -> SceneObject:
+    import trimesh
+
+    wall = trimesh.creation.box(extents=(1800.0, 1500.0, 20.0), transform=_transform((0, 0, z + 10.0), ry=tilt_deg))
+    return SceneObject("wall", wall, albedo)
+
+
+def _sphere(center, radius, subdivisions=6):
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    m.apply_translation(center)
+    return m
+
+
+def _blobby_bunny(center=(0.0, 20.0, 730.0), voxel=2.0):
+    """A smooth bunny-like implicit shape: union of ellipsoids blended by a smooth minimum."""
+    import trimesh
+    from skimage.measure import marching_cubes
+
+    # ellipsoids: centre (mm, object frame with y down), radii
+    parts = [
+        ((0.0, 40.0, 0.0), (105.0, 80.0, 85.0)),  # body
+        ((-85.0, -45.0, -15.0), (58.0, 52.0, 55.0)),  # head
+        ((-105.0, -135.0, -5.0), (16.0, 60.0, 14.0)),  # ear 1
+        ((-65.0, -140.0, -25.0), (16.0, 58.0, 14.0)),  # ear 2
+        ((105.0, 30.0, 10.0), (28.0, 26.0, 26.0)),  # tail
+        ((-40.0, 110.0, -35.0), (40.0, 22.0, 35.0)),  # front paw
+        ((60.0, 110.0, -30.0), (50.0, 24.0, 40.0)),  # back paw
+    ]
+    lo = np.array([-180.0, -210.0, -130.0])
+    hi = np.array([150.0, 150.0, 130.0])
+    axes = [np.arange(lo[i], hi[i] + voxel, voxel) for i in range(3)]
+    X, Y, Z = np.meshgrid(*axes, indexing="ij")
+    k = 12.0  # smooth-min blending width (mm)
+    acc = np.zeros_like(X)
+    for c, r in parts:
+        # approximate signed distance of an ellipsoid (scaled by the smallest radius)
+        q = np.sqrt(((X - c[0]) / r[0]) ** 2 + ((Y - c[1]) / r[1]) ** 2 + ((Z - c[2]) / r[2]) ** 2)
+        d = (q - 1.0) * min(r)
+        acc += np.exp(-d / k)
+    sdf = -k * np.log(acc)
+    verts, faces, _, _ = marching_cubes(sdf, level=0.0, spacing=(voxel, voxel, voxel))
+    verts += lo
+    mesh = trimesh.Trimesh(verts, faces[:, ::-1], process=True)  # marching cubes winds inward here
+    if mesh.volume < 0:
+        mesh.invert()
+    trimesh.smoothing.filter_taubin(mesh, iterations=10)
+    mesh.apply_transform(_transform(center, ry=-20.0))
+    return mesh
+
+
+def _vase(center, height=300.0, sections=256):
+    import trimesh
+
+    y = np.linspace(-height / 2, height / 2, 121)
+    t = (y + height / 2) / height
+    r = 55.0 + 45.0 * np.sin(np.pi * t * 1.2) ** 2 - 20.0 * t
+    # profile in the (radius, height) plane; revolve about the object's z, then stand it up along y
+    line = np.stack([r, y], axis=1)
+    mesh = trimesh.creation.revolve(line, sections=sections, cap=True)
+    mesh.apply_transform(_transform(center, rx=90.0))
+    return mesh
+
+
+def build_scene(name: str) -> list[SceneObject]:
+    """The objects of a built-in scene (camera frame, mm)."""
+    import trimesh
+
+    if name == "spheres":
+        return [
+            _wall(),
+            SceneObject("sphere_large", _sphere((-110.0, 10.0, 760.0), 95.0), 0.8),
+            SceneObject("sphere_medium", _sphere((125.0, -85.0, 650.0), 60.0), 0.55),
+            SceneObject("sphere_small", _sphere((75.0, 125.0, 840.0), 45.0), 0.75),
+        ]
+    if name == "torus":
+        torus = trimesh.creation.torus(110.0, 38.0, major_sections=256, minor_sections=96,
+                                       transform=_transform((-30.0, -10.0, 720.0), rx=55.0, ry=25.0))
+        return [_wall(tilt_deg=-6.0), SceneObject("torus", torus, 0.75),
+                SceneObject("sphere", _sphere((165.0, 120.0, 790.0), 42.0), 0.6)]
+    if name == "boxes":
+        return [
+            _wall(tilt_deg=12.0),
+            SceneObject("box_a", trimesh.creation.box((160.0, 160.0, 160.0), transform=_transform((-125.0, 40.0, 800.0), rx=20.0, ry=30.0)), 0.7, 0.35, 60.0),
+            SceneObject("box_b", trimesh.creation.box((100.0, 230.0, 90.0), transform=_transform((125.0, -30.0, 690.0), ry=-28.0, rz=8.0)), 0.6, 0.35, 45.0),
+            SceneObject("box_c", trimesh.creation.box((80.0, 60.0, 80.0), transform=_transform((10.0, 150.0, 600.0), rx=-15.0, ry=40.0)), 0.8),
+        ]
+    if name == "bunny":
+        return [_wall(tilt_deg=-10.0), SceneObject("bunny", _blobby_bunny(), 0.8)]
+    if name == "vase":
+        cyl = trimesh.creation.cylinder(radius=40.0, height=220.0, sections=192,
+                                        transform=_transform((150.0, 120.0, 690.0), ry=70.0, rx=10.0))
+        return [_wall(tilt_deg=5.0), SceneObject("vase", _vase((-80.0, 0.0, 760.0)), 0.7, 0.4, 35.0),
+                SceneObject("cylinder", cyl, 0.65)]
+    if name == "steps":
+        objs = [_wall(tilt_deg=0.0)]
+        for i in range(4):
+            z = 620.0 + 70.0 * i
+            step = trimesh.creation.box((260.0, 70.0, 60.0), transform=_transform((-110.0, 120.0 - 75.0 * i, z), ry=10.0))
+            objs.append(SceneObject(f"step_{i}", step, 0.7 - 0.05 * i))
+        cone = trimesh.creation.cone(radius=70.0, height=150.0, sections=192, transform=_transform((140.0, 20.0, 760.0), rx=-90.0))
+        capsule = trimesh.creation.capsule(height=160.0, radius=35.0, count=[96, 96],
+                                           transform=_transform((120.0, -150.0, 680.0), ry=90.0, rz=15.0))
+        objs += [SceneObject("cone", cone, 0.75), SceneObject("capsule", capsule, 0.6)]
+        return objs
+    raise ValueError(f"unknown scene {name!r}; built-in scenes: {', '.join(SCENE_NAMES)}")
+
+
+def load_mesh_objects(paths, albedo: float = 0.7) -> list[SceneObject]:
+    """User meshes (any format trimesh reads; camera frame, mm) as scene objects."""
+    import trimesh
+
+    objs = []
+    for p in paths:
+        try:
+            m = trimesh.load(p, force="mesh")
+        except Exception as e:  # noqa: BLE001 - trimesh raises many types; report the file
+            raise ValueError(f"cannot read mesh {p}: {e}") from None
+        if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
+            raise ValueError(f"mesh {p} has no triangles")
+        if not np.all(np.isfinite(m.vertices)):
+            raise ValueError(f"mesh {p} has non-finite vertices")
+        objs.append(SceneObject(str(p), m, albedo))
+    return objs
