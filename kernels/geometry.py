@@ -2,7 +2,6 @@
 
 Conventions follow `slwarp.scanner`: mm, OpenCV axes, pixel centres at integer coordinates, X_p = R X_c + T.
 """
-from __future__ import annotations
 
 import numpy as np
 import warp as wp
@@ -92,3 +91,47 @@ def project_to_projector_grad(prm: ProjectorParams, xc: wp.vec3, du: float, dv: 
     gyn = gxd * J[1] + gyd * J[3]
     gxp = wp.vec3(gxn * inv_z, gyn * inv_z, -(gxn * xn + gyn * yn) * inv_z)
     return wp.transpose(prm.R) * gxp
+
+
+@wp.struct
+class CameraParams:
+    """A camera for kernels: intrinsics and distortion."""
+
+    f: wp.vec2
+    c: wp.vec2
+    k: wp.vec3  # k1, k2, k3
+    p: wp.vec2  # p1, p2
+
+
+def camera_params(camera) -> CameraParams:
+    """Pack a `slwarp.Camera` for kernels."""
+    prm = CameraParams()
+    prm.f = wp.vec2(camera.fx, camera.fy)
+    prm.c = wp.vec2(camera.cx, camera.cy)
+    d = camera.dist
+    prm.k = wp.vec3(float(d[0]), float(d[1]), float(d[4]))
+    prm.p = wp.vec2(float(d[2]), float(d[3]))
+    return prm
+
+
+@wp.func
+def undistort(xd: float, yd: float, k: wp.vec3, p: wp.vec2) -> wp.vec2:
+    """Inverse of `distort` by Newton's method (12 steps, as slwarp.scanner.undistort_normalized)."""
+    x = xd
+    y = yd
+    for _ in range(12):
+        dd = distort(x, y, k, p)
+        J = distort_jacobian(x, y, k, p)
+        fx = dd[0] - xd
+        fy = dd[1] - yd
+        det = J[0] * J[3] - J[1] * J[2]
+        x = x - (J[3] * fx - J[1] * fy) / det
+        y = y - (J[0] * fy - J[2] * fx) / det
+    return wp.vec2(x, y)
+
+
+@wp.func
+def pixel_ray(cam: CameraParams, uv: wp.vec2) -> wp.vec3:
+    """Unit camera-frame ray through the (distorted) pixel uv."""
+    n = undistort((uv[0] - cam.c[0]) / cam.f[0], (uv[1] - cam.c[1]) / cam.f[1], cam.k, cam.p)
+    return wp.normalize(wp.vec3(n[0], n[1], 1.0))

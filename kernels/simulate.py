@@ -7,7 +7,6 @@ cast_camera_rays: one thread per camera pixel.
     projector image; shade = albedo * cos(angle to projector) * (ref_dist / dist_to_projector)^2.
 sample_patterns: one thread per (frame, pixel): the defocused pattern value at the projector pixel.
 """
-from __future__ import annotations
 
 import warp as wp
 

@@ -1,0 +1,294 @@
+"""The fused structured-light renderer: one thread per ray, all S samples and all N patterns.
+
+Forward, per ray r with samples x_k = o + z_k d (k = 0..S-1):
+    dz_k      = z_{k+1} - z_k (last: `last_delta`, or the previous interval when last_delta < 0)
+    cos_k     = d . g_k;  c_k = -(relu(0.5 - 0.5 cos_k) (1 - anneal) + relu(-cos_k) anneal)     (NeuS)
+    alpha_k   = clamp((sig((f_k - c_k dz_k / 2) s) - sig((f_k + c_k dz_k / 2) s) + 1e-5)
+                      / (sig((f_k - c_k dz_k / 2) s) + 1e-5), 0, 1)                              (NeuS)
+    T_k       = prod_{j<k} (1 - alpha_j + 1e-7);  w_k = alpha_k T_k
+    rendered_n = a sum_k w_k + b sum_k w_k P_n(pi(x_k))   (P_n bilinear, zero outside the projector image)
+    surface   = sum_k w_k x_k;  depth = surface_z;  surface_rendered_n = a + b P_n(pi(surface))
+    eikonal_k = (|g_k| - 1)^2 inside the working volume (axis-aligned box), else 0
+Backward is written by hand: the transmittance product is a loop-carried dependency that Warp's
+automatic adjoint does not replay. With G_k the total cotangent reaching w_k,
+    dL/dalpha_k = T_k (G_k - U_k),  U_{k} = G_{k+1} alpha_{k+1} + (1 - alpha_{k+1} + 1e-7) U_{k+1},  U_{S-1} = 0,
+a suffix recurrence: no division by (1 - alpha). The backward kernel makes a forward pass (T_k, G_k
+without the surface term, and the surface point), then a reverse pass; the per-sample scratch lives in
+the d_grad output, which the reverse pass overwrites with the final gradient.
+
+Kernels are specialised on the pattern count N (a compile-time constant: per-pattern accumulators stay
+in registers). Patterns are packed [H, W, N] so the N values of one projector pixel are contiguous.
+"""
+
+import functools
+
+import warp as wp
+
+from .geometry import ProjectorParams, project_to_projector, project_to_projector_grad
+
+ALPHA_EPS = 1.0e-5  # NeuS's alpha regulariser
+TRANS_EPS = 1.0e-7  # NeuS's transmittance regulariser
+NORM_EPS = 1.0e-12  # |g| = sqrt(g.g + eps): finite Eikonal gradient at g = 0
+
+
+@wp.func
+def iter_cos(true_cos: float, anneal: float) -> float:
+    return -(wp.max(-true_cos * 0.5 + 0.5, 0.0) * (1.0 - anneal) + wp.max(-true_cos, 0.0) * anneal)
+
+
+@wp.func
+def sigmoid(x: float) -> float:
+    return 1.0 / (1.0 + wp.exp(-x))
+
+
+@wp.func
+def neus_alpha(sdf: float, true_cos: float, dz: float, inv_s: float, anneal: float) -> float:
+    c = iter_cos(true_cos, anneal)
+    prev_cdf = sigmoid((sdf - c * dz * 0.5) * inv_s)
+    next_cdf = sigmoid((sdf + c * dz * 0.5) * inv_s)
+    return wp.clamp((prev_cdf - next_cdf + ALPHA_EPS) / (prev_cdf + ALPHA_EPS), 0.0, 1.0)
+
+
+@wp.func
+def neus_alpha_vjp(sdf: float, true_cos: float, dz: float, inv_s: float, anneal: float, g_alpha: float) -> wp.vec3:
+    """(dL/dsdf, dL/dtrue_cos, dL/dinv_s) given dL/dalpha; zero where the clamp is active (as torch)."""
+    c = iter_cos(true_cos, anneal)
+    prev = sdf - c * dz * 0.5
+    nxt = sdf + c * dz * 0.5
+    prev_cdf = sigmoid(prev * inv_s)
+    next_cdf = sigmoid(nxt * inv_s)
+    raw = (prev_cdf - next_cdf + ALPHA_EPS) / (prev_cdf + ALPHA_EPS)
+    if raw < 0.0 or raw > 1.0:
+        return wp.vec3(0.0, 0.0, 0.0)
+    inv = 1.0 / (prev_cdf + ALPHA_EPS)
+    g_prev_arg = g_alpha * next_cdf * inv * inv * prev_cdf * (1.0 - prev_cdf)
+    g_next_arg = -g_alpha * inv * next_cdf * (1.0 - next_cdf)
+    g_prev = g_prev_arg * inv_s
+    g_next = g_next_arg * inv_s
+    g_c = (g_next - g_prev) * dz * 0.5
+    dc_dcos = wp.where(true_cos < 1.0, 0.5 * (1.0 - anneal), 0.0) + wp.where(true_cos < 0.0, anneal, 0.0)
+    return wp.vec3(g_prev + g_next, g_c * dc_dcos, g_prev_arg * prev + g_next_arg * nxt)
+
+
+@wp.func
+def interval(z: wp.array2d(dtype=float), r: int, k: int, last_delta: float) -> float:
+    S = z.shape[1]
+    if k + 1 < S:
+        return z[r, k + 1] - z[r, k]
+    if last_delta >= 0.0:
+        return last_delta
+    if S > 1:
+        return z[r, k] - z[r, k - 1]
+    return 0.0
+
+
+@wp.func
+def inside_box(x: wp.vec3, bmin: wp.vec3, bmax: wp.vec3) -> bool:
+    return x[0] >= bmin[0] and x[0] <= bmax[0] and x[1] >= bmin[1] and x[1] <= bmax[1] and x[2] >= bmin[2] and x[2] <= bmax[2]
+
+
+@functools.lru_cache(maxsize=None)
+def render_kernels(N: int):
+    """(forward, backward) kernels for N patterns."""
+    vecN = wp.types.vector(length=N, dtype=wp.float32)
+
+    @wp.func
+    def sample_all(pat: wp.array3d(dtype=float), uvo: wp.vec3) -> vecN:
+        """Bilinear values of all N patterns at (u, v); zero taps outside the image, zero when not ok."""
+        out = vecN()
+        if uvo[2] == 0.0:
+            return out
+        H = pat.shape[0]
+        W = pat.shape[1]
+        u0 = wp.floor(uvo[0])
+        v0 = wp.floor(uvo[1])
+        fu = uvo[0] - u0
+        fv = uvo[1] - v0
+        iu = int(u0)
+        iv = int(v0)
+        for dy in range(2):
+            for dx in range(2):
+                x = iu + dx
+                y = iv + dy
+                if x >= 0 and x < W and y >= 0 and y < H:
+                    wgt = wp.where(dx == 0, 1.0 - fu, fu) * wp.where(dy == 0, 1.0 - fv, fv)
+                    for n in range(N):
+                        out[n] += wgt * pat[y, x, n]
+        return out
+
+    @wp.func
+    def sample_all_grad(pat: wp.array3d(dtype=float), uvo: wp.vec3, cot: vecN) -> wp.vec2:
+        """d(sum_n cot_n P_n(u, v)) / d(u, v)."""
+        if uvo[2] == 0.0:
+            return wp.vec2(0.0, 0.0)
+        H = pat.shape[0]
+        W = pat.shape[1]
+        u0 = wp.floor(uvo[0])
+        v0 = wp.floor(uvo[1])
+        fu = uvo[0] - u0
+        fv = uvo[1] - v0
+        iu = int(u0)
+        iv = int(v0)
+        gu = float(0.0)
+        gv = float(0.0)
+        for dy in range(2):
+            for dx in range(2):
+                x = iu + dx
+                y = iv + dy
+                if x >= 0 and x < W and y >= 0 and y < H:
+                    val = float(0.0)
+                    for n in range(N):
+                        val += cot[n] * pat[y, x, n]
+                    wu = wp.where(dy == 0, 1.0 - fv, fv) * wp.where(dx == 0, -1.0, 1.0)
+                    wv = wp.where(dx == 0, 1.0 - fu, fu) * wp.where(dy == 0, -1.0, 1.0)
+                    gu += wu * val
+                    gv += wv * val
+        return wp.vec2(gu, gv)
+
+    @wp.kernel(module="unique")
+    def forward(
+        sdf: wp.array2d(dtype=float),
+        grad: wp.array2d(dtype=wp.vec3),
+        z: wp.array2d(dtype=float),
+        rays_o: wp.array(dtype=wp.vec3),
+        rays_d: wp.array(dtype=wp.vec3),
+        a: wp.array(dtype=float),
+        b: wp.array(dtype=float),
+        pat: wp.array3d(dtype=float),
+        prm: ProjectorParams,
+        inv_s_arr: wp.array(dtype=float),
+        anneal: float,
+        last_delta: float,
+        bmin: wp.vec3,
+        bmax: wp.vec3,
+        weights: wp.array2d(dtype=float),
+        rendered: wp.array2d(dtype=float),
+        surface: wp.array(dtype=wp.vec3),
+        surface_rendered: wp.array2d(dtype=float),
+        depth: wp.array(dtype=float),
+        weight_sum: wp.array(dtype=float),
+        eikonal: wp.array2d(dtype=float),
+        eikonal_count: wp.array(dtype=float),
+    ):
+        r = wp.tid()
+        S = z.shape[1]
+        inv_s = inv_s_arr[0]
+        o = rays_o[r]
+        d = rays_d[r]
+        trans = float(1.0)
+        wsum = float(0.0)
+        sp = wp.vec3(0.0, 0.0, 0.0)
+        acc = vecN()
+        count = float(0.0)
+        for k in range(S):
+            zk = z[r, k]
+            g = grad[r, k]
+            alpha = neus_alpha(sdf[r, k], wp.dot(d, g), interval(z, r, k, last_delta), inv_s, anneal)
+            w = alpha * trans
+            trans = trans * (1.0 - alpha + TRANS_EPS)
+            weights[r, k] = w
+            wsum += w
+            x = o + d * zk
+            sp += w * x
+            acc += w * sample_all(pat, project_to_projector(prm, x))
+            e = float(0.0)
+            if inside_box(x, bmin, bmax):
+                nrm = wp.sqrt(wp.dot(g, g) + NORM_EPS)
+                e = (nrm - 1.0) * (nrm - 1.0)
+                count += 1.0
+            eikonal[r, k] = e
+        ps = sample_all(pat, project_to_projector(prm, sp))
+        ar = a[r]
+        br = b[r]
+        for n in range(N):
+            rendered[r, n] = ar * wsum + br * acc[n]
+            surface_rendered[r, n] = ar + br * ps[n]
+        surface[r] = sp
+        depth[r] = sp[2]
+        weight_sum[r] = wsum
+        eikonal_count[r] = count
+
+    @wp.kernel(module="unique")
+    def backward(
+        sdf: wp.array2d(dtype=float),
+        grad: wp.array2d(dtype=wp.vec3),
+        z: wp.array2d(dtype=float),
+        rays_o: wp.array(dtype=wp.vec3),
+        rays_d: wp.array(dtype=wp.vec3),
+        a: wp.array(dtype=float),
+        b: wp.array(dtype=float),
+        pat: wp.array3d(dtype=float),
+        prm: ProjectorParams,
+        inv_s_arr: wp.array(dtype=float),
+        anneal: float,
+        last_delta: float,
+        bmin: wp.vec3,
+        bmax: wp.vec3,
+        g_weights: wp.array2d(dtype=float),
+        g_rendered: wp.array2d(dtype=float),
+        g_surface: wp.array(dtype=wp.vec3),
+        g_surface_rendered: wp.array2d(dtype=float),
+        g_depth: wp.array(dtype=float),
+        g_weight_sum: wp.array(dtype=float),
+        g_eikonal: wp.array2d(dtype=float),
+        d_sdf: wp.array2d(dtype=float),
+        d_grad: wp.array2d(dtype=wp.vec3),
+        d_inv_s: wp.array(dtype=float),
+    ):
+        r = wp.tid()
+        S = z.shape[1]
+        inv_s = inv_s_arr[0]
+        o = rays_o[r]
+        d = rays_d[r]
+        br = b[r]
+        gr = vecN()
+        gsr = vecN()
+        sum_gr = float(0.0)
+        for n in range(N):
+            gr[n] = g_rendered[r, n]
+            gsr[n] = g_surface_rendered[r, n] * br
+            sum_gr += gr[n]
+        common = g_weight_sum[r] + a[r] * sum_gr
+
+        # pass 1, in sample order: transmittance, the per-sample cotangent of w_k without the surface
+        # term, and the surface point. Scratch (T_k, G_k, alpha_k) goes into d_grad[r, k].
+        trans = float(1.0)
+        sp = wp.vec3(0.0, 0.0, 0.0)
+        for k in range(S):
+            g = grad[r, k]
+            alpha = neus_alpha(sdf[r, k], wp.dot(d, g), interval(z, r, k, last_delta), inv_s, anneal)
+            x = o + d * z[r, k]
+            base = g_weights[r, k] + common + br * wp.dot(gr, sample_all(pat, project_to_projector(prm, x)))
+            d_grad[r, k] = wp.vec3(trans, base, alpha)
+            sp += (alpha * trans) * x
+            trans = trans * (1.0 - alpha + TRANS_EPS)
+
+        # cotangent of the surface point: direct, through depth, and through the surface intensities
+        g_s = g_surface[r] + wp.vec3(0.0, 0.0, g_depth[r])
+        uvo = project_to_projector(prm, sp)
+        duv = sample_all_grad(pat, uvo, gsr)
+        g_s += project_to_projector_grad(prm, sp, duv[0], duv[1])
+
+        # pass 2, in reverse: U recurrence, then the NeuS alpha and Eikonal adjoints
+        u_suffix = float(0.0)
+        g_inv_s = float(0.0)
+        for kk in range(S):
+            k = S - 1 - kk
+            scratch = d_grad[r, k]
+            alpha = scratch[2]
+            gw = scratch[1] + wp.dot(g_s, o + d * z[r, k])
+            g_alpha = scratch[0] * (gw - u_suffix)
+            u_suffix = gw * alpha + (1.0 - alpha + TRANS_EPS) * u_suffix
+            g = grad[r, k]
+            v = neus_alpha_vjp(sdf[r, k], wp.dot(d, g), interval(z, r, k, last_delta), inv_s, anneal, g_alpha)
+            dg = d * v[1]
+            x = o + d * z[r, k]
+            if inside_box(x, bmin, bmax):
+                nrm = wp.sqrt(wp.dot(g, g) + NORM_EPS)
+                dg += g * (g_eikonal[r, k] * 2.0 * (nrm - 1.0) / nrm)
+            d_sdf[r, k] = v[0]
+            d_grad[r, k] = dg
+            g_inv_s += v[2]
+        d_inv_s[r] = g_inv_s
+
+    return forward, backward
