@@ -12,9 +12,10 @@ Forward, per ray r with samples x_k = o + z_k d (k = 0..S-1):
 Backward is written by hand: the transmittance product is a loop-carried dependency that Warp's
 automatic adjoint does not replay. With G_k the total cotangent reaching w_k,
     dL/dalpha_k = T_k (G_k - U_k),  U_{k} = G_{k+1} alpha_{k+1} + (1 - alpha_{k+1} + 1e-7) U_{k+1},  U_{S-1} = 0,
-a suffix recurrence: no division by (1 - alpha). The backward kernel makes a forward pass (T_k, G_k
-without the surface term, and the surface point), then a reverse pass; the per-sample scratch lives in
-the d_grad output, which the reverse pass overwrites with the final gradient.
+a suffix recurrence: no division by (1 - alpha). The backward kernel makes a forward pass (the surface
+point, whose cotangent enters every G_k, and T_k kept as scratch in the d_sdf output), then a reverse
+pass that samples the patterns, runs the recurrence and overwrites d_sdf with the final gradient.
+Cotangents of weights and Eikonal that no loss uses are skipped (flags), so they are never read.
 
 Kernels are specialised on the pattern count N (a compile-time constant: per-pattern accumulators stay
 in registers). Patterns are packed [H, W, N] so the N values of one projector pixel are contiguous.
@@ -225,12 +226,14 @@ def render_kernels(N: int):
         bmin: wp.vec3,
         bmax: wp.vec3,
         g_weights: wp.array2d(dtype=float),
+        has_g_weights: int,
         g_rendered: wp.array2d(dtype=float),
         g_surface: wp.array(dtype=wp.vec3),
         g_surface_rendered: wp.array2d(dtype=float),
         g_depth: wp.array(dtype=float),
         g_weight_sum: wp.array(dtype=float),
         g_eikonal: wp.array2d(dtype=float),
+        has_g_eikonal: int,
         d_sdf: wp.array2d(dtype=float),
         d_grad: wp.array2d(dtype=wp.vec3),
         d_inv_s: wp.array(dtype=float),
@@ -250,17 +253,14 @@ def render_kernels(N: int):
             sum_gr += gr[n]
         common = g_weight_sum[r] + a[r] * sum_gr
 
-        # pass 1, in sample order: transmittance, the per-sample cotangent of w_k without the surface
-        # term, and the surface point. Scratch (T_k, G_k, alpha_k) goes into d_grad[r, k].
+        # pass 1, in sample order: the surface point, and T_k kept in d_sdf[r, k] as scratch
         trans = float(1.0)
         sp = wp.vec3(0.0, 0.0, 0.0)
         for k in range(S):
             g = grad[r, k]
             alpha = neus_alpha(sdf[r, k], wp.dot(d, g), interval(z, r, k, last_delta), inv_s, anneal)
-            x = o + d * z[r, k]
-            base = g_weights[r, k] + common + br * wp.dot(gr, sample_all(pat, project_to_projector(prm, x)))
-            d_grad[r, k] = wp.vec3(trans, base, alpha)
-            sp += (alpha * trans) * x
+            d_sdf[r, k] = trans
+            sp += (alpha * trans) * (o + d * z[r, k])
             trans = trans * (1.0 - alpha + TRANS_EPS)
 
         # cotangent of the surface point: direct, through depth, and through the surface intensities
@@ -269,23 +269,28 @@ def render_kernels(N: int):
         duv = sample_all_grad(pat, uvo, gsr)
         g_s += project_to_projector_grad(prm, sp, duv[0], duv[1])
 
-        # pass 2, in reverse: U recurrence, then the NeuS alpha and Eikonal adjoints
+        # pass 2, in reverse: G_k (total cotangent of w_k), the U recurrence, the alpha and Eikonal adjoints
         u_suffix = float(0.0)
         g_inv_s = float(0.0)
         for kk in range(S):
             k = S - 1 - kk
-            scratch = d_grad[r, k]
-            alpha = scratch[2]
-            gw = scratch[1] + wp.dot(g_s, o + d * z[r, k])
-            g_alpha = scratch[0] * (gw - u_suffix)
-            u_suffix = gw * alpha + (1.0 - alpha + TRANS_EPS) * u_suffix
             g = grad[r, k]
-            v = neus_alpha_vjp(sdf[r, k], wp.dot(d, g), interval(z, r, k, last_delta), inv_s, anneal, g_alpha)
-            dg = d * v[1]
+            f = sdf[r, k]
+            cos_k = wp.dot(d, g)
+            dz = interval(z, r, k, last_delta)
+            alpha = neus_alpha(f, cos_k, dz, inv_s, anneal)
             x = o + d * z[r, k]
-            if inside_box(x, bmin, bmax):
-                nrm = wp.sqrt(wp.dot(g, g) + NORM_EPS)
-                dg += g * (g_eikonal[r, k] * 2.0 * (nrm - 1.0) / nrm)
+            gw = common + br * wp.dot(gr, sample_all(pat, project_to_projector(prm, x))) + wp.dot(g_s, x)
+            if has_g_weights != 0:
+                gw += g_weights[r, k]
+            g_alpha = d_sdf[r, k] * (gw - u_suffix)
+            u_suffix = gw * alpha + (1.0 - alpha + TRANS_EPS) * u_suffix
+            v = neus_alpha_vjp(f, cos_k, dz, inv_s, anneal, g_alpha)
+            dg = d * v[1]
+            if has_g_eikonal != 0:
+                if inside_box(x, bmin, bmax):
+                    nrm = wp.sqrt(wp.dot(g, g) + NORM_EPS)
+                    dg += g * (g_eikonal[r, k] * 2.0 * (nrm - 1.0) / nrm)
             d_sdf[r, k] = v[0]
             d_grad[r, k] = dg
             g_inv_s += v[2]

@@ -64,3 +64,55 @@ class on_torch_stream:
         if self._ctx is not None:
             self._ctx.__exit__(*exc)
         return False
+
+
+def array_desc(t, vec: int = 0):
+    """A Warp array descriptor for a contiguous torch tensor, without building a wp.array.
+
+    vec = 0: the tensor's own shape (float32/int32 elements); vec = k: the last axis (size k) becomes
+    a k-vector element, e.g. [R, S, 3] -> array2d of vec3. Kernels accept descriptors verbatim.
+    """
+    from warp._src.types import array_t
+
+    shape = tuple(t.shape[:-1]) if vec else tuple(t.shape)
+    item = t.element_size() * (vec if vec else 1)
+    strides = tuple(s * t.element_size() for s in t.stride()[: len(shape)]) if vec else tuple(s * t.element_size() for s in t.stride())
+    if not shape:  # a 0-d tensor is passed as a 1-element array
+        shape, strides = (1,), (item,)
+    return array_t(data=t.data_ptr(), grad=0, ndim=len(shape), shape=shape, strides=strides)
+
+
+class CachedLaunch:
+    """Launch one kernel repeatedly at a fraction of wp.launch's Python cost.
+
+    The first call records a launch command (wp.launch(record_cmd=True)); later calls only rewrite its
+    parameters from ctypes values (array descriptors, struct ctypes, numbers) and relaunch it. Argument
+    lists must keep the same kinds in the same places from call to call.
+    """
+
+    def __init__(self, kernel, block_dim: int | None = None):
+        self.kernel = kernel
+        self.block_dim = block_dim
+        self._cmds: dict = {}
+
+    def __call__(self, dim, args, device, stream=None):
+        wp = init()
+        key = str(device)
+        entry = self._cmds.get(key)
+        if entry is None:
+            kw = {"block_dim": self.block_dim} if self.block_dim else {}
+            cmd = wp.launch(self.kernel, dim=dim, inputs=list(args), device=device, record_cmd=True, **kw)
+            self._cmds[key] = [cmd, dim]
+        else:
+            cmd, last_dim = entry
+            if dim != last_dim:
+                cmd.set_dim(dim)
+                entry[1] = dim
+            for i, a in enumerate(args):
+                if isinstance(a, (int, float)) or type(a).__name__ == "array_t":
+                    cmd.set_param_at_index_from_ctype(i, a)
+                elif hasattr(a, "__ctype__") and not hasattr(a, "ptr"):  # a wp.struct instance
+                    cmd.set_param_at_index_from_ctype(i, a.__ctype__())
+                else:
+                    cmd.set_param_at_index(i, a)
+        cmd.launch(stream)

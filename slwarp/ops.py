@@ -62,7 +62,6 @@ def _check_backend(backend: str):
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
 
 
-@torch._dynamo.assume_constant_result  # a rig is constant during a compiled run: no tracing into numpy
 def pack_projector(projector) -> list[float]:
     """A `slwarp.Projector` as 24 floats: R (9, row-major), T (3), fx, fy, cx, cy, k1, k2, k3, p1, p2,
     width, height, max_r2 (the trusted squared normalised radius of its distortion model)."""
@@ -70,22 +69,19 @@ def pack_projector(projector) -> list[float]:
         if len(projector) != 24:
             raise ValueError(f"a packed projector has 24 floats, got {len(projector)}")
         return [float(x) for x in projector]
-    d = projector.dist
-    return [float(x) for x in np.asarray(projector.R).ravel()] + [float(x) for x in np.asarray(projector.T)] + [
-        projector.fx, projector.fy, projector.cx, projector.cy, float(d[0]), float(d[1]), float(d[4]),
-        float(d[2]), float(d[3]), float(projector.width), float(projector.height), float(projector.max_normalized_r2),
-    ]
+    return list(projector.flat_params)
 
 
-@torch._dynamo.assume_constant_result
 def _bounds_list(bounds) -> list[float]:
     """[xmin, ymin, zmin, xmax, ymax, zmax] (mm) of the working volume; None = unbounded."""
     if bounds is None:
         return [-3.0e38, -3.0e38, -3.0e38, 3.0e38, 3.0e38, 3.0e38]
-    b = np.asarray(bounds.detach().cpu() if isinstance(bounds, torch.Tensor) else bounds, np.float64).reshape(-1)
-    if b.size != 6:
-        raise ValueError(f"bounds must be [[xmin, ymin, zmin], [xmax, ymax, zmax]], got {b.size} numbers")
-    return [float(x) for x in b]
+    if isinstance(bounds, (torch.Tensor, np.ndarray)):
+        bounds = bounds.tolist()
+    flat = [float(x) for row in bounds for x in (row if isinstance(row, (list, tuple)) else [row])]
+    if len(flat) != 6:
+        raise ValueError(f"bounds must be [[xmin, ymin, zmin], [xmax, ymax, zmax]], got {len(flat)} numbers")
+    return flat
 
 
 def pack_patterns(patterns: torch.Tensor) -> torch.Tensor:
@@ -94,48 +90,183 @@ def pack_patterns(patterns: torch.Tensor) -> torch.Tensor:
 
 
 # ----------------------------------------------------------------------------------------------
-# Warp launches
+# Warp launches: array descriptors straight from torch tensors and recorded launch commands, so a call
+# costs a few microseconds of Python per kernel instead of a full wp.launch.
 
-
-def _wp_params(projector: list[float]):
-    from .kernels.geometry import ProjectorParams
-
-    wp = runtime.init()
-    prm = ProjectorParams()
-    prm.R = wp.mat33(*projector[0:9])
-    prm.T = wp.vec3(*projector[9:12])
-    prm.f = wp.vec2(projector[12], projector[13])
-    prm.c = wp.vec2(projector[14], projector[15])
-    prm.k = wp.vec3(projector[16], projector[17], projector[18])
-    prm.p = wp.vec2(projector[19], projector[20])
-    prm.size = wp.vec2(projector[21], projector[22])
-    prm.max_r2 = projector[23]
-    return prm
-
-
-def _wp(t: torch.Tensor, dtype=None):
-    wp = runtime.init()
-    return wp.from_torch(t.detach(), dtype=dtype) if dtype is not None else wp.from_torch(t.detach())
-
-
+_PARAMS_CACHE: dict = {}
+_LAUNCHERS: dict = {}
 _STREAMS: dict = {}
 
 
-def _launch(kernel, dim, inputs, device: torch.device):
-    """Launch on torch's current stream of `device` (no host synchronisation)."""
+def _wp_params(projector: list[float]):
+    key = tuple(projector)
+    prm = _PARAMS_CACHE.get(key)
+    if prm is None:
+        from .kernels.geometry import ProjectorParams
+
+        wp = runtime.init()
+        prm = ProjectorParams()
+        prm.R = wp.mat33(*projector[0:9])
+        prm.T = wp.vec3(*projector[9:12])
+        prm.f = wp.vec2(projector[12], projector[13])
+        prm.c = wp.vec2(projector[14], projector[15])
+        prm.k = wp.vec3(projector[16], projector[17], projector[18])
+        prm.p = wp.vec2(projector[19], projector[20])
+        prm.size = wp.vec2(projector[21], projector[22])
+        prm.max_r2 = projector[23]
+        _PARAMS_CACHE[key] = prm
+    return prm
+
+
+def _camera_params(camera):
+    key = ("camera", camera.fx, camera.fy, camera.cx, camera.cy, *map(float, camera.dist))
+    prm = _PARAMS_CACHE.get(key)
+    if prm is None:
+        from .kernels.geometry import camera_params
+
+        prm = _PARAMS_CACHE[key] = camera_params(camera)
+    return prm
+
+
+def _vec3(values):
     wp = runtime.init()
+    return wp.vec3(*values)
+
+
+_desc = runtime.array_desc
+
+
+def _launch(kernel, dim, inputs, device: torch.device):
+    """Launch on torch's current stream of `device` (asynchronous: no host synchronisation)."""
+    launcher = _LAUNCHERS.get(kernel)
+    if launcher is None:
+        launcher = _LAUNCHERS[kernel] = runtime.CachedLaunch(kernel)
     if device.type == "cuda":
-        key = (device.index, torch.cuda.current_stream(device).cuda_stream)
+        wp = runtime.init()
+        torch_stream = torch.cuda.current_stream(device)
+        key = (device.index, torch_stream.cuda_stream)
         stream = _STREAMS.get(key)
         if stream is None:
-            stream = _STREAMS[key] = wp.stream_from_torch(torch.cuda.current_stream(device))
-        wp.launch(kernel, dim=dim, inputs=inputs, device=runtime.warp_device(device), stream=stream)
+            stream = _STREAMS[key] = wp.stream_from_torch(torch_stream)
+        launcher(dim, inputs, runtime.warp_device(device), stream)
     else:
-        wp.launch(kernel, dim=dim, inputs=inputs, device="cpu")
+        launcher(dim, inputs, "cpu")
 
 
 def _f32(t: torch.Tensor) -> torch.Tensor:
-    return t.detach().to(torch.float32).contiguous()
+    """float32 view for a kernel argument. Any strides are fine (descriptors carry them): sample-major
+    [R, S] tensors (stride 1 along R) give coalesced loads, and broadcast cotangents (stride 0) are read
+    without being materialised."""
+    return t.detach().to(torch.float32)
+
+
+def _f32v(t: torch.Tensor) -> torch.Tensor:
+    """float32 for a vector-element argument ([..., 3]): the last axis must be contiguous."""
+    t = t.detach().to(torch.float32)
+    return t if t.stride(-1) == 1 else t.contiguous()
+
+
+def _empty_like_layout(ref: torch.Tensor, *tail: int) -> torch.Tensor:
+    """An [R, S, *tail] float32 tensor in the memory order of ref [R, S] (sample-major if ref is)."""
+    R, S = ref.shape
+    if R > 1 and ref.stride(0) == 1:
+        return torch.empty(S, R, *tail, dtype=torch.float32, device=ref.device).transpose(0, 1)
+    return torch.empty(R, S, *tail, dtype=torch.float32, device=ref.device)
+
+
+def _render_forward_impl(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector, inv_s,
+                         cos_anneal_ratio, last_delta, bounds):
+    from .kernels.render import render_kernels
+
+    R, S = z_vals.shape
+    N = patterns_hwn.shape[2]
+    dev = z_vals.device
+    opts = dict(dtype=torch.float32, device=dev)
+    weights = _empty_like_layout(z_vals)
+    rendered = torch.empty(R, N, **opts)
+    surface = torch.empty(R, 3, **opts)
+    surface_rendered = torch.empty(R, N, **opts)
+    depth = torch.empty(R, **opts)
+    weight_sum = torch.empty(R, **opts)
+    eikonal = _empty_like_layout(z_vals)
+    eikonal_count = torch.empty(R, **opts)
+    if R > 0:
+        fwd, _ = render_kernels(int(N))
+        _launch(fwd, R, [
+            _desc(sdf), _desc(sdf_grad, 3), _desc(z_vals), _desc(rays_o, 3), _desc(rays_d, 3), _desc(a), _desc(b),
+            _desc(patterns_hwn), _wp_params(projector), _desc(inv_s), float(cos_anneal_ratio), float(last_delta),
+            _vec3(bounds[0:3]), _vec3(bounds[3:6]),
+            _desc(weights), _desc(rendered), _desc(surface, 3), _desc(surface_rendered), _desc(depth), _desc(weight_sum),
+            _desc(eikonal), _desc(eikonal_count),
+        ], dev)
+    return weights, rendered, surface, surface_rendered, depth, weight_sum, eikonal, eikonal_count
+
+
+def _render_backward_impl(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector, inv_s,
+                          cos_anneal_ratio, last_delta, bounds, g_weights, g_rendered, g_surface,
+                          g_surface_rendered, g_depth, g_weight_sum, g_eikonal):
+    from .kernels.render import render_kernels
+
+    R, S = z_vals.shape
+    N = patterns_hwn.shape[2]
+    dev = z_vals.device
+    d_sdf = _empty_like_layout(sdf)
+    d_grad = _empty_like_layout(sdf, 3)
+    d_inv_s = torch.empty(R, dtype=torch.float32, device=dev)
+    if R > 0:
+        dummy = torch.zeros(1, 1, dtype=torch.float32, device=dev)  # stands in for a cotangent no loss produced
+        _, bwd = render_kernels(int(N))
+        _launch(bwd, R, [
+            _desc(sdf), _desc(sdf_grad, 3), _desc(z_vals), _desc(rays_o, 3), _desc(rays_d, 3), _desc(a), _desc(b),
+            _desc(patterns_hwn), _wp_params(projector), _desc(inv_s), float(cos_anneal_ratio), float(last_delta),
+            _vec3(bounds[0:3]), _vec3(bounds[3:6]),
+            _desc(g_weights if g_weights is not None else dummy), int(g_weights is not None), _desc(g_rendered),
+            _desc(g_surface, 3), _desc(g_surface_rendered), _desc(g_depth), _desc(g_weight_sum),
+            _desc(g_eikonal if g_eikonal is not None else dummy), int(g_eikonal is not None),
+            _desc(d_sdf), _desc(d_grad, 3), _desc(d_inv_s),
+        ], dev)
+    return d_sdf, d_grad, d_inv_s.sum().reshape(1)
+
+
+def _cotangents(z_vals, N, grads):
+    """Cotangents as contiguous float32; None for weights/Eikonal stays None (the kernel skips them),
+    other missing ones become zeros (they are [R] or [R, N]: cheap)."""
+    g_weights, g_rendered, g_surface, g_srend, g_depth, g_wsum, g_eik = grads
+    R, S = z_vals.shape
+
+    def cot(g, *shape):
+        if g is None:
+            return z_vals.new_zeros(shape, dtype=torch.float32)
+        return _f32v(g) if shape[-1] == 3 and len(shape) == 2 and shape[0] == R else _f32(g)
+
+    return (_f32(g_weights) if g_weights is not None else None, cot(g_rendered, R, N), cot(g_surface, R, 3),
+            cot(g_srend, R, N), cot(g_depth, R), cot(g_wsum, R), _f32(g_eik) if g_eik is not None else None)
+
+
+class _RenderFunction(torch.autograd.Function):
+    """Eager-mode autograd wrapper (lighter than the custom op's dispatch)."""
+
+    @staticmethod
+    def forward(ctx, sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector, inv_s, anneal, last_delta, bounds):
+        outs = _render_forward_impl(sdf.detach(), sdf_grad.detach(), z_vals, rays_o, rays_d, a, b, patterns_hwn,
+                                    projector, inv_s.detach(), anneal, last_delta, bounds)
+        ctx.save_for_backward(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, inv_s)
+        ctx.params = (projector, anneal, last_delta, bounds)
+        ctx.mark_non_differentiable(outs[7])
+        return outs
+
+    @staticmethod
+    def backward(ctx, *grads):
+        sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, inv_s = ctx.saved_tensors
+        projector, anneal, last_delta, bounds = ctx.params
+        cots = _cotangents(z_vals, patterns_hwn.shape[2], grads[:7])
+        d_sdf, d_grad, d_inv_s = _render_backward_impl(sdf.detach(), sdf_grad.detach(), z_vals, rays_o, rays_d, a, b,
+                                                       patterns_hwn, projector, inv_s.detach(), anneal, last_delta,
+                                                       bounds, *cots)
+        return d_sdf, d_grad, None, None, None, None, None, None, None, d_inv_s, None, None, None
+
+
+# torch.compile path: the same launches as opaque custom ops with fake (meta) implementations.
 
 
 @torch.library.custom_op("slwarp::render_forward", mutates_args=())
@@ -144,31 +275,8 @@ def _render_forward(
     a: torch.Tensor, b: torch.Tensor, patterns_hwn: torch.Tensor, projector: list[float], inv_s: torch.Tensor,
     cos_anneal_ratio: float, last_delta: float, bounds: list[float],
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    from .kernels.render import render_kernels
-
-    wp = runtime.init()
-    R, S = z_vals.shape
-    N = patterns_hwn.shape[2]
-    dev = z_vals.device
-    opts = dict(dtype=torch.float32, device=dev)
-    weights = torch.empty(R, S, **opts)
-    rendered = torch.empty(R, N, **opts)
-    surface = torch.empty(R, 3, **opts)
-    surface_rendered = torch.empty(R, N, **opts)
-    depth = torch.empty(R, **opts)
-    weight_sum = torch.empty(R, **opts)
-    eikonal = torch.empty(R, S, **opts)
-    eikonal_count = torch.empty(R, **opts)
-    if R > 0:
-        fwd, _ = render_kernels(int(N))
-        _launch(fwd, R, [
-            _wp(sdf), _wp(sdf_grad, wp.vec3), _wp(z_vals), _wp(rays_o, wp.vec3), _wp(rays_d, wp.vec3), _wp(a), _wp(b),
-            _wp(patterns_hwn), _wp_params(projector), _wp(inv_s), float(cos_anneal_ratio), float(last_delta),
-            wp.vec3(*bounds[0:3]), wp.vec3(*bounds[3:6]),
-            _wp(weights), _wp(rendered), _wp(surface, wp.vec3), _wp(surface_rendered), _wp(depth), _wp(weight_sum),
-            _wp(eikonal), _wp(eikonal_count),
-        ], dev)
-    return weights, rendered, surface, surface_rendered, depth, weight_sum, eikonal, eikonal_count
+    return _render_forward_impl(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector, inv_s,
+                                cos_anneal_ratio, last_delta, bounds)
 
 
 @_render_forward.register_fake
@@ -184,29 +292,12 @@ def _render_backward(
     sdf: torch.Tensor, sdf_grad: torch.Tensor, z_vals: torch.Tensor, rays_o: torch.Tensor, rays_d: torch.Tensor,
     a: torch.Tensor, b: torch.Tensor, patterns_hwn: torch.Tensor, projector: list[float], inv_s: torch.Tensor,
     cos_anneal_ratio: float, last_delta: float, bounds: list[float],
-    g_weights: torch.Tensor, g_rendered: torch.Tensor, g_surface: torch.Tensor, g_surface_rendered: torch.Tensor,
-    g_depth: torch.Tensor, g_weight_sum: torch.Tensor, g_eikonal: torch.Tensor,
+    g_weights: torch.Tensor | None, g_rendered: torch.Tensor, g_surface: torch.Tensor, g_surface_rendered: torch.Tensor,
+    g_depth: torch.Tensor, g_weight_sum: torch.Tensor, g_eikonal: torch.Tensor | None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    from .kernels.render import render_kernels
-
-    wp = runtime.init()
-    R, S = z_vals.shape
-    N = patterns_hwn.shape[2]
-    dev = z_vals.device
-    d_sdf = torch.empty(R, S, dtype=torch.float32, device=dev)
-    d_grad = torch.empty(R, S, 3, dtype=torch.float32, device=dev)
-    d_inv_s = torch.empty(R, dtype=torch.float32, device=dev)
-    if R > 0:
-        _, bwd = render_kernels(int(N))
-        _launch(bwd, R, [
-            _wp(sdf), _wp(sdf_grad, wp.vec3), _wp(z_vals), _wp(rays_o, wp.vec3), _wp(rays_d, wp.vec3), _wp(a), _wp(b),
-            _wp(patterns_hwn), _wp_params(projector), _wp(inv_s), float(cos_anneal_ratio), float(last_delta),
-            wp.vec3(*bounds[0:3]), wp.vec3(*bounds[3:6]),
-            _wp(g_weights), _wp(g_rendered), _wp(g_surface, wp.vec3), _wp(g_surface_rendered), _wp(g_depth),
-            _wp(g_weight_sum), _wp(g_eikonal),
-            _wp(d_sdf), _wp(d_grad, wp.vec3), _wp(d_inv_s),
-        ], dev)
-    return d_sdf, d_grad, d_inv_s.sum().reshape(1)
+    return _render_backward_impl(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector, inv_s,
+                                 cos_anneal_ratio, last_delta, bounds, g_weights, g_rendered, g_surface,
+                                 g_surface_rendered, g_depth, g_weight_sum, g_eikonal)
 
 
 @_render_backward.register_fake
@@ -221,20 +312,12 @@ def _setup_context(ctx, inputs, output):
     ctx.params = (projector, anneal, last_delta, bounds)
 
 
-def _backward(ctx, g_weights, g_rendered, g_surface, g_srend, g_depth, g_wsum, g_eik, _g_count):
+def _backward(ctx, *grads):
     sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, inv_s = ctx.saved_tensors
     projector, anneal, last_delta, bounds = ctx.params
-    R, S = z_vals.shape
-    N = patterns_hwn.shape[2]
-
-    def cot(g, *shape):
-        return _f32(g) if g is not None else z_vals.new_zeros(shape, dtype=torch.float32)
-
-    d_sdf, d_grad, d_inv_s = _render_backward(
-        sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector, inv_s, anneal, last_delta, bounds,
-        cot(g_weights, R, S), cot(g_rendered, R, N), cot(g_surface, R, 3), cot(g_srend, R, N), cot(g_depth, R),
-        cot(g_wsum, R), cot(g_eik, R, S),
-    )
+    cots = _cotangents(z_vals, patterns_hwn.shape[2], grads[:7])
+    d_sdf, d_grad, d_inv_s = _render_backward(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector,
+                                              inv_s, anneal, last_delta, bounds, *cots)
     return d_sdf, d_grad, None, None, None, None, None, None, None, d_inv_s, None, None, None
 
 
@@ -298,11 +381,11 @@ def render_structured_light(
         outs = twin.render(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, pat_nhw, proj, inv_s, float(cos_anneal_ratio), ld, bnd)
     else:
         pat_hwn = pack_patterns(patterns) if patterns_layout == "NHW" else patterns.detach().to(torch.float32).contiguous()
-        outs = _render_forward(
-            sdf.to(torch.float32).contiguous(), sdf_grad.to(torch.float32).contiguous(), _f32(z_vals), _f32(rays_o),
-            _f32(rays_d), _f32(a), _f32(b), pat_hwn, proj, inv_s.to(torch.float32).reshape(1),
-            float(cos_anneal_ratio), ld, bnd,
-        )
+        sg = sdf_grad.to(torch.float32)
+        args = (sdf.to(torch.float32), sg if sg.stride(-1) == 1 else sg.contiguous(), _f32(z_vals), _f32v(rays_o),
+                _f32v(rays_d), _f32(a), _f32(b), pat_hwn, proj, inv_s.to(torch.float32).reshape(1),
+                float(cos_anneal_ratio), ld, bnd)
+        outs = _render_forward(*args) if torch.compiler.is_compiling() else _RenderFunction.apply(*args)
     weights, rendered, surface, surface_rendered, depth, weight_sum, eikonal, eikonal_count = outs
     return RenderOutput(rendered, surface, surface_rendered, weights, depth, eikonal, weight_sum, eikonal_count)
 
@@ -320,16 +403,14 @@ def camera_rays(pixels: torch.Tensor, camera, depth_range, *, backend: str = "wa
     if backend == "torch" or R == 0:
         d, near, far = twin.camera_rays(pixels, camera, z_near, z_far)
     else:
-        from .kernels.geometry import camera_params
         from .kernels.sampling import camera_rays as kernel
 
-        wp = runtime.init()
         dev = pixels.device
         d = torch.empty(R, 3, dtype=torch.float32, device=dev)
         near = torch.empty(R, dtype=torch.float32, device=dev)
         far = torch.empty(R, dtype=torch.float32, device=dev)
-        _launch(kernel, R, [_wp(_f32(pixels), wp.vec2), camera_params(camera), z_near, z_far,
-                            _wp(d, wp.vec3), _wp(near), _wp(far)], dev)
+        _launch(kernel, R, [_desc(_f32v(pixels), 2), _camera_params(camera), z_near, z_far,
+                            _desc(d, 3), _desc(near), _desc(far)], dev)
     return torch.zeros_like(d), d, near, far
 
 
@@ -345,7 +426,7 @@ def stratified_samples(near: torch.Tensor, far: torch.Tensor, n: int, jitter: to
     from .kernels.sampling import stratified as kernel
 
     z = torch.empty(R, n, dtype=torch.float32, device=near.device)
-    _launch(kernel, (R, n), [_wp(_f32(near)), _wp(_f32(far)), _wp(_f32(jitter)), _wp(z)], near.device)
+    _launch(kernel, (R, n), [_desc(_f32(near)), _desc(_f32(far)), _desc(_f32(jitter)), _desc(z)], near.device)
     return z
 
 
@@ -360,10 +441,9 @@ def upsample_samples(z_vals: torch.Tensor, sdf: torch.Tensor, rays_o: torch.Tens
         return twin.upsample(z_vals, sdf, rays_o, rays_d, n_new, float(inv_s), bnd)
     from .kernels.sampling import upsample as kernel
 
-    wp = runtime.init()
     z_new = torch.empty(R, n_new, dtype=torch.float32, device=z_vals.device)
-    _launch(kernel, R, [_wp(_f32(z_vals)), _wp(_f32(sdf)), _wp(_f32(rays_o), wp.vec3), _wp(_f32(rays_d), wp.vec3),
-                        float(inv_s), wp.vec3(*bnd[0:3]), wp.vec3(*bnd[3:6]), _wp(z_new)], z_vals.device)
+    _launch(kernel, R, [_desc(_f32(z_vals)), _desc(_f32(sdf)), _desc(_f32v(rays_o), 3), _desc(_f32v(rays_d), 3),
+                        float(inv_s), _vec3(bnd[0:3]), _vec3(bnd[3:6]), _desc(z_new)], z_vals.device)
     return z_new
 
 
@@ -378,5 +458,5 @@ def merge_samples(z_a: torch.Tensor, f_a: torch.Tensor, z_b: torch.Tensor, f_b: 
     n = z_a.shape[1] + z_b.shape[1]
     z = torch.empty(R, n, dtype=torch.float32, device=z_a.device)
     f = torch.empty(R, n, dtype=torch.float32, device=z_a.device)
-    _launch(kernel, R, [_wp(_f32(z_a)), _wp(_f32(f_a)), _wp(_f32(z_b)), _wp(_f32(f_b)), _wp(z), _wp(f)], z_a.device)
+    _launch(kernel, R, [_desc(_f32(z_a)), _desc(_f32(f_a)), _desc(_f32(z_b)), _desc(_f32(f_b)), _desc(z), _desc(f)], z_a.device)
     return z, f

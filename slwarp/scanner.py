@@ -309,6 +309,12 @@ class Projector(Camera):
         self.T = np.asarray(self.T, dtype=np.float64).ravel()
         if self.T.size != 3 or not np.all(np.isfinite(self.T)):
             raise CalibrationError(f"projector extrinsics T: need 3 finite values, got {self.T}")
+        d = self.dist
+        # flat description for kernels and twins (plain floats: torch.compile reads it as a constant):
+        # R (9, row-major), T (3), fx, fy, cx, cy, k1, k2, k3, p1, p2, width, height, max_r2
+        self.flat_params = tuple(float(x) for x in self.R.ravel()) + tuple(float(x) for x in self.T) + (
+            self.fx, self.fy, self.cx, self.cy, float(d[0]), float(d[1]), float(d[4]), float(d[2]), float(d[3]),
+            float(self.width), float(self.height), float(self.max_normalized_r2))
 
     @property
     def center(self) -> np.ndarray:

@@ -1,0 +1,151 @@
+"""SDF networks and the learned NeuS variance, in millimetres.
+
+The renderer works in the camera frame in mm, so a field maps points x [..., 3] (mm) to signed distances
+[...] (mm). `NeuSField` keeps NeuS's network in a normalised space: the working volume (an axis-aligned
+box in the camera frame, from the scan's valid pixels between the near and far depth) is mapped into
+[-1, 1]^3 by x_n = (x - center) / scale with scale = half the box's largest side, and
+f(x) = scale * mlp(x_n): distances and gradients stay metric (|grad f| = 1 for a true SDF).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+from torch.nn.utils import parametrizations
+
+
+@dataclass(frozen=True)
+class Volume:
+    """Axis-aligned working volume in the camera frame (mm): lo [3], hi [3]."""
+
+    lo: tuple[float, float, float]
+    hi: tuple[float, float, float]
+
+    @property
+    def center(self) -> np.ndarray:
+        return (np.asarray(self.lo) + np.asarray(self.hi)) / 2
+
+    @property
+    def scale(self) -> float:
+        """Half the largest side (mm): the box fits in [-1, 1]^3 after (x - center) / scale."""
+        return float(np.max(np.asarray(self.hi) - np.asarray(self.lo)) / 2)
+
+    def as_bounds(self) -> list[list[float]]:
+        return [list(map(float, self.lo)), list(map(float, self.hi))]
+
+    @classmethod
+    def from_frustum(cls, camera, valid: np.ndarray, depth_range, margin: float = 0.02) -> "Volume":
+        """Box around the camera frustum of the `valid` pixels [H, W] between the near and far depth."""
+        v, u = np.nonzero(valid)
+        if u.size == 0:
+            raise ValueError("no valid pixel to define the working volume")
+        step = max(1, u.size // 20000)  # a subsample of the valid pixels bounds the frustum well enough
+        d = camera.pixel_to_ray(np.stack([u[::step], v[::step]], -1).astype(np.float64))
+        d = d / d[:, 2:3]  # points at unit depth
+        corners = np.concatenate([d * depth_range[0], d * depth_range[1]])
+        lo, hi = corners.min(0), corners.max(0)
+        pad = (hi - lo).max() * margin
+        return cls(tuple((lo - pad).tolist()), tuple((hi + pad).tolist()))
+
+
+class PositionalEncoding(nn.Module):
+    """[x, sin(2^k x), cos(2^k x) for k < n_freqs] (NeuS's embedder with log-sampled bands)."""
+
+    def __init__(self, n_freqs: int = 6):
+        super().__init__()
+        self.register_buffer("freqs", 2.0 ** torch.arange(n_freqs, dtype=torch.float32), persistent=False)
+        self.out_dim = 3 + 6 * n_freqs
+
+    def forward(self, x):
+        xf = x[..., None, :] * self.freqs[:, None]  # [..., F, 3]
+        enc = torch.stack([torch.sin(xf), torch.cos(xf)], dim=-2)  # [..., F, 2, 3]
+        return torch.cat([x, enc.flatten(-3)], dim=-1)
+
+
+class NeuSField(nn.Module):
+    """NeuS's SDF MLP in mm (see module docstring).
+
+    hidden x layers linear layers with Softplus(beta=100), a skip connection re-injecting the encoded input
+    into layer `skip` (scaled by 1/sqrt 2), geometric initialisation to a sphere of radius `init_radius`
+    (normalised units) and weight normalisation. NeuS defaults: 256 x 8, skip 4, 6 frequencies.
+    """
+
+    def __init__(self, volume: Volume, hidden: int = 256, layers: int = 8, skip: int | None = 4, n_freqs: int = 6,
+                 init_radius: float = 0.5, weight_norm: bool = True, beta: float = 100.0):
+        super().__init__()
+        self.volume = volume
+        self.register_buffer("center", torch.tensor(volume.center, dtype=torch.float32))
+        self.scale = float(volume.scale)
+        self.encoding = PositionalEncoding(n_freqs) if n_freqs > 0 else None
+        d_in = self.encoding.out_dim if self.encoding is not None else 3
+        self.skip = skip if skip is not None and 0 < skip < layers else None
+        self.beta = beta
+        self.config = dict(hidden=hidden, layers=layers, skip=skip, n_freqs=n_freqs, init_radius=init_radius,
+                           weight_norm=weight_norm, beta=beta)
+        dims = [d_in] + [hidden] * layers + [1]
+        self.linears = nn.ModuleList()
+        for i in range(len(dims) - 1):
+            out_dim = dims[i + 1] - d_in if self.skip is not None and i + 1 == self.skip else dims[i + 1]
+            lin = nn.Linear(dims[i], out_dim)
+            self._geometric_init(lin, i, len(dims) - 1, d_in, init_radius)
+            self.linears.append(parametrizations.weight_norm(lin) if weight_norm else lin)
+
+    def _geometric_init(self, lin: nn.Linear, i: int, n: int, d_in: int, radius: float):
+        """NeuS/SAL geometric initialisation: the network starts as |x| - radius."""
+        with torch.no_grad():
+            out_dim, in_dim = lin.weight.shape
+            if i == n - 1:
+                lin.weight.normal_(math.sqrt(math.pi) / math.sqrt(in_dim), 1e-4)
+                lin.bias.fill_(-radius)
+                return
+            lin.bias.zero_()
+            lin.weight.normal_(0.0, math.sqrt(2.0) / math.sqrt(out_dim))
+            if i == 0 and self.encoding is not None:
+                lin.weight[:, 3:] = 0.0  # start from the raw coordinates only
+            elif self.skip is not None and i == self.skip and self.encoding is not None:
+                lin.weight[:, -(d_in - 3):] = 0.0
+
+    def normalized_sdf(self, xn: torch.Tensor) -> torch.Tensor:
+        """SDF in normalised units at normalised points [..., 3] -> [...]."""
+        inp = self.encoding(xn) if self.encoding is not None else xn
+        h = inp
+        last = len(self.linears) - 1
+        for i, lin in enumerate(self.linears):
+            if self.skip is not None and i == self.skip:
+                h = torch.cat([h, inp], dim=-1) / math.sqrt(2.0)
+            h = lin(h)
+            if i < last:
+                h = F.softplus(h, beta=self.beta)
+        return h[..., 0]
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """x [..., 3] camera frame (mm) -> signed distance [...] (mm), positive outside."""
+        return self.normalized_sdf((x - self.center) / self.scale) * self.scale
+
+
+class LearnedVariance(nn.Module):
+    """NeuS's learned inverse standard deviation: inv_s = exp(10 v) / length_scale (1/mm), v starts at 0.3.
+
+    `length_scale` is the field's normalisation scale (mm), so the initial sharpness matches NeuS's.
+    """
+
+    def __init__(self, init: float = 0.3, length_scale: float = 1.0):
+        super().__init__()
+        self.v = nn.Parameter(torch.tensor(float(init)))
+        self.length_scale = float(length_scale)
+
+    def forward(self) -> torch.Tensor:
+        return torch.exp(self.v * 10.0) / self.length_scale
+
+
+def sdf_and_gradient(field: nn.Module, x: torch.Tensor, create_graph: bool = True):
+    """f(x) [...] and grad f(x) [..., 3] (double-backward ready) for any torch SDF module."""
+    with torch.enable_grad():
+        x = x.detach().requires_grad_(True)
+        f = field(x)
+        (g,) = torch.autograd.grad(f, x, torch.ones_like(f), create_graph=create_graph)
+    return f, g

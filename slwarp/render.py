@@ -1,0 +1,206 @@
+"""StructuredLightRenderer: sampling + any torch SDF + the fused renderer -> the paper's three losses.
+
+A drop-in loss for SDF training in a calibrated camera + projector rig:
+
+    renderer = StructuredLightRenderer.from_scan(scan, sdf_module)   # sdf_module: x [..., 3] mm -> sdf [...] mm
+    batch = renderer.sample_pixels(2048)
+    losses = renderer(batch)                                           # .color, .surface, .eikonal
+    (losses.color + lambda_sc * losses.surface + lambda_reg * losses.eikonal).backward()
+
+Per batch of camera pixels: rays (undistorted) between the near and far depth; stratified samples
+with per-ray jitter; NeuS hierarchical up-sampling (the SDF at new samples from the field without
+gradient, between kernel launches); the field and its gradient (double-backward ready) at the final
+samples; the fused render; and the losses
+    L_rc  = mean |I'_i(r) - I_i(r)|            rendered colour, over valid pixels and patterns
+    L_sc  = mean |a + b P_i(pi(s(r))) - I_i(r)| surface colour
+    L_reg = mean (|grad f| - 1)^2               Eikonal, over samples inside the working volume
+with a(r) = min_i I_i(r), b(r) = max_i I_i(r) - a(r); a pixel is valid (used by L_rc and L_sc) when it is
+lit with enough contrast: b(r) > contrast_threshold.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import torch
+import torch.nn as nn
+
+from . import ops
+from .field import LearnedVariance, Volume, sdf_and_gradient
+
+
+class RenderLosses(NamedTuple):
+    """color (L_rc), surface (L_sc), eikonal (L_reg): scalar tensors; output: the RenderOutput;
+    z_vals [R, S]: the sample distances used; valid [R]: pixels the colour losses counted."""
+
+    color: torch.Tensor
+    surface: torch.Tensor
+    eikonal: torch.Tensor
+    output: ops.RenderOutput
+    z_vals: torch.Tensor
+    valid: torch.Tensor
+
+
+class PixelBatch(NamedTuple):
+    """A batch of camera pixels: flat indices [R] (long), uv [R, 2], observed intensities [R, N],
+    a [R], b [R], valid [R] (bool)."""
+
+    index: torch.Tensor
+    uv: torch.Tensor
+    observed: torch.Tensor
+    a: torch.Tensor
+    b: torch.Tensor
+    valid: torch.Tensor
+
+
+def offset_and_modulation(images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """a = min_i I_i, b = max_i I_i - a over the frames [N, ...]."""
+    lo = images.min(dim=0).values
+    return lo, images.max(dim=0).values - lo
+
+
+class StructuredLightRenderer(nn.Module):
+    """Sampling, field evaluation and the fused renderer for one rig and its captured frames.
+
+    sdf: torch module x [..., 3] (camera frame, mm) -> signed distance [...] (mm).
+    camera, projector: the rig; patterns [N, Hp, Wp] and images [N, H, W] in [0, 1].
+    depth_range: (near, far) camera z (mm) sampled along each ray. volume: the working volume where the
+    Eikonal term counts and up-sampling trusts the SDF (default: the frustum box of the valid pixels).
+    variance: a module returning inv_s (1/mm); default a NeuS LearnedVariance scaled to the volume.
+    n_samples coarse + n_importance up-sampled samples in up_sample_steps steps; backend "warp" | "torch".
+    """
+
+    def __init__(self, sdf: nn.Module, camera, projector, patterns, images, *, depth_range, volume: Volume | None = None,
+                 variance: nn.Module | None = None, n_samples: int = 32, n_importance: int = 32, up_sample_steps: int = 4,
+                 contrast_threshold: float = 0.05, backend: str = "warp", device=None):
+        super().__init__()
+        if backend not in ops.BACKENDS:
+            raise ValueError(f"backend must be one of {ops.BACKENDS}, got {backend!r}")
+        if up_sample_steps > 0 and n_importance % up_sample_steps:
+            raise ValueError(f"n_importance ({n_importance}) must be a multiple of up_sample_steps ({up_sample_steps})")
+        self.sdf = sdf
+        self.camera = camera
+        self.projector = projector
+        self.depth_range = (float(depth_range[0]), float(depth_range[1]))
+        self.n_samples, self.n_importance, self.up_sample_steps = n_samples, n_importance, up_sample_steps
+        self.contrast_threshold = float(contrast_threshold)
+        self.backend = backend
+        device = torch.device(device) if device is not None else next(sdf.parameters(), torch.empty(0)).device
+        self._projector_packed = ops.pack_projector(projector)
+        self.set_frames(images, patterns, device=device)
+        if volume is None:
+            volume = Volume.from_frustum(camera, self.valid_map.cpu().numpy(), self.depth_range)
+        self.volume = volume
+        self.variance = variance if variance is not None else LearnedVariance(0.3, volume.scale)
+        self.to(device)
+        uv = camera.pixel_grid().reshape(-1, 2)
+        self.register_buffer("pixel_uv", torch.as_tensor(uv, dtype=torch.float32, device=device), persistent=False)
+
+    @classmethod
+    def from_scan(cls, scan, sdf: nn.Module, **kw) -> "StructuredLightRenderer":
+        """A renderer for a `slwarp.Scan` (depth range from the scan unless given)."""
+        depth_range = kw.pop("depth_range", None) or scan.depth_range
+        if depth_range is None:
+            raise ValueError(f"{scan.source or 'scan'}: no depth range: give depth_range=(near, far) in mm")
+        return cls(sdf, scan.camera, scan.projector, scan.patterns, scan.images, depth_range=depth_range, **kw)
+
+    # --- frames -------------------------------------------------------------------------------
+    def set_frames(self, images, patterns, device=None):
+        """(Re)set the captured frames, e.g. to add a pattern during incremental training.
+
+        images [N, H, W], patterns [N, Hp, Wp]; recomputes a, b and the valid-pixel map.
+        """
+        device = device if device is not None else self.pixel_uv.device
+        images = torch.as_tensor(np.asarray(images) if not isinstance(images, torch.Tensor) else images, dtype=torch.float32).to(device)
+        patterns = torch.as_tensor(np.asarray(patterns) if not isinstance(patterns, torch.Tensor) else patterns, dtype=torch.float32).to(device)
+        if images.shape[0] != patterns.shape[0]:
+            raise ValueError(f"{images.shape[0]} images for {patterns.shape[0]} patterns")
+        if tuple(images.shape[1:]) != (self.camera.height, self.camera.width):
+            raise ValueError(f"images are {tuple(images.shape[1:])}, camera is {self.camera.height}x{self.camera.width}")
+        if tuple(patterns.shape[1:]) != (self.projector.height, self.projector.width):
+            raise ValueError(f"patterns are {tuple(patterns.shape[1:])}, projector is {self.projector.height}x{self.projector.width}")
+        a, b = offset_and_modulation(images)
+        self.images_flat = images.reshape(images.shape[0], -1).t().contiguous()  # [H*W, N]: one gather per batch
+        self.a_flat, self.b_flat = a.reshape(-1), b.reshape(-1)
+        self.valid_map = (b > self.contrast_threshold)
+        self.valid_index = torch.nonzero(self.valid_map.reshape(-1)).squeeze(1)
+        self.patterns = patterns
+        self.patterns_hwn = ops.pack_patterns(patterns)
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.patterns.shape[0])
+
+    # --- batches ------------------------------------------------------------------------------
+    def batch(self, index: torch.Tensor) -> PixelBatch:
+        """The pixel batch for flat pixel indices [R] (row-major over the camera image)."""
+        index = index.to(self.pixel_uv.device)
+        return PixelBatch(index, self.pixel_uv[index], self.images_flat[index], self.a_flat[index], self.b_flat[index],
+                          self.valid_map.reshape(-1)[index])
+
+    def sample_pixels(self, n: int, generator: torch.Generator | None = None) -> PixelBatch:
+        """n random valid pixels (uniform, with replacement)."""
+        if self.valid_index.numel() == 0:
+            raise ValueError("no valid pixel (lit with enough contrast) in the frames")
+        pick = torch.randint(0, self.valid_index.numel(), (n,), generator=generator, device=generator.device if generator is not None else "cpu")
+        return self.batch(self.valid_index[pick.to(self.valid_index.device)])
+
+    # --- sampling -----------------------------------------------------------------------------
+    def inv_s(self) -> torch.Tensor:
+        return self.variance()
+
+    @torch.no_grad()
+    def sample_rays(self, batch: PixelBatch, perturb: bool = True, generator: torch.Generator | None = None):
+        """(rays_o, rays_d, z_vals [R, n_samples + n_importance]) with NeuS up-sampling."""
+        be = self.backend
+        o, d, near, far = ops.camera_rays(batch.uv, self.camera, self.depth_range, backend=be)
+        R = batch.uv.shape[0]
+        if perturb:
+            jitter = torch.rand(R, generator=generator, device=generator.device if generator is not None else "cpu").to(o.device) - 0.5
+        else:
+            jitter = torch.zeros(R, device=o.device)
+        z = ops.stratified_samples(near, far, self.n_samples, jitter, backend=be)
+        if self.n_importance > 0 and self.up_sample_steps > 0:
+            bounds = self.volume.as_bounds()
+            sdf = self.sdf(o[:, None, :] + z[..., None] * d[:, None, :])
+            per_step = self.n_importance // self.up_sample_steps
+            for i in range(self.up_sample_steps):
+                inv_s = 64.0 * 2**i / self.volume.scale  # NeuS's schedule, in 1/mm
+                z_new = ops.upsample_samples(z, sdf, o, d, per_step, inv_s, bounds=bounds, backend=be)
+                sdf_new = self.sdf(o[:, None, :] + z_new[..., None] * d[:, None, :])
+                z, sdf = ops.merge_samples(z, sdf, z_new, sdf_new, backend=be)
+        return o, d, z
+
+    # --- forward ------------------------------------------------------------------------------
+    def render(self, batch: PixelBatch, *, cos_anneal_ratio: float = 1.0, perturb: bool = True,
+               generator: torch.Generator | None = None) -> tuple[ops.RenderOutput, torch.Tensor]:
+        """(RenderOutput, z_vals) for a batch: gradients reach the SDF module and the variance."""
+        o, d, z = self.sample_rays(batch, perturb, generator)
+        # sample-major memory ([S, R] viewed as [R, S]): consecutive rays are adjacent, so the kernels'
+        # one-thread-per-ray loads coalesce; the field does not care about the order of its points
+        z_sr = z.t().contiguous()
+        x = o[None, :, :] + z_sr[..., None] * d[None, :, :]
+        sdf, grad = sdf_and_gradient(self.sdf, x)
+        out = ops.render_structured_light(
+            sdf.t(), grad.transpose(0, 1), z_sr.t(), o, d, batch.a, batch.b, self.patterns_hwn, self._projector_packed, self.inv_s(),
+            cos_anneal_ratio=cos_anneal_ratio, backend=self.backend, bounds=self.volume.as_bounds(),
+            patterns_layout="HWN",
+        )
+        return out, z_sr.t()
+
+    def forward(self, batch: PixelBatch, *, cos_anneal_ratio: float = 1.0, perturb: bool = True,
+                generator: torch.Generator | None = None) -> RenderLosses:
+        out, z = self.render(batch, cos_anneal_ratio=cos_anneal_ratio, perturb=perturb, generator=generator)
+        color, surface, eikonal = structured_light_losses(out, batch.observed, batch.valid)
+        return RenderLosses(color, surface, eikonal, out, z, batch.valid)
+
+
+def structured_light_losses(out: ops.RenderOutput, observed: torch.Tensor, valid: torch.Tensor):
+    """(L_rc, L_sc, L_reg): L1 colour losses over valid pixels and all patterns, Eikonal mean over the
+    samples inside the working volume. An empty mask gives zero colour losses (never NaN)."""
+    m = valid.to(out.rendered.dtype)[:, None]
+    denom = (m.sum() * observed.shape[1]).clamp(min=1.0)
+    color = ((out.rendered - observed).abs() * m).sum() / denom
+    surface = ((out.surface_rendered - observed).abs() * m).sum() / denom
+    eikonal = out.eikonal.sum() / out.eikonal_count.sum().clamp(min=1.0)
+    return color, surface, eikonal
