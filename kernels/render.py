@@ -8,14 +8,17 @@ Forward, per ray r with samples x_k = o + z_k d (k = 0..S-1):
     T_k       = prod_{j<k} (1 - alpha_j + 1e-7);  w_k = alpha_k T_k
     rendered_n = a sum_k w_k + b sum_k w_k P_n(pi(x_k))   (P_n bilinear, zero outside the projector image)
     surface   = sum_k w_k x_k;  depth = surface_z;  surface_rendered_n = a + b P_n(pi(surface))
-    eikonal_k = (|g_k| - 1)^2 inside the working volume (axis-aligned box), else 0
+    eikonal_k = (|g_k| - 1)^2 inside the working volume (axis-aligned box), else 0; eikonal_sum = sum_k
+    The forward also keeps T_k for the backward (one extra write per sample instead of a second pass).
 Backward is written by hand: the transmittance product is a loop-carried dependency that Warp's
 automatic adjoint does not replay. With G_k the total cotangent reaching w_k,
     dL/dalpha_k = T_k (G_k - U_k),  U_{k} = G_{k+1} alpha_{k+1} + (1 - alpha_{k+1} + 1e-7) U_{k+1},  U_{S-1} = 0,
-a suffix recurrence: no division by (1 - alpha). The backward kernel makes a forward pass (the surface
-point, whose cotangent enters every G_k, and T_k kept as scratch in the d_sdf output), then a reverse
-pass that samples the patterns, runs the recurrence and overwrites d_sdf with the final gradient.
-Cotangents of weights and Eikonal that no loss uses are skipped (flags), so they are never read.
+a suffix recurrence: no division by (1 - alpha). The backward is one reverse pass per ray over the
+saved T_k and the saved surface point (whose cotangent enters every G_k). Per-sample cotangents of
+weights and Eikonal that no loss uses are skipped (flags), so they are never read.
+
+Both loops are software-pipelined (the next sample's inputs load while this one is processed): with one
+thread per ray the kernels are latency-bound, and sample-major inputs make each load coalesced.
 
 Kernels are specialised on the pattern count N (a compile-time constant: per-pattern accumulators stay
 in registers). Patterns are packed [H, W, N] so the N values of one projector pixel are contiguous.
@@ -69,18 +72,6 @@ def neus_alpha_vjp(sdf: float, true_cos: float, dz: float, inv_s: float, anneal:
     g_c = (g_next - g_prev) * dz * 0.5
     dc_dcos = wp.where(true_cos < 1.0, 0.5 * (1.0 - anneal), 0.0) + wp.where(true_cos < 0.0, anneal, 0.0)
     return wp.vec3(g_prev + g_next, g_c * dc_dcos, g_prev_arg * prev + g_next_arg * nxt)
-
-
-@wp.func
-def interval(z: wp.array2d(dtype=float), r: int, k: int, last_delta: float) -> float:
-    S = z.shape[1]
-    if k + 1 < S:
-        return z[r, k + 1] - z[r, k]
-    if last_delta >= 0.0:
-        return last_delta
-    if S > 1:
-        return z[r, k] - z[r, k - 1]
-    return 0.0
 
 
 @wp.func
@@ -169,7 +160,9 @@ def render_kernels(N: int):
         depth: wp.array(dtype=float),
         weight_sum: wp.array(dtype=float),
         eikonal: wp.array2d(dtype=float),
+        eikonal_sum: wp.array(dtype=float),
         eikonal_count: wp.array(dtype=float),
+        trans_out: wp.array2d(dtype=float),
     ):
         r = wp.tid()
         S = z.shape[1]
@@ -180,12 +173,28 @@ def render_kernels(N: int):
         wsum = float(0.0)
         sp = wp.vec3(0.0, 0.0, 0.0)
         acc = vecN()
+        esum = float(0.0)
         count = float(0.0)
+        # software pipelining: the next sample's inputs are loaded while this one is processed
+        f_next = sdf[r, 0]
+        g_next = grad[r, 0]
+        z_next = z[r, 0]
+        z_prev = z_next
         for k in range(S):
-            zk = z[r, k]
-            g = grad[r, k]
-            alpha = neus_alpha(sdf[r, k], wp.dot(d, g), interval(z, r, k, last_delta), inv_s, anneal)
+            f = f_next
+            g = g_next
+            zk = z_next
+            if k + 1 < S:
+                f_next = sdf[r, k + 1]
+                g_next = grad[r, k + 1]
+                z_next = z[r, k + 1]
+            dz = z_next - zk
+            if k + 1 == S:
+                dz = wp.where(last_delta >= 0.0, last_delta, wp.where(S > 1, zk - z_prev, 0.0))
+            z_prev = zk
+            alpha = neus_alpha(f, wp.dot(d, g), dz, inv_s, anneal)
             w = alpha * trans
+            trans_out[r, k] = trans
             trans = trans * (1.0 - alpha + TRANS_EPS)
             weights[r, k] = w
             wsum += w
@@ -198,6 +207,7 @@ def render_kernels(N: int):
                 e = (nrm - 1.0) * (nrm - 1.0)
                 count += 1.0
             eikonal[r, k] = e
+            esum += e
         ps = sample_all(pat, project_to_projector(prm, sp))
         ar = a[r]
         br = b[r]
@@ -207,6 +217,7 @@ def render_kernels(N: int):
         surface[r] = sp
         depth[r] = sp[2]
         weight_sum[r] = wsum
+        eikonal_sum[r] = esum
         eikonal_count[r] = count
 
     @wp.kernel(module="unique")
@@ -225,6 +236,8 @@ def render_kernels(N: int):
         last_delta: float,
         bmin: wp.vec3,
         bmax: wp.vec3,
+        trans_saved: wp.array2d(dtype=float),
+        surface: wp.array(dtype=wp.vec3),
         g_weights: wp.array2d(dtype=float),
         has_g_weights: int,
         g_rendered: wp.array2d(dtype=float),
@@ -234,6 +247,7 @@ def render_kernels(N: int):
         g_weight_sum: wp.array(dtype=float),
         g_eikonal: wp.array2d(dtype=float),
         has_g_eikonal: int,
+        g_eikonal_sum: wp.array(dtype=float),
         d_sdf: wp.array2d(dtype=float),
         d_grad: wp.array2d(dtype=wp.vec3),
         d_inv_s: wp.array(dtype=float),
@@ -252,45 +266,58 @@ def render_kernels(N: int):
             gsr[n] = g_surface_rendered[r, n] * br
             sum_gr += gr[n]
         common = g_weight_sum[r] + a[r] * sum_gr
+        g_eik_ray = g_eikonal_sum[r]
 
-        # pass 1, in sample order: the surface point, and T_k kept in d_sdf[r, k] as scratch
-        trans = float(1.0)
-        sp = wp.vec3(0.0, 0.0, 0.0)
-        for k in range(S):
-            g = grad[r, k]
-            alpha = neus_alpha(sdf[r, k], wp.dot(d, g), interval(z, r, k, last_delta), inv_s, anneal)
-            d_sdf[r, k] = trans
-            sp += (alpha * trans) * (o + d * z[r, k])
-            trans = trans * (1.0 - alpha + TRANS_EPS)
-
-        # cotangent of the surface point: direct, through depth, and through the surface intensities
+        # cotangent of the surface point (saved by the forward): direct, through depth, and through the
+        # surface intensities
+        sp = surface[r]
         g_s = g_surface[r] + wp.vec3(0.0, 0.0, g_depth[r])
-        uvo = project_to_projector(prm, sp)
-        duv = sample_all_grad(pat, uvo, gsr)
+        duv = sample_all_grad(pat, project_to_projector(prm, sp), gsr)
         g_s += project_to_projector_grad(prm, sp, duv[0], duv[1])
 
-        # pass 2, in reverse: G_k (total cotangent of w_k), the U recurrence, the alpha and Eikonal adjoints
+        # one pass in reverse: G_k (the total cotangent of w_k), the U recurrence with the saved
+        # transmittance T_k, then the NeuS alpha and Eikonal adjoints. Inputs of the next (lower) sample
+        # are loaded while this one is processed.
         u_suffix = float(0.0)
         g_inv_s = float(0.0)
+        k0 = S - 1
+        f_next = sdf[r, k0]
+        g_next = grad[r, k0]
+        z_next = z[r, k0]
+        t_next = trans_saved[r, k0]
+        z_after = z_next  # z of sample k + 1
         for kk in range(S):
             k = S - 1 - kk
-            g = grad[r, k]
-            f = sdf[r, k]
+            f = f_next
+            g = g_next
+            zk = z_next
+            t_k = t_next
+            if k > 0:
+                f_next = sdf[r, k - 1]
+                g_next = grad[r, k - 1]
+                z_next = z[r, k - 1]
+                t_next = trans_saved[r, k - 1]
+            dz = z_after - zk
+            if k + 1 == S:
+                dz = wp.where(last_delta >= 0.0, last_delta, wp.where(S > 1, zk - z_next, 0.0))
+            z_after = zk
             cos_k = wp.dot(d, g)
-            dz = interval(z, r, k, last_delta)
             alpha = neus_alpha(f, cos_k, dz, inv_s, anneal)
-            x = o + d * z[r, k]
+            x = o + d * zk
             gw = common + br * wp.dot(gr, sample_all(pat, project_to_projector(prm, x))) + wp.dot(g_s, x)
             if has_g_weights != 0:
                 gw += g_weights[r, k]
-            g_alpha = d_sdf[r, k] * (gw - u_suffix)
+            g_alpha = t_k * (gw - u_suffix)
             u_suffix = gw * alpha + (1.0 - alpha + TRANS_EPS) * u_suffix
             v = neus_alpha_vjp(f, cos_k, dz, inv_s, anneal, g_alpha)
             dg = d * v[1]
-            if has_g_eikonal != 0:
-                if inside_box(x, bmin, bmax):
+            if inside_box(x, bmin, bmax):
+                g_e = g_eik_ray
+                if has_g_eikonal != 0:
+                    g_e += g_eikonal[r, k]
+                if g_e != 0.0:
                     nrm = wp.sqrt(wp.dot(g, g) + NORM_EPS)
-                    dg += g * (g_eikonal[r, k] * 2.0 * (nrm - 1.0) / nrm)
+                    dg += g * (g_e * 2.0 * (nrm - 1.0) / nrm)
             d_sdf[r, k] = v[0]
             d_grad[r, k] = dg
             g_inv_s += v[2]

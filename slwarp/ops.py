@@ -44,7 +44,8 @@ class RenderOutput(NamedTuple):
     surface_rendered [R, N]: a + b P_n(pi(surface point));
     weights [R, S]: NeuS weights; depth [R]: camera-frame z of the surface point (mm);
     eikonal [R, S]: (|grad f| - 1)^2 inside the working volume, 0 outside;
-    weight_sum [R]: sum_k w_k (opacity of the ray); eikonal_count [R]: samples inside the volume.
+    weight_sum [R]: sum_k w_k (opacity of the ray); eikonal_sum [R]: sum_k eikonal (differentiable: a
+    loss on it moves one number per ray instead of S); eikonal_count [R]: samples inside the volume.
     """
 
     rendered: torch.Tensor
@@ -54,6 +55,7 @@ class RenderOutput(NamedTuple):
     depth: torch.Tensor
     eikonal: torch.Tensor
     weight_sum: torch.Tensor
+    eikonal_sum: torch.Tensor
     eikonal_count: torch.Tensor
 
 
@@ -140,7 +142,8 @@ def _launch(kernel, dim, inputs, device: torch.device):
     """Launch on torch's current stream of `device` (asynchronous: no host synchronisation)."""
     launcher = _LAUNCHERS.get(kernel)
     if launcher is None:
-        launcher = _LAUNCHERS[kernel] = runtime.CachedLaunch(kernel)
+        # 64-thread blocks: one thread per ray leaves few warps per SM, so spread them over more blocks
+        launcher = _LAUNCHERS[kernel] = runtime.CachedLaunch(kernel, block_dim=64)
     if device.type == "cuda":
         wp = runtime.init()
         torch_stream = torch.cuda.current_stream(device)
@@ -189,7 +192,9 @@ def _render_forward_impl(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_h
     depth = torch.empty(R, **opts)
     weight_sum = torch.empty(R, **opts)
     eikonal = _empty_like_layout(z_vals)
+    eikonal_sum = torch.empty(R, **opts)
     eikonal_count = torch.empty(R, **opts)
+    trans = _empty_like_layout(z_vals)  # T_k, kept for the backward
     if R > 0:
         fwd, _ = render_kernels(int(N))
         _launch(fwd, R, [
@@ -197,14 +202,14 @@ def _render_forward_impl(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_h
             _desc(patterns_hwn), _wp_params(projector), _desc(inv_s), float(cos_anneal_ratio), float(last_delta),
             _vec3(bounds[0:3]), _vec3(bounds[3:6]),
             _desc(weights), _desc(rendered), _desc(surface, 3), _desc(surface_rendered), _desc(depth), _desc(weight_sum),
-            _desc(eikonal), _desc(eikonal_count),
+            _desc(eikonal), _desc(eikonal_sum), _desc(eikonal_count), _desc(trans),
         ], dev)
-    return weights, rendered, surface, surface_rendered, depth, weight_sum, eikonal, eikonal_count
+    return weights, rendered, surface, surface_rendered, depth, weight_sum, eikonal, eikonal_sum, eikonal_count, trans
 
 
 def _render_backward_impl(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector, inv_s,
-                          cos_anneal_ratio, last_delta, bounds, g_weights, g_rendered, g_surface,
-                          g_surface_rendered, g_depth, g_weight_sum, g_eikonal):
+                          cos_anneal_ratio, last_delta, bounds, trans, surface, g_weights, g_rendered, g_surface,
+                          g_surface_rendered, g_depth, g_weight_sum, g_eikonal, g_eikonal_sum):
     from .kernels.render import render_kernels
 
     R, S = z_vals.shape
@@ -219,10 +224,10 @@ def _render_backward_impl(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_
         _launch(bwd, R, [
             _desc(sdf), _desc(sdf_grad, 3), _desc(z_vals), _desc(rays_o, 3), _desc(rays_d, 3), _desc(a), _desc(b),
             _desc(patterns_hwn), _wp_params(projector), _desc(inv_s), float(cos_anneal_ratio), float(last_delta),
-            _vec3(bounds[0:3]), _vec3(bounds[3:6]),
+            _vec3(bounds[0:3]), _vec3(bounds[3:6]), _desc(trans), _desc(surface, 3),
             _desc(g_weights if g_weights is not None else dummy), int(g_weights is not None), _desc(g_rendered),
             _desc(g_surface, 3), _desc(g_surface_rendered), _desc(g_depth), _desc(g_weight_sum),
-            _desc(g_eikonal if g_eikonal is not None else dummy), int(g_eikonal is not None),
+            _desc(g_eikonal if g_eikonal is not None else dummy), int(g_eikonal is not None), _desc(g_eikonal_sum),
             _desc(d_sdf), _desc(d_grad, 3), _desc(d_inv_s),
         ], dev)
     return d_sdf, d_grad, d_inv_s.sum().reshape(1)
@@ -231,7 +236,7 @@ def _render_backward_impl(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_
 def _cotangents(z_vals, N, grads):
     """Cotangents as contiguous float32; None for weights/Eikonal stays None (the kernel skips them),
     other missing ones become zeros (they are [R] or [R, N]: cheap)."""
-    g_weights, g_rendered, g_surface, g_srend, g_depth, g_wsum, g_eik = grads
+    g_weights, g_rendered, g_surface, g_srend, g_depth, g_wsum, g_eik, g_eik_sum = grads
     R, S = z_vals.shape
 
     def cot(g, *shape):
@@ -240,7 +245,8 @@ def _cotangents(z_vals, N, grads):
         return _f32v(g) if shape[-1] == 3 and len(shape) == 2 and shape[0] == R else _f32(g)
 
     return (_f32(g_weights) if g_weights is not None else None, cot(g_rendered, R, N), cot(g_surface, R, 3),
-            cot(g_srend, R, N), cot(g_depth, R), cot(g_wsum, R), _f32(g_eik) if g_eik is not None else None)
+            cot(g_srend, R, N), cot(g_depth, R), cot(g_wsum, R), _f32(g_eik) if g_eik is not None else None,
+            cot(g_eik_sum, R))
 
 
 class _RenderFunction(torch.autograd.Function):
@@ -250,19 +256,20 @@ class _RenderFunction(torch.autograd.Function):
     def forward(ctx, sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector, inv_s, anneal, last_delta, bounds):
         outs = _render_forward_impl(sdf.detach(), sdf_grad.detach(), z_vals, rays_o, rays_d, a, b, patterns_hwn,
                                     projector, inv_s.detach(), anneal, last_delta, bounds)
-        ctx.save_for_backward(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, inv_s)
+        trans, surface = outs[9], outs[2]
+        ctx.save_for_backward(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, inv_s, trans, surface)
         ctx.params = (projector, anneal, last_delta, bounds)
-        ctx.mark_non_differentiable(outs[7])
+        ctx.mark_non_differentiable(outs[8], trans)
         return outs
 
     @staticmethod
     def backward(ctx, *grads):
-        sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, inv_s = ctx.saved_tensors
+        sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, inv_s, trans, surface = ctx.saved_tensors
         projector, anneal, last_delta, bounds = ctx.params
-        cots = _cotangents(z_vals, patterns_hwn.shape[2], grads[:7])
+        cots = _cotangents(z_vals, patterns_hwn.shape[2], grads[:8])
         d_sdf, d_grad, d_inv_s = _render_backward_impl(sdf.detach(), sdf_grad.detach(), z_vals, rays_o, rays_d, a, b,
                                                        patterns_hwn, projector, inv_s.detach(), anneal, last_delta,
-                                                       bounds, *cots)
+                                                       bounds, trans, surface.detach(), *cots)
         return d_sdf, d_grad, None, None, None, None, None, None, None, d_inv_s, None, None, None
 
 
@@ -274,7 +281,8 @@ def _render_forward(
     sdf: torch.Tensor, sdf_grad: torch.Tensor, z_vals: torch.Tensor, rays_o: torch.Tensor, rays_d: torch.Tensor,
     a: torch.Tensor, b: torch.Tensor, patterns_hwn: torch.Tensor, projector: list[float], inv_s: torch.Tensor,
     cos_anneal_ratio: float, last_delta: float, bounds: list[float],
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
+           torch.Tensor, torch.Tensor, torch.Tensor]:
     return _render_forward_impl(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector, inv_s,
                                 cos_anneal_ratio, last_delta, bounds)
 
@@ -284,20 +292,20 @@ def _(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector, inv_
     R, S = z_vals.shape
     N = patterns_hwn.shape[2]
     e = lambda *shape: z_vals.new_empty(shape, dtype=torch.float32)  # noqa: E731
-    return e(R, S), e(R, N), e(R, 3), e(R, N), e(R), e(R), e(R, S), e(R)
+    return e(R, S), e(R, N), e(R, 3), e(R, N), e(R), e(R), e(R, S), e(R), e(R), e(R, S)
 
 
 @torch.library.custom_op("slwarp::render_backward", mutates_args=())
 def _render_backward(
     sdf: torch.Tensor, sdf_grad: torch.Tensor, z_vals: torch.Tensor, rays_o: torch.Tensor, rays_d: torch.Tensor,
     a: torch.Tensor, b: torch.Tensor, patterns_hwn: torch.Tensor, projector: list[float], inv_s: torch.Tensor,
-    cos_anneal_ratio: float, last_delta: float, bounds: list[float],
+    cos_anneal_ratio: float, last_delta: float, bounds: list[float], trans: torch.Tensor, surface: torch.Tensor,
     g_weights: torch.Tensor | None, g_rendered: torch.Tensor, g_surface: torch.Tensor, g_surface_rendered: torch.Tensor,
-    g_depth: torch.Tensor, g_weight_sum: torch.Tensor, g_eikonal: torch.Tensor | None,
+    g_depth: torch.Tensor, g_weight_sum: torch.Tensor, g_eikonal: torch.Tensor | None, g_eikonal_sum: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     return _render_backward_impl(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector, inv_s,
-                                 cos_anneal_ratio, last_delta, bounds, g_weights, g_rendered, g_surface,
-                                 g_surface_rendered, g_depth, g_weight_sum, g_eikonal)
+                                 cos_anneal_ratio, last_delta, bounds, trans, surface, g_weights, g_rendered, g_surface,
+                                 g_surface_rendered, g_depth, g_weight_sum, g_eikonal, g_eikonal_sum)
 
 
 @_render_backward.register_fake
@@ -308,16 +316,16 @@ def _(sdf, sdf_grad, z_vals, *args):
 
 def _setup_context(ctx, inputs, output):
     sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector, inv_s, anneal, last_delta, bounds = inputs
-    ctx.save_for_backward(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, inv_s)
+    ctx.save_for_backward(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, inv_s, output[9], output[2])
     ctx.params = (projector, anneal, last_delta, bounds)
 
 
 def _backward(ctx, *grads):
-    sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, inv_s = ctx.saved_tensors
+    sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, inv_s, trans, surface = ctx.saved_tensors
     projector, anneal, last_delta, bounds = ctx.params
-    cots = _cotangents(z_vals, patterns_hwn.shape[2], grads[:7])
+    cots = _cotangents(z_vals, patterns_hwn.shape[2], grads[:8])
     d_sdf, d_grad, d_inv_s = _render_backward(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector,
-                                              inv_s, anneal, last_delta, bounds, *cots)
+                                              inv_s, anneal, last_delta, bounds, trans, surface.detach(), *cots)
     return d_sdf, d_grad, None, None, None, None, None, None, None, d_inv_s, None, None, None
 
 
@@ -386,8 +394,8 @@ def render_structured_light(
                 _f32v(rays_d), _f32(a), _f32(b), pat_hwn, proj, inv_s.to(torch.float32).reshape(1),
                 float(cos_anneal_ratio), ld, bnd)
         outs = _render_forward(*args) if torch.compiler.is_compiling() else _RenderFunction.apply(*args)
-    weights, rendered, surface, surface_rendered, depth, weight_sum, eikonal, eikonal_count = outs
-    return RenderOutput(rendered, surface, surface_rendered, weights, depth, eikonal, weight_sum, eikonal_count)
+    weights, rendered, surface, surface_rendered, depth, weight_sum, eikonal, eikonal_sum, eikonal_count = outs[:9]
+    return RenderOutput(rendered, surface, surface_rendered, weights, depth, eikonal, weight_sum, eikonal_sum, eikonal_count)
 
 
 def camera_rays(pixels: torch.Tensor, camera, depth_range, *, backend: str = "warp"):

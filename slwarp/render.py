@@ -202,5 +202,5 @@ def structured_light_losses(out: ops.RenderOutput, observed: torch.Tensor, valid
     denom = (m.sum() * observed.shape[1]).clamp(min=1.0)
     color = ((out.rendered - observed).abs() * m).sum() / denom
     surface = ((out.surface_rendered - observed).abs() * m).sum() / denom
-    eikonal = out.eikonal.sum() / out.eikonal_count.sum().clamp(min=1.0)
+    eikonal = out.eikonal_sum.sum() / out.eikonal_count.sum().clamp(min=1.0)
     return color, surface, eikonal

@@ -115,7 +115,7 @@ def inside_box(x: torch.Tensor, bounds: list[float]) -> torch.Tensor:
 def render(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns, projector: list[float], inv_s,
            cos_anneal_ratio: float, last_delta: float, bounds: list[float]):
     """The fused render in torch. Returns (weights [R,S], rendered [R,N], surface [R,3],
-    surface_rendered [R,N], depth [R], weight_sum [R], eikonal [R,S], eikonal_count [R]).
+    surface_rendered [R,N], depth [R], weight_sum [R], eikonal [R,S], eikonal_sum [R], eikonal_count [R]).
 
     patterns: [N, H, W]. inv_s: tensor broadcastable to a scalar (differentiable).
     """
@@ -134,7 +134,8 @@ def render(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns, projector: lis
     inside = inside_box(x, bounds)
     nrm = torch.sqrt((sdf_grad * sdf_grad).sum(-1) + NORM_EPS)
     eikonal = torch.where(inside, (nrm - 1.0) ** 2, torch.zeros_like(nrm))
-    return weights, rendered, surface, surface_rendered, surface[:, 2], weight_sum, eikonal, inside.to(sdf.dtype).sum(1)
+    return (weights, rendered, surface, surface_rendered, surface[:, 2], weight_sum, eikonal, eikonal.sum(1),
+            inside.to(sdf.dtype).sum(1))
 
 
 # ----------------------------------------------------------------------------------------------

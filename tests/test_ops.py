@@ -18,7 +18,7 @@ from slwarp.patterns import random_binary
 from slwarp.rigs import make_rig
 
 CAM, PROJ = make_rig("small")
-FIELDS = ["rendered", "surface_points", "surface_rendered", "weights", "depth", "eikonal", "weight_sum"]
+FIELDS = ["rendered", "surface_points", "surface_rendered", "weights", "depth", "eikonal", "weight_sum", "eikonal_sum"]
 
 
 def make_inputs(R=48, S=24, N=6, device="cpu", dtype=torch.float32, seed=0, surface_depth=700.0):
@@ -80,7 +80,7 @@ def test_twin_gradcheck_float64():
     def f(sdf, grad, inv_s):
         outs = twin.render(sdf, grad, inputs["z_vals"], inputs["rays_o"], inputs["rays_d"], inputs["a"], inputs["b"],
                            inputs["patterns"], proj, inv_s, 0.6, -1.0, bounds)
-        return outs[:7]
+        return outs[:8]
 
     args = (inputs["sdf"].clone().requires_grad_(), inputs["sdf_grad"].clone().requires_grad_(),
             torch.tensor(0.25, dtype=torch.float64, requires_grad=True))
@@ -209,7 +209,7 @@ def test_render_under_torch_compile_has_no_graph_break():
         assert torch.allclose(x, y)
 
 
-@pytest.mark.parametrize("used", [("rendered",), ("surface_rendered", "depth"), ("rendered", "surface_rendered", "eikonal")])
+@pytest.mark.parametrize("used", [("rendered",), ("surface_rendered", "depth"), ("rendered", "surface_rendered", "eikonal"), ("rendered", "eikonal_sum")])
 def test_backward_with_unused_outputs(device, used):
     """Outputs no loss uses get no cotangent: the Warp backward must skip them, not read garbage."""
     inputs = make_inputs(R=32, S=16, N=3, device=device, seed=11)
