@@ -2,6 +2,8 @@
 
     slwarp info SCAN                      validate a scan and print its summary
     slwarp simulate --scene NAME ...      render a scan with exact ground truth (virtual scanner)
+    slwarp decode SCAN --method M --out D classical decoding (Gray code, CGC, PMP, ...) + triangulation
+    slwarp evaluate PRED SCAN             depth metrics of a depth map against the scan's ground truth
 
 Bad input exits with status 2 and a one-line message naming the file and the problem
 (SLWARP_DEBUG=1 shows the traceback instead).
@@ -115,6 +117,137 @@ def _add_simulate(sub):
     p.set_defaults(func=cmd_simulate)
 
 
+def _write_metrics(out: Path, pred, scan, mask, title: str, extra: dict) -> dict:
+    """Metrics of `pred` against the scan's ground truth: metrics.json + error_map.png in `out`."""
+    import json
+
+    import numpy as np
+
+    from .metrics import depth_metrics
+    from .viz import save_error_map
+
+    m = depth_metrics(pred, scan.gt_depth, mask)
+    doc = {**extra, "mask": "scan mask" if mask is not None else "none", "metrics": m}
+    (out / "metrics.json").write_text(json.dumps(doc, indent=2, default=float) + "\n")
+    shown = pred if mask is None else np.where(mask, pred, np.nan)  # the map shows what the numbers count
+    save_error_map(out / "error_map.png", shown, scan.gt_depth, title=title)
+    return m
+
+
+def cmd_decode(args) -> int:
+    import json
+
+    import numpy as np
+
+    from .decode import METHODS, reconstruct_depth, write_ply
+    from .metrics import format_table
+    from .scan import load_scan, write_depth_png
+    from .viz import ensure_dir, save_depth_color
+
+    scan = load_scan(args.scan)
+    params = {"min_amplitude": args.min_amplitude}
+    if args.method in ("gc", "gc-interp", "cgc", "gt"):
+        params["min_bit_contrast"] = args.min_bit_contrast
+    if args.method == "gc-interp":
+        params["fallback"] = args.fallback
+    if args.axis and args.method in ("ps", "cgc", "hpmp", "npmp", "gt"):
+        params["axis"] = args.axis
+    elif args.axis:
+        raise UserError(f"--axis applies to the phase methods; {args.method} decodes every axis the scan has codes for")
+    t0 = time.perf_counter()
+    depth, points, dec = reconstruct_depth(scan, args.method, frames=args.frames, triangulation=args.triangulation,
+                                           depth_range=None if args.no_depth_range else "scan", **params)
+    t1 = time.perf_counter()
+    out = ensure_dir(args.out)
+    np.save(out / "depth.npy", depth.astype(np.float32))
+    write_depth_png(out / "depth.png", depth)
+    save_depth_color(out / "depth_color.png", depth)
+    for axis, coord in (("col", dec.col), ("row", dec.row)):
+        if coord is not None:
+            np.save(out / f"projector_{axis}.npy", coord.astype(np.float32))
+    shade = scan.image("white") if "white" in scan.names else scan.images.max(axis=0)
+    n_pts = write_ply(out / "points.ply", points, shade)
+    valid = np.isfinite(depth)
+    print(f"decoded {scan.source or 'scan'} with {args.method} ({METHODS[args.method].summary})")
+    print(f"  frames ({len(dec.frames)}): {', '.join(dec.frames)}")
+    print(f"  triangulation: {dec.extra['triangulation']}; valid depth: {valid.mean():.1%} of pixels"
+          + (f", {np.nanmin(depth):.1f} .. {np.nanmax(depth):.1f} mm" if valid.any() else ""))
+    print(f"  time: decode {dec.extra['decode_s']:.2f} s, triangulate {dec.extra['triangulate_s']:.2f} s, "
+          f"total {t1 - t0:.2f} s")
+    info = {"scan": scan.source, "method": args.method, "frames": dec.frames, "triangulation": dec.extra["triangulation"],
+            "params": params}
+    written = ["depth.npy", "depth.png", "depth_color.png", "points.ply"]
+    if scan.gt_depth is not None:
+        mask = scan.mask if scan.mask is not None else None
+        m = _write_metrics(out, depth, scan, mask, f"{args.method}: |depth error|", info)
+        print(format_table([(args.method, m)]))
+        written += ["metrics.json", "error_map.png"]
+    else:
+        (out / "decode.json").write_text(json.dumps({**info, "valid_share": float(valid.mean())}, indent=2) + "\n")
+        written.append("decode.json")
+    print(f"wrote {out}/: {', '.join(written)} ({n_pts} points)")
+    return 0
+
+
+def _add_decode(sub):
+    from .decode import METHODS
+    from .decode.frames import DEFAULT_MIN_AMPLITUDE
+
+    p = sub.add_parser("decode", help="decode a scan with a classical method and triangulate (depth map, point cloud)")
+    p.add_argument("scan", help="scan folder")
+    p.add_argument("--method", required=True, choices=list(METHODS),
+                   help="; ".join(f"{k}: {m.summary} (sets: {m.pattern_sets})" for k, m in METHODS.items()))
+    p.add_argument("--frames", help="use only these frames (names, globs, indices, slices; comma-separated), "
+                   "e.g. 'gc_col_b[0-5]' for GC(6) from a scan with more bits")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--triangulation", default="auto", choices=["auto", "col", "row", "midpoint"],
+                   help="projector column/row plane, ray-ray midpoint (needs column and row codes), or auto: "
+                        "the plane along the baseline (default)")
+    p.add_argument("--axis", choices=["col", "row"], help="axis of the phase methods' patterns (default: col)")
+    p.add_argument("--min-amplitude", type=float, default=DEFAULT_MIN_AMPLITUDE,
+                   help="shadow threshold: half the on/off difference or the phase modulation, in full-scale units "
+                        f"(images in [0, 1]; default: {DEFAULT_MIN_AMPLITUDE:g})")
+    p.add_argument("--min-bit-contrast", type=float, default=0.0,
+                   help="Gray code: minimum per-bit |signal| relative to the amplitude (default: 0, off)")
+    p.add_argument("--fallback", default="extrapolate", choices=["extrapolate", "center", "nan"],
+                   help="gc-interp: pixels not between two stripe transitions (default: extrapolate)")
+    p.add_argument("--no-depth-range", action="store_true", help="keep points outside the scan's depth range")
+    p.set_defaults(func=cmd_decode)
+
+
+def cmd_evaluate(args) -> int:
+    import numpy as np
+
+    from .metrics import format_table
+    from .scan import load_scan, read_depth
+    from .viz import ensure_dir
+
+    pred = read_depth(args.pred, "prediction")
+    scan = load_scan(args.scan)
+    if scan.gt_depth is None:
+        raise UserError(f"{args.scan}: the scan has no ground-truth depth to evaluate against")
+    if pred.shape != scan.gt_depth.shape:
+        raise UserError(f"{args.pred}: depth map is {pred.shape[1]}x{pred.shape[0]}, the scan's camera is "
+                        f"{scan.gt_depth.shape[1]}x{scan.gt_depth.shape[0]}")
+    mask = None if args.no_mask else scan.mask
+    out = ensure_dir(args.out or Path(args.pred).parent)
+    m = _write_metrics(out, pred.astype(np.float64), scan, mask, f"{Path(args.pred).name}: |depth error|",
+                       {"prediction": str(args.pred), "scan": scan.source})
+    print(format_table([(Path(args.pred).name, m)], title_header="prediction"))
+    print(f"over {m['n_gt']} ground-truth pixels ({'inside the scan mask' if mask is not None else 'no mask'}); "
+          f"wrote {out}/metrics.json and error_map.png")
+    return 0
+
+
+def _add_evaluate(sub):
+    p = sub.add_parser("evaluate", help="depth metrics (MAE, RMSE, >1/2/5 mm, completeness) against a scan's ground truth")
+    p.add_argument("pred", help="predicted depth: .npy (float, mm) or 16-bit PNG (0.1 mm, 0 = invalid)")
+    p.add_argument("scan", help="scan folder with ground-truth depth")
+    p.add_argument("--out", help="folder for metrics.json and error_map.png (default: the prediction's folder)")
+    p.add_argument("--no-mask", action="store_true", help="evaluate every ground-truth pixel, not only the scan's mask")
+    p.set_defaults(func=cmd_evaluate)
+
+
 # ----------------------------------------------------------------------------------------------
 
 
@@ -130,7 +263,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-_COMMANDS = [_add_info, _add_simulate]
+_COMMANDS = [_add_info, _add_simulate, _add_decode, _add_evaluate]
 
 
 def main(argv=None) -> int:

@@ -1,0 +1,99 @@
+"""The real capture (../shared/data/procam_chessboard): OpenCV's Gray code decoded from its own pattern
+images, triangulated, gives the chessboard plate as a plane.
+
+Reference: an independent implementation measured about 1.25 mm RMS to the fitted plane; the issue asks
+for at most 1.5 mm. Our full Gray code decode with default thresholds measures 1.43 mm (row plane; 1.42 mm
+by the ray-ray midpoint; about 12 mm by the column plane, which nearly contains the camera rays on this vertical
+baseline) and gc-interp 0.69 mm. The difference to 1.25 mm is which pixels count: with OpenCV's thresholds
+(white - black > 40 grey levels and every |bit - inverse| >= 5) our decoder keeps 45% of the board and
+measures 1.29 mm; the default keeps more of the board's dark squares (white - black of 8 to 12 grey levels).
+"""
+import json
+
+import numpy as np
+import pytest
+
+from slwarp.cli import main as cli_main
+from slwarp.decode import decode, reconstruct_depth, triangulate
+from slwarp.decode.gray import GrayTable
+from slwarp.scan import load_scan
+
+
+@pytest.fixture(scope="module")
+def capture(chessboard_path):
+    return load_scan(chessboard_path)
+
+
+@pytest.fixture(scope="module")
+def board(capture):
+    """[H, W] bool: the quadrilateral spanned by the outer ones of the 9x7 inner chessboard corners."""
+    import cv2
+
+    white = np.clip(np.rint(capture.image("white") * 255), 0, 255).astype(np.uint8)
+    found, corners = cv2.findChessboardCorners(white, (9, 7))
+    assert found, "OpenCV does not find the 9x7 chessboard in the white image"
+    c = corners.reshape(7, 9, 2)
+    quad = np.round([c[0, 0], c[0, -1], c[-1, -1], c[-1, 0]]).astype(np.int32)
+    mask = np.zeros(white.shape, np.uint8)
+    cv2.fillConvexPoly(mask, quad, 1)
+    assert mask.sum() > 100_000
+    return mask.astype(bool)
+
+
+def plane_rms(points: np.ndarray, region: np.ndarray) -> tuple[float, int]:
+    """RMS distance (mm) of the finite points inside `region` to their least-squares plane (SVD)."""
+    P = points[region]
+    P = P[np.isfinite(P).all(1)]
+    c = P.mean(0)
+    normal = np.linalg.svd(P - c, full_matrices=False)[2][2]
+    return float(np.sqrt((((P - c) @ normal) ** 2).mean())), len(P)
+
+
+def test_code_tables_from_opencv_patterns(capture):
+    cols = [f"gc_col_b{k}" for k in range(10)]
+    rows = [f"gc_row_b{k}" for k in range(10)]
+    pat = {n: capture.patterns[capture.names.index(n)] for n in cols + rows}
+    t = GrayTable.from_patterns(np.stack([pat[n] for n in cols]), "col", cols)
+    assert len(t.start) == 1024 and t.max_width == 1 and np.allclose(t.center, np.arange(1024))
+    t = GrayTable.from_patterns(np.stack([pat[n] for n in rows]), "row", rows)
+    assert len(t.start) == 768 and np.allclose(t.center, np.arange(768))
+    t7 = GrayTable.from_patterns(np.stack([pat[n] for n in cols[:7]]), "col")  # the 7 most significant bits
+    assert len(t7.start) == 128 and np.allclose(t7.center, np.arange(128) * 8 + 3.5)
+
+
+def test_full_gray_code_gives_plane(capture, board):
+    depth, points, dec = reconstruct_depth(capture, "gc")
+    assert dec.extra["bits_col"] == 10 and dec.extra["bits_row"] == 10
+    assert dec.extra["inverses_col"] and dec.extra["inverses_row"]
+    assert dec.extra["triangulation"] == "row"  # the baseline is mostly vertical
+    rms, n = plane_rms(points, board)
+    print(f"real capture, full Gray code, row plane: plane RMS {rms:.3f} mm over {n} points")
+    assert n > 0.6 * board.sum()
+    assert rms <= 1.5
+    assert 1500 < np.nanmedian(depth[board]) < 1700  # the plate is about 1.6 m away
+    # the ray-ray midpoint from both codes agrees
+    _, pts_mid, info = triangulate(capture.camera, capture.projector, dec.col, dec.row, "midpoint")
+    rms_mid, _ = plane_rms(pts_mid, board)
+    print(f"real capture, full Gray code, midpoint: plane RMS {rms_mid:.3f} mm")
+    assert rms_mid <= 1.5 and np.nanmedian(info["gap"][board]) < 1.0
+
+
+def test_interpolated_gray_code_is_flatter(capture, board):
+    dec = decode(capture, "gc-interp")
+    _, points, _ = triangulate(capture.camera, capture.projector, dec.col, dec.row)
+    rms, _ = plane_rms(points, board)
+    print(f"real capture, gc-interp: plane RMS {rms:.3f} mm")
+    assert rms <= 1.0
+
+
+def test_cli_decode_real_capture(chessboard_path, tmp_path, capsys):
+    assert cli_main(["decode", str(chessboard_path), "--method", "gc", "--triangulation", "midpoint",
+                     "--out", str(tmp_path / "gc")]) == 0
+    out = tmp_path / "gc"
+    for f in ("depth.npy", "depth.png", "depth_color.png", "points.ply", "decode.json"):
+        assert (out / f).is_file()
+    assert not (out / "metrics.json").exists()  # no ground truth
+    doc = json.loads((out / "decode.json").read_text())
+    assert doc["triangulation"] == "midpoint" and doc["valid_share"] > 0.8
+    assert cli_main(["decode", str(chessboard_path), "--method", "cgc", "--out", str(tmp_path / "x")]) == 2
+    assert "method cgc needs frames gc_col_b0" in capsys.readouterr().err
