@@ -7,7 +7,10 @@ Forward, per ray r with samples x_k = o + z_k d (k = 0..S-1):
                       / (sig((f_k - c_k dz_k / 2) s) + 1e-5), 0, 1)                              (NeuS)
     T_k       = prod_{j<k} (1 - alpha_j + 1e-7);  w_k = alpha_k T_k
     rendered_n = a sum_k w_k + b sum_k w_k P_n(pi(x_k))   (P_n bilinear, zero outside the projector image)
-    surface   = sum_k w_k x_k;  depth = surface_z;  surface_rendered_n = a + b P_n(pi(surface))
+    surface   = sum_k w_k x_k / (sum_k w_k + 1e-6): the expected surface point under the weights (equal to
+                sum_k w_k x_k for an opaque ray; normalised because in the camera frame a missing 1% of opacity
+                would otherwise pull the point 1% of its depth toward the camera, about 9 mm at 900 mm)
+    depth = surface_z;  surface_rendered_n = a + b P_n(pi(surface))
     eikonal_k = (|g_k| - 1)^2 inside the working volume (axis-aligned box), else 0; eikonal_sum = sum_k
     The forward also keeps T_k for the backward (one extra write per sample instead of a second pass).
 Backward is written by hand: the transmittance product is a loop-carried dependency that Warp's
@@ -33,6 +36,7 @@ from .geometry import ProjectorParams, project_to_projector, project_to_projecto
 ALPHA_EPS = 1.0e-5  # NeuS's alpha regulariser
 TRANS_EPS = 1.0e-7  # NeuS's transmittance regulariser
 NORM_EPS = 1.0e-12  # |g| = sqrt(g.g + eps): finite Eikonal gradient at g = 0
+WSUM_EPS = 1.0e-6  # surface point = sum w x / (sum w + eps): defined for rays with no weight
 
 
 @wp.func
@@ -208,6 +212,7 @@ def render_kernels(N: int):
                 count += 1.0
             eikonal[r, k] = e
             esum += e
+        sp = sp / (wsum + WSUM_EPS)
         ps = sample_all(pat, project_to_projector(prm, sp))
         ar = a[r]
         br = b[r]
@@ -238,6 +243,7 @@ def render_kernels(N: int):
         bmax: wp.vec3,
         trans_saved: wp.array2d(dtype=float),
         surface: wp.array(dtype=wp.vec3),
+        weight_sum: wp.array(dtype=float),
         g_weights: wp.array2d(dtype=float),
         has_g_weights: int,
         g_rendered: wp.array2d(dtype=float),
@@ -274,6 +280,8 @@ def render_kernels(N: int):
         g_s = g_surface[r] + wp.vec3(0.0, 0.0, g_depth[r])
         duv = sample_all_grad(pat, project_to_projector(prm, sp), gsr)
         g_s += project_to_projector_grad(prm, sp, duv[0], duv[1])
+        # s = sum w x / (W + eps): ds/dw_k = (x_k - s) / (W + eps)
+        g_s = g_s / (weight_sum[r] + WSUM_EPS)
 
         # one pass in reverse: G_k (the total cotangent of w_k), the U recurrence with the saved
         # transmittance T_k, then the NeuS alpha and Eikonal adjoints. Inputs of the next (lower) sample
@@ -304,7 +312,7 @@ def render_kernels(N: int):
             cos_k = wp.dot(d, g)
             alpha = neus_alpha(f, cos_k, dz, inv_s, anneal)
             x = o + d * zk
-            gw = common + br * wp.dot(gr, sample_all(pat, project_to_projector(prm, x))) + wp.dot(g_s, x)
+            gw = common + br * wp.dot(gr, sample_all(pat, project_to_projector(prm, x))) + wp.dot(g_s, x - sp)
             if has_g_weights != 0:
                 gw += g_weights[r, k]
             g_alpha = t_k * (gw - u_suffix)

@@ -6,6 +6,8 @@ cast_camera_rays: one thread per camera pixel.
     lit = facing the projector, not shadowed (second ray toward the projector centre), and inside the
     projector image; shade = albedo * cos(angle to projector) * (ref_dist / dist_to_projector)^2.
 sample_patterns: one thread per (frame, pixel): the defocused pattern value at the projector pixel.
+first_hit_depth, mesh_hits: camera z of the first (K) hit(s) of each camera ray on a mesh (also used
+    to turn a reconstructed mesh into a depth map).
 """
 
 import warp as wp
@@ -146,3 +148,37 @@ def sample_patterns(
     if hi != lo:
         b = bilinear_zero(blurred[hi], n, uv[0], uv[1])
     out[n, i] = (1.0 - t) * a + t * b
+
+
+@wp.kernel
+def first_hit_depth(mesh: wp.uint64, dirs: wp.array(dtype=wp.vec3), depth: wp.array(dtype=float)):
+    """Camera z (mm) of the first hit of each unit ray from the camera centre; NaN where none (used to
+    turn a reconstructed mesh into a depth map)."""
+    i = wp.tid()
+    d = dirs[i]
+    q = wp.mesh_query_ray(mesh, wp.vec3(0.0, 0.0, 0.0), d, 1.0e7)
+    if q.result:
+        depth[i] = q.t * d[2]
+    else:
+        depth[i] = wp.nan
+
+
+@wp.kernel
+def mesh_hits(mesh: wp.uint64, dirs: wp.array(dtype=wp.vec3), eps: float, depth: wp.array2d(dtype=float)):
+    """Camera z (mm) of the first K hits of each unit camera ray on a mesh (depth [P, K]; NaN past the
+    last hit): candidate surfaces when a reconstructed surface bleeds over a depth edge."""
+    i = wp.tid()
+    d = dirs[i]
+    K = depth.shape[1]
+    t0 = float(0.0)
+    done = bool(False)
+    for k in range(K):
+        depth[i, k] = wp.nan
+        if not done:
+            q = wp.mesh_query_ray(mesh, d * t0, d, 1.0e7)
+            if q.result:
+                t0 = t0 + q.t
+                depth[i, k] = t0 * d[2]
+                t0 = t0 + eps
+            else:
+                done = True

@@ -6,6 +6,14 @@ Public API (imported lazily, so `import slwarp` stays fast):
     Scan, load_scan, ScanError             scans on disk and in memory (slwarp.scan)
     patterns                               pattern sets (slwarp.patterns)
     simulate, simulate_scene, SimOptions   the virtual scanner (slwarp.simulate)
+    decode                                 classical decoders and triangulation (slwarp.decode)
+    depth_metrics                          depth error metrics (slwarp.metrics)
+    render_structured_light, RenderOutput  the fused Warp renderer as a torch op (slwarp.ops)
+    StructuredLightRenderer                sampling + any SDF module + losses: a drop-in loss (slwarp.render)
+    NeuSField, LearnedVariance, Volume     the SDF network in mm (slwarp.field)
+    Trainer, TrainConfig, preset           training with the paper's schedule (slwarp.train)
+    reconstruct                            train, extract mesh and depth (slwarp.reconstruct)
+    search_depth                           depth by exhaustive search, the training's start (slwarp.search)
 """
 from __future__ import annotations
 
@@ -25,6 +33,19 @@ _LAZY = {
     "SimOptions": "slwarp.simulate",
     "make_rig": "slwarp.rigs",
     "build_scene": "slwarp.scenes",
+    "render_structured_light": "slwarp.ops",
+    "RenderOutput": "slwarp.ops",
+    "StructuredLightRenderer": "slwarp.render",
+    "structured_light_losses": "slwarp.render",
+    "NeuSField": "slwarp.field",
+    "LearnedVariance": "slwarp.field",
+    "Volume": "slwarp.field",
+    "TrainConfig": "slwarp.train",
+    "Trainer": "slwarp.train",
+    "preset": "slwarp.train",
+    "reconstruct": "slwarp.reconstruct",
+    "search_depth": "slwarp.search",
+    "depth_metrics": "slwarp.metrics",
 }
 
 

@@ -4,6 +4,8 @@
     slwarp simulate --scene NAME ...      render a scan with exact ground truth (virtual scanner)
     slwarp decode SCAN --method M --out D classical decoding (Gray code, CGC, PMP, ...) + triangulation
     slwarp evaluate PRED SCAN             depth metrics of a depth map against the scan's ground truth
+    slwarp reconstruct SCAN --out D       the neural SDF method: train, then depth, mesh, point cloud
+    slwarp demo                           the paper's comparison on an embedded default scene
 
 Bad input exits with status 2 and a one-line message naming the file and the problem
 (SLWARP_DEBUG=1 shows the traceback instead).
@@ -25,7 +27,9 @@ def _known_errors():
     from .scan import ScanError
     from .scanner import CalibrationError
 
-    return (UserError, ScanError, CalibrationError, FileNotFoundError, ValueError)
+    from .train import TrainingDiverged
+
+    return (UserError, ScanError, CalibrationError, FileNotFoundError, ValueError, TrainingDiverged)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -248,6 +252,104 @@ def _add_evaluate(sub):
     p.set_defaults(func=cmd_evaluate)
 
 
+def _parse_range(text: str | None):
+    if text is None:
+        return None
+    try:
+        near, far = (float(x) for x in text.replace(" ", "").split(","))
+    except ValueError:
+        raise UserError(f"--depth-range must be NEAR,FAR in mm, got {text!r}") from None
+    if not 0 < near < far:
+        raise UserError(f"--depth-range needs 0 < NEAR < FAR, got {near}, {far}")
+    return near, far
+
+
+def cmd_reconstruct(args) -> int:
+    import numpy as np
+    import torch
+
+    from .metrics import format_table
+    from .reconstruct import reconstruct
+    from .scan import load_scan
+    from .train import preset, resolve_device
+
+    scan = load_scan(args.scan, frames=args.frames)
+    dev = resolve_device(args.device)
+    name = args.preset or ("paper" if dev.type == "cuda" else "cpu")
+    cfg = preset(name, iters=args.iters, rays=args.rays, lr=args.lr, seed=args.seed, device=str(dev), backend=args.backend,
+                 incremental=args.incremental or None, start_frames=args.start_frames, add_every=args.add_every,
+                 matmul=args.matmul, depth_method=args.depth_method, mc_resolution=args.mc_resolution)
+    depth_range = _parse_range(args.depth_range)
+    if depth_range is None and scan.depth_range is None:
+        raise UserError(f"{args.scan}: the scan declares no depth range: pass --depth-range NEAR,FAR (mm)")
+    print(f"reconstructing {scan.source} ({len(scan)} frames: {', '.join(scan.names)}) with preset '{name}' "
+          f"({cfg.iters} iterations, {cfg.rays} rays, {cfg.n_samples}+{cfg.n_importance} samples, "
+          f"{cfg.hidden}x{cfg.layers} field) on {dev}" + (f" ({torch.cuda.get_device_name(dev)})" if dev.type == "cuda" else ""))
+    res = reconstruct(scan, cfg, out_dir=args.out, resume=args.resume, depth_range=depth_range, use_mask=args.use_mask,
+                      progress=not args.quiet)
+    t = res.timings
+    valid = np.isfinite(res.depth)
+    print(f"trained {t['iterations']} iterations in {t['train_wall_s_total']:.1f} s; marching cubes {t['marching_cubes_s']:.1f} s; "
+          f"depth {t['depth_s']:.1f} s; valid depth on {valid.mean():.1%} of pixels")
+    if res.metrics is not None:
+        print(format_table([("neural SDF", res.metrics)]))
+    print(f"wrote {args.out}/: depth.npy, depth.png, depth_color.png, mesh.ply, points.ply, loss.png, history.json"
+          + (", metrics.json, error_map.png" if res.metrics is not None else "") + "; train/checkpoint.pt (--resume continues)")
+    return 0
+
+
+def _add_reconstruct(sub):
+    from .train import PRESETS
+
+    p = sub.add_parser("reconstruct", help="depth, mesh and point cloud from a scan with the neural SDF method")
+    p.add_argument("scan", help="scan folder")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--preset", choices=list(PRESETS), help="paper (GPU), cpu (small field, minutes on a CPU), tiny (tests); "
+                   "default: paper with a GPU, else cpu")
+    p.add_argument("--frames", help="use only these frames (names, globs, indices, slices; comma-separated)")
+    p.add_argument("--iters", type=int, help="training iterations (default: the preset's)")
+    p.add_argument("--rays", type=int, help="rays per iteration (default: the preset's)")
+    p.add_argument("--lr", type=float, help="Adam learning rate (default: the preset's)")
+    p.add_argument("--seed", type=int, help="random seed (default: 0)")
+    p.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda:N")
+    p.add_argument("--backend", default="warp", choices=["warp", "torch"], help="fused Warp kernels or the torch twin")
+    p.add_argument("--incremental", action="store_true", help="start with a few frames and add one every --add-every iterations")
+    p.add_argument("--start-frames", type=int, help="incremental: frames at the start (default: 3)")
+    p.add_argument("--add-every", type=int, help="incremental: iterations between added frames (default: 500)")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/train/checkpoint.pt")
+    p.add_argument("--depth-range", help="NEAR,FAR camera depth in mm (default: the scan's)")
+    p.add_argument("--depth-method", choices=["mesh", "sphere"], help="depth from the marching-cubes mesh (default) or by sphere tracing")
+    p.add_argument("--mc-resolution", type=int, help="marching-cubes cells along the volume's longest side")
+    p.add_argument("--matmul", choices=["fp32", "tf32"], help="CUDA matrix precision for the MLP (default: fp32)")
+    p.add_argument("--use-mask", action="store_true", help="also restrict the depth map to the scan's mask")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_reconstruct)
+
+
+def cmd_demo(args) -> int:
+    from .demo import run_demo
+
+    run_demo(args.out, scene=args.scene, device=args.device, preset_name=args.preset, iters=args.iters,
+             backend=args.backend, progress=not args.quiet)
+    return 0
+
+
+def _add_demo(sub):
+    from .demo import DEMO_SCENE
+    from .scenes import SCENE_NAMES
+    from .train import PRESETS
+
+    p = sub.add_parser("demo", help="simulate a scene, reconstruct it with the neural SDF and with Gray code, compare")
+    p.add_argument("--out", default="slwarp-demo", help="output folder (default: ./slwarp-demo)")
+    p.add_argument("--scene", default=DEMO_SCENE, choices=list(SCENE_NAMES), help=f"built-in scene (default: {DEMO_SCENE})")
+    p.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda:N")
+    p.add_argument("--preset", choices=list(PRESETS), help="default: paper with a GPU (default rig), cpu without (small rig)")
+    p.add_argument("--iters", type=int, help="training iterations (default: the preset's)")
+    p.add_argument("--backend", default="warp", choices=["warp", "torch"])
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_demo)
+
+
 # ----------------------------------------------------------------------------------------------
 
 
@@ -263,7 +365,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-_COMMANDS = [_add_info, _add_simulate, _add_decode, _add_evaluate]
+_COMMANDS = [_add_demo, _add_info, _add_simulate, _add_decode, _add_evaluate, _add_reconstruct]
 
 
 def main(argv=None) -> int:

@@ -70,37 +70,54 @@ class NeuSField(nn.Module):
     """NeuS's SDF MLP in mm (see module docstring).
 
     hidden x layers linear layers with Softplus(beta=100), a skip connection re-injecting the encoded input
-    into layer `skip` (scaled by 1/sqrt 2), geometric initialisation to a sphere of radius `init_radius`
-    (normalised units) and weight normalisation. NeuS defaults: 256 x 8, skip 4, 6 frequencies.
+    into layer `skip` (scaled by 1/sqrt 2), weight normalisation, and geometric initialisation:
+    init="sphere" (NeuS): a sphere of radius `init_radius` (normalised units) at the volume's centre;
+    init="camera": f = (far - |x|) + mlp, the MLP starting near 0: free space inside a sphere of radius
+    `far` (mm) around the camera, i.e. a surface at the far depth behind everything.
+    NeuS defaults: 256 x 8, skip 4, 6 frequencies.
     """
 
     def __init__(self, volume: Volume, hidden: int = 256, layers: int = 8, skip: int | None = 4, n_freqs: int = 6,
-                 init_radius: float = 0.5, weight_norm: bool = True, beta: float = 100.0):
+                 init: str = "sphere", init_radius: float = 0.5, weight_norm: bool = True, beta: float = 100.0,
+                 far: float | None = None):
         super().__init__()
+        if init not in ("sphere", "camera"):
+            raise ValueError(f"init must be 'sphere' or 'camera', got {init!r}")
         self.volume = volume
-        self.register_buffer("center", torch.tensor(volume.center, dtype=torch.float32))
         self.scale = float(volume.scale)
+        self.prior_radius = None
+        if init == "camera":
+            # f(x) = far - |x| + residual(x): free space inside a sphere of radius `far` around the camera, so
+            # every camera ray meets a surface at the far depth from the first iteration and carves forward
+            if far is None:
+                raise ValueError("init='camera' needs the far depth (mm)")
+            self.prior_radius = float(far)
+        self.register_buffer("center", torch.tensor(volume.center, dtype=torch.float32))
         self.encoding = PositionalEncoding(n_freqs) if n_freqs > 0 else None
         d_in = self.encoding.out_dim if self.encoding is not None else 3
         self.skip = skip if skip is not None and 0 < skip < layers else None
         self.beta = beta
-        self.config = dict(hidden=hidden, layers=layers, skip=skip, n_freqs=n_freqs, init_radius=init_radius,
+        self.config = dict(hidden=hidden, layers=layers, skip=skip, n_freqs=n_freqs, init=init, init_radius=init_radius,
                            weight_norm=weight_norm, beta=beta)
         dims = [d_in] + [hidden] * layers + [1]
         self.linears = nn.ModuleList()
         for i in range(len(dims) - 1):
             out_dim = dims[i + 1] - d_in if self.skip is not None and i + 1 == self.skip else dims[i + 1]
             lin = nn.Linear(dims[i], out_dim)
-            self._geometric_init(lin, i, len(dims) - 1, d_in, init_radius)
+            self._geometric_init(lin, i, len(dims) - 1, d_in, init_radius, residual=self.prior_radius is not None)
             self.linears.append(parametrizations.weight_norm(lin) if weight_norm else lin)
 
-    def _geometric_init(self, lin: nn.Linear, i: int, n: int, d_in: int, radius: float):
-        """NeuS/SAL geometric initialisation: the network starts as |x| - radius."""
+    def _geometric_init(self, lin: nn.Linear, i: int, n: int, d_in: int, radius: float, residual: bool):
+        """NeuS/SAL geometric initialisation: the network starts as |x| - radius (or ~0 as a residual)."""
         with torch.no_grad():
             out_dim, in_dim = lin.weight.shape
             if i == n - 1:
-                lin.weight.normal_(math.sqrt(math.pi) / math.sqrt(in_dim), 1e-4)
-                lin.bias.fill_(-radius)
+                if residual:
+                    lin.weight.normal_(0.0, 1e-4)
+                    lin.bias.zero_()
+                else:
+                    lin.weight.normal_(math.sqrt(math.pi) / math.sqrt(in_dim), 1e-4)
+                    lin.bias.fill_(-radius)
                 return
             lin.bias.zero_()
             lin.weight.normal_(0.0, math.sqrt(2.0) / math.sqrt(out_dim))
@@ -122,9 +139,65 @@ class NeuSField(nn.Module):
                 h = F.softplus(h, beta=self.beta)
         return h[..., 0]
 
+    def value_and_gradient(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(f(x) [...], grad f(x) [..., 3]) with the gradient written out explicitly.
+
+        The input gradient is the MLP's backward pass spelled as ordinary tensor operations (softplus'
+        = sigmoid(beta z)), so training needs only first-order autograd through it instead of a double
+        backward, and torch.compile can fuse the whole thing. Equal to autograd's gradient (tested).
+        """
+        lead = x.shape[:-1]
+        xn = ((x - self.center) / self.scale).reshape(-1, 3)
+        if self.encoding is not None:
+            freqs = self.encoding.freqs
+            xf = xn[:, None, :] * freqs[:, None]  # [P, F, 3]
+            sin, cos = torch.sin(xf), torch.cos(xf)
+            inp = torch.cat([xn, torch.stack([sin, cos], dim=-2).flatten(1)], dim=-1)
+        else:
+            inp = xn
+        weights = [lin.weight for lin in self.linears]  # weight norm evaluated once
+        h = inp
+        pre = []
+        last = len(self.linears) - 1
+        inv_sqrt2 = 1.0 / math.sqrt(2.0)
+        for i, lin in enumerate(self.linears):
+            if self.skip is not None and i == self.skip:
+                h = torch.cat([h, inp], dim=-1) * inv_sqrt2
+            z = F.linear(h, weights[i], lin.bias)
+            if i < last:
+                pre.append(z)
+                h = F.softplus(z, beta=self.beta)
+        f = z[:, 0]
+        g = weights[last][0].expand(xn.shape[0], -1)  # d f / d h_last
+        g_skip = None
+        for i in range(last - 1, -1, -1):
+            bz = self.beta * pre[i]
+            # softplus' = sigmoid(beta z), and exactly 1 where torch's softplus turns linear (beta z > 20)
+            g = (g * torch.where(bz > 20.0, torch.ones_like(bz), torch.sigmoid(bz))) @ weights[i]
+            if self.skip is not None and i == self.skip:
+                d_in = inp.shape[1]
+                g_skip = g[:, -d_in:] * inv_sqrt2
+                g = g[:, :-d_in] * inv_sqrt2
+        g_inp = g if g_skip is None else g + g_skip
+        grad = g_inp[:, :3]
+        if self.encoding is not None:
+            gs = g_inp[:, 3:].reshape(-1, freqs.shape[0], 2, 3)
+            grad = grad + ((gs[:, :, 0] * cos - gs[:, :, 1] * sin) * freqs[:, None]).sum(1)
+        f = f * self.scale  # f_mm(x) = scale f_n((x - c) / scale): the gradient is unchanged
+        grad = grad.reshape(*lead, 3)
+        f = f.reshape(lead)
+        if self.prior_radius is not None:
+            r = torch.linalg.norm(x, dim=-1, keepdim=True)
+            f = f + (self.prior_radius - r[..., 0])
+            grad = grad - x / r.clamp(min=1e-9)
+        return f, grad
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x [..., 3] camera frame (mm) -> signed distance [...] (mm), positive outside."""
-        return self.normalized_sdf((x - self.center) / self.scale) * self.scale
+        f = self.normalized_sdf((x - self.center) / self.scale) * self.scale
+        if self.prior_radius is not None:
+            f = f + (self.prior_radius - torch.linalg.norm(x, dim=-1))
+        return f
 
 
 class LearnedVariance(nn.Module):
@@ -143,7 +216,11 @@ class LearnedVariance(nn.Module):
 
 
 def sdf_and_gradient(field: nn.Module, x: torch.Tensor, create_graph: bool = True):
-    """f(x) [...] and grad f(x) [..., 3] (double-backward ready) for any torch SDF module."""
+    """f(x) [...] and grad f(x) [..., 3], differentiable, for any torch SDF module: its own
+    `value_and_gradient` when it has one (explicit, first-order), else autograd with a double backward."""
+    explicit = getattr(field, "value_and_gradient", None)
+    if explicit is not None:
+        return explicit(x.detach())
     with torch.enable_grad():
         x = x.detach().requires_grad_(True)
         f = field(x)

@@ -40,7 +40,9 @@ class RenderOutput(NamedTuple):
     """Result of `render_structured_light` (R rays, S samples, N patterns).
 
     rendered [R, N]: volume-rendered intensities sum_k w_k (a + b P_n(pi(x_k)));
-    surface_points [R, 3]: expected surface point sum_k w_k x_k (camera frame, mm);
+    surface_points [R, 3]: expected surface point sum_k w_k x_k / (sum_k w_k + 1e-6) (camera frame, mm; the
+    literal sum_k w_k x_k for an opaque ray, normalised so that missing opacity does not pull it toward the
+    camera);
     surface_rendered [R, N]: a + b P_n(pi(surface point));
     weights [R, S]: NeuS weights; depth [R]: camera-frame z of the surface point (mm);
     eikonal [R, S]: (|grad f| - 1)^2 inside the working volume, 0 outside;
@@ -208,7 +210,7 @@ def _render_forward_impl(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_h
 
 
 def _render_backward_impl(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector, inv_s,
-                          cos_anneal_ratio, last_delta, bounds, trans, surface, g_weights, g_rendered, g_surface,
+                          cos_anneal_ratio, last_delta, bounds, trans, surface, weight_sum, g_weights, g_rendered, g_surface,
                           g_surface_rendered, g_depth, g_weight_sum, g_eikonal, g_eikonal_sum):
     from .kernels.render import render_kernels
 
@@ -224,7 +226,7 @@ def _render_backward_impl(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_
         _launch(bwd, R, [
             _desc(sdf), _desc(sdf_grad, 3), _desc(z_vals), _desc(rays_o, 3), _desc(rays_d, 3), _desc(a), _desc(b),
             _desc(patterns_hwn), _wp_params(projector), _desc(inv_s), float(cos_anneal_ratio), float(last_delta),
-            _vec3(bounds[0:3]), _vec3(bounds[3:6]), _desc(trans), _desc(surface, 3),
+            _vec3(bounds[0:3]), _vec3(bounds[3:6]), _desc(trans), _desc(surface, 3), _desc(weight_sum),
             _desc(g_weights if g_weights is not None else dummy), int(g_weights is not None), _desc(g_rendered),
             _desc(g_surface, 3), _desc(g_surface_rendered), _desc(g_depth), _desc(g_weight_sum),
             _desc(g_eikonal if g_eikonal is not None else dummy), int(g_eikonal is not None), _desc(g_eikonal_sum),
@@ -256,20 +258,20 @@ class _RenderFunction(torch.autograd.Function):
     def forward(ctx, sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector, inv_s, anneal, last_delta, bounds):
         outs = _render_forward_impl(sdf.detach(), sdf_grad.detach(), z_vals, rays_o, rays_d, a, b, patterns_hwn,
                                     projector, inv_s.detach(), anneal, last_delta, bounds)
-        trans, surface = outs[9], outs[2]
-        ctx.save_for_backward(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, inv_s, trans, surface)
+        trans, surface, weight_sum = outs[9], outs[2], outs[5]
+        ctx.save_for_backward(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, inv_s, trans, surface, weight_sum)
         ctx.params = (projector, anneal, last_delta, bounds)
         ctx.mark_non_differentiable(outs[8], trans)
         return outs
 
     @staticmethod
     def backward(ctx, *grads):
-        sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, inv_s, trans, surface = ctx.saved_tensors
+        sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, inv_s, trans, surface, weight_sum = ctx.saved_tensors
         projector, anneal, last_delta, bounds = ctx.params
         cots = _cotangents(z_vals, patterns_hwn.shape[2], grads[:8])
         d_sdf, d_grad, d_inv_s = _render_backward_impl(sdf.detach(), sdf_grad.detach(), z_vals, rays_o, rays_d, a, b,
                                                        patterns_hwn, projector, inv_s.detach(), anneal, last_delta,
-                                                       bounds, trans, surface.detach(), *cots)
+                                                       bounds, trans, surface.detach(), weight_sum.detach(), *cots)
         return d_sdf, d_grad, None, None, None, None, None, None, None, d_inv_s, None, None, None
 
 
@@ -300,11 +302,11 @@ def _render_backward(
     sdf: torch.Tensor, sdf_grad: torch.Tensor, z_vals: torch.Tensor, rays_o: torch.Tensor, rays_d: torch.Tensor,
     a: torch.Tensor, b: torch.Tensor, patterns_hwn: torch.Tensor, projector: list[float], inv_s: torch.Tensor,
     cos_anneal_ratio: float, last_delta: float, bounds: list[float], trans: torch.Tensor, surface: torch.Tensor,
-    g_weights: torch.Tensor | None, g_rendered: torch.Tensor, g_surface: torch.Tensor, g_surface_rendered: torch.Tensor,
+    weight_sum: torch.Tensor, g_weights: torch.Tensor | None, g_rendered: torch.Tensor, g_surface: torch.Tensor, g_surface_rendered: torch.Tensor,
     g_depth: torch.Tensor, g_weight_sum: torch.Tensor, g_eikonal: torch.Tensor | None, g_eikonal_sum: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     return _render_backward_impl(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector, inv_s,
-                                 cos_anneal_ratio, last_delta, bounds, trans, surface, g_weights, g_rendered, g_surface,
+                                 cos_anneal_ratio, last_delta, bounds, trans, surface, weight_sum, g_weights, g_rendered, g_surface,
                                  g_surface_rendered, g_depth, g_weight_sum, g_eikonal, g_eikonal_sum)
 
 
@@ -316,16 +318,17 @@ def _(sdf, sdf_grad, z_vals, *args):
 
 def _setup_context(ctx, inputs, output):
     sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector, inv_s, anneal, last_delta, bounds = inputs
-    ctx.save_for_backward(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, inv_s, output[9], output[2])
+    ctx.save_for_backward(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, inv_s, output[9], output[2], output[5])
     ctx.params = (projector, anneal, last_delta, bounds)
 
 
 def _backward(ctx, *grads):
-    sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, inv_s, trans, surface = ctx.saved_tensors
+    sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, inv_s, trans, surface, weight_sum = ctx.saved_tensors
     projector, anneal, last_delta, bounds = ctx.params
     cots = _cotangents(z_vals, patterns_hwn.shape[2], grads[:8])
     d_sdf, d_grad, d_inv_s = _render_backward(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector,
-                                              inv_s, anneal, last_delta, bounds, trans, surface.detach(), *cots)
+                                              inv_s, anneal, last_delta, bounds, trans, surface.detach(),
+                                              weight_sum.detach(), *cots)
     return d_sdf, d_grad, None, None, None, None, None, None, None, d_inv_s, None, None, None
 
 

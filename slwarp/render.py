@@ -72,7 +72,7 @@ class StructuredLightRenderer(nn.Module):
 
     def __init__(self, sdf: nn.Module, camera, projector, patterns, images, *, depth_range, volume: Volume | None = None,
                  variance: nn.Module | None = None, n_samples: int = 32, n_importance: int = 32, up_sample_steps: int = 4,
-                 contrast_threshold: float = 0.05, backend: str = "warp", device=None):
+                 contrast_threshold: float = 0.05, backend: str = "warp", device=None, compile_field: bool = False):
         super().__init__()
         if backend not in ops.BACKENDS:
             raise ValueError(f"backend must be one of {ops.BACKENDS}, got {backend!r}")
@@ -85,6 +85,8 @@ class StructuredLightRenderer(nn.Module):
         self.n_samples, self.n_importance, self.up_sample_steps = n_samples, n_importance, up_sample_steps
         self.contrast_threshold = float(contrast_threshold)
         self.backend = backend
+        self.compile_field = compile_field
+        self._compiled = {}
         device = torch.device(device) if device is not None else next(sdf.parameters(), torch.empty(0)).device
         self._projector_packed = ops.pack_projector(projector)
         self.set_frames(images, patterns, device=device)
@@ -149,6 +151,16 @@ class StructuredLightRenderer(nn.Module):
     def inv_s(self) -> torch.Tensor:
         return self.variance()
 
+    def _field_fn(self, kind: str):
+        """The field's SDF (kind 'sdf') or SDF + gradient ('grad'), torch.compile'd when asked: compiling
+        fuses the MLP's element-wise work (softplus, its derivative, the explicit gradient) into few kernels."""
+        fn = self._compiled.get(kind)
+        if fn is None:
+            base = self.sdf if kind == "sdf" else (lambda x: sdf_and_gradient(self.sdf, x))
+            fn = torch.compile(base, dynamic=False) if self.compile_field else base
+            self._compiled[kind] = fn
+        return fn
+
     @torch.no_grad()
     def sample_rays(self, batch: PixelBatch, perturb: bool = True, generator: torch.Generator | None = None):
         """(rays_o, rays_d, z_vals [R, n_samples + n_importance]) with NeuS up-sampling."""
@@ -162,12 +174,13 @@ class StructuredLightRenderer(nn.Module):
         z = ops.stratified_samples(near, far, self.n_samples, jitter, backend=be)
         if self.n_importance > 0 and self.up_sample_steps > 0:
             bounds = self.volume.as_bounds()
-            sdf = self.sdf(o[:, None, :] + z[..., None] * d[:, None, :])
+            field = self._field_fn("sdf")
+            sdf = field(o[:, None, :] + z[..., None] * d[:, None, :])
             per_step = self.n_importance // self.up_sample_steps
             for i in range(self.up_sample_steps):
                 inv_s = 64.0 * 2**i / self.volume.scale  # NeuS's schedule, in 1/mm
                 z_new = ops.upsample_samples(z, sdf, o, d, per_step, inv_s, bounds=bounds, backend=be)
-                sdf_new = self.sdf(o[:, None, :] + z_new[..., None] * d[:, None, :])
+                sdf_new = field(o[:, None, :] + z_new[..., None] * d[:, None, :])
                 z, sdf = ops.merge_samples(z, sdf, z_new, sdf_new, backend=be)
         return o, d, z
 
@@ -180,7 +193,7 @@ class StructuredLightRenderer(nn.Module):
         # one-thread-per-ray loads coalesce; the field does not care about the order of its points
         z_sr = z.t().contiguous()
         x = o[None, :, :] + z_sr[..., None] * d[None, :, :]
-        sdf, grad = sdf_and_gradient(self.sdf, x)
+        sdf, grad = self._field_fn("grad")(x)
         out = ops.render_structured_light(
             sdf.t(), grad.transpose(0, 1), z_sr.t(), o, d, batch.a, batch.b, self.patterns_hwn, self._projector_packed, self.inv_s(),
             cos_anneal_ratio=cos_anneal_ratio, backend=self.backend, bounds=self.volume.as_bounds(),

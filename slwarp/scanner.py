@@ -82,8 +82,12 @@ def undistort_normalized(xd, yd, dist, iterations: int = 12):
         jxy = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
         jyy = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
         det = jxx * jyy - jxy * jxy
-        x = x - (jyy * fx - jxy * fy) / det
-        y = y - (jxx * fy - jxy * fx) / det
+        dx = (jyy * fx - jxy * fy) / det
+        dy = (jxx * fy - jxy * fx) / det
+        x = x - dx
+        y = y - dy
+        if not _is_torch(dx) and np.max(np.abs(dx), initial=0.0) < 1e-14 and np.max(np.abs(dy), initial=0.0) < 1e-14:
+            break  # converged (numpy only: a check on a GPU tensor would synchronise)
     return x, y
 
 

@@ -12,6 +12,7 @@ import torch.nn.functional as F
 ALPHA_EPS = 1.0e-5
 TRANS_EPS = 1.0e-7
 NORM_EPS = 1.0e-12
+WSUM_EPS = 1.0e-6
 FAR_AWAY = -1.0e6  # projector pixel used for points that do not project (zero taps)
 
 
@@ -128,7 +129,7 @@ def render(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns, projector: lis
     pat = bilinear_patterns(patterns, uv)  # [R, S, N]
     weight_sum = weights.sum(1)
     rendered = a[:, None] * weight_sum[:, None] + b[:, None] * torch.einsum("rs,rsn->rn", weights, pat)
-    surface = (weights[..., None] * x).sum(1)
+    surface = (weights[..., None] * x).sum(1) / (weight_sum[:, None] + WSUM_EPS)
     uv_s, _ = project_to_projector(surface, projector)
     surface_rendered = a[:, None] + b[:, None] * bilinear_patterns(patterns, uv_s)
     inside = inside_box(x, bounds)

@@ -54,8 +54,7 @@ def save_map_with_colorbar(path, values: np.ndarray, title: str, label: str, val
     h, w = values.shape
     fig_w = 7.0
     fig, ax = plt.subplots(figsize=(fig_w, fig_w * h / w * 0.95 + 0.6), dpi=dpi)
-    cm = matplotlib.colormaps[cmap].copy()
-    cm.set_bad((0.15, 0.15, 0.15))
+    cm = matplotlib.colormaps[cmap].with_extremes(bad=(0.15, 0.15, 0.15))
     im = ax.imshow(np.ma.masked_invalid(values), cmap=cm, vmin=lo, vmax=hi, interpolation="nearest")
     ax.set_title(title, fontsize=10)
     ax.axis("off")

@@ -107,7 +107,8 @@ def test_two_sample_neus_weights_by_hand(backend):
     out = ops.render_structured_light(sdf, grad, z, torch.zeros(1, 3), torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([0.1]),
                                       torch.tensor([0.5]), pats, PROJ, s, backend=backend)
     assert out.weights[0].tolist() == pytest.approx(w, rel=1e-6)
-    assert out.depth.item() == pytest.approx(600 * w[0] + 602 * w[1], rel=1e-6)
+    # the expected surface point under the weights (normalised by their sum)
+    assert out.depth.item() == pytest.approx((600 * w[0] + 602 * w[1]) / (w[0] + w[1] + 1e-6), rel=1e-6)
     assert out.rendered.item() == pytest.approx(0.1 * (w[0] + w[1]), rel=1e-5)  # black pattern: a only
     assert out.eikonal.tolist() == [[0.0, 0.0]]
 

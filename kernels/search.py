@@ -1,0 +1,103 @@
+"""Exhaustive depth search: for each (strided) camera pixel, the camera depth among n hypotheses whose
+predicted intensities a + b P_n(pi(x)) best match the observed ones over a (2r+1)^2 window of pixels
+that share the hypothesis depth (L1 cost, per pixel per pattern). It is a classical decoder for any
+pattern set, used to start the neural SDF in the right basin of its non-convex photometric loss.
+"""
+
+import functools
+
+import warp as wp
+
+from .geometry import ProjectorParams, project_to_projector
+
+
+@functools.lru_cache(maxsize=None)
+def search_kernel(N: int):
+    vecN = wp.types.vector(length=N, dtype=wp.float32)
+
+    @wp.func
+    def patterns_at(pat: wp.array3d(dtype=float), uvo: wp.vec3) -> vecN:
+        out = vecN()
+        if uvo[2] == 0.0:
+            return out
+        H = pat.shape[0]
+        W = pat.shape[1]
+        u0 = wp.floor(uvo[0])
+        v0 = wp.floor(uvo[1])
+        fu = uvo[0] - u0
+        fv = uvo[1] - v0
+        iu = int(u0)
+        iv = int(v0)
+        for dy in range(2):
+            for dx in range(2):
+                x = iu + dx
+                y = iv + dy
+                if x >= 0 and x < W and y >= 0 and y < H:
+                    wgt = wp.where(dx == 0, 1.0 - fu, fu) * wp.where(dy == 0, 1.0 - fv, fv)
+                    for n in range(N):
+                        out[n] += wgt * pat[y, x, n]
+        return out
+
+    @wp.kernel(module="unique")
+    def search(
+        rays: wp.array2d(dtype=wp.vec3),  # [H, W] unit camera rays
+        observed: wp.array3d(dtype=float),  # [H, W, N]
+        a: wp.array2d(dtype=float),
+        b: wp.array2d(dtype=float),
+        valid: wp.array2d(dtype=wp.int32),
+        pat: wp.array3d(dtype=float),  # [Hp, Wp, N]
+        prm: ProjectorParams,
+        z_near: float,
+        z_far: float,
+        n_hyp: int,
+        radius: int,
+        stride: int,
+        exclude: int,  # hypotheses within this many cells of the best do not count as a rival
+        depth: wp.array2d(dtype=float),  # [H / stride, W / stride]: best camera z (mm), NaN if no valid pixel
+        best_cost: wp.array2d(dtype=float),  # its mean L1 cost
+        second_cost: wp.array2d(dtype=float),  # the best cost farther than `exclude` cells from the best
+    ):
+        i, j = wp.tid()
+        H = rays.shape[0]
+        W = rays.shape[1]
+        v = i * stride
+        u = j * stride
+        best = float(1.0e30)
+        best_h = int(-1)
+        costs_far = float(1.0e30)
+        for h in range(n_hyp):
+            z = z_near + (z_far - z_near) * (float(h) + 0.5) / float(n_hyp)
+            cost = float(0.0)
+            count = float(0.0)
+            for dv in range(-radius, radius + 1):
+                for du in range(-radius, radius + 1):
+                    y = v + dv
+                    x = u + du
+                    if y >= 0 and y < H and x >= 0 and x < W:
+                        if valid[y, x] != 0:
+                            d = rays[y, x]
+                            p = patterns_at(pat, project_to_projector(prm, d * (z / d[2])))
+                            ay = a[y, x]
+                            by = b[y, x]
+                            for n in range(N):
+                                cost += wp.abs(ay + by * p[n] - observed[y, x, n])
+                            count += float(N)
+            if count > 0.0:
+                cost = cost / count
+                if cost < best:
+                    if best_h >= 0 and wp.abs(h - best_h) > exclude:
+                        costs_far = wp.min(costs_far, best)
+                    best = cost
+                    best_h = h
+                elif wp.abs(h - best_h) > exclude:
+                    costs_far = wp.min(costs_far, cost)
+        if best_h < 0:
+            depth[i, j] = wp.nan
+            best_cost[i, j] = wp.nan
+            second_cost[i, j] = wp.nan
+            return
+        depth[i, j] = z_near + (z_far - z_near) * (float(best_h) + 0.5) / float(n_hyp)
+        best_cost[i, j] = best
+        second_cost[i, j] = costs_far
+
+    return search
