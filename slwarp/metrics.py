@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-__all__ = ["depth_metrics", "format_table", "METRIC_COLUMNS", "error_map"]
+__all__ = ["depth_metrics", "format_table", "METRIC_COLUMNS", "error_map", "chessboard_region", "plane_rms"]
 
 THRESHOLDS_MM = (1.0, 2.0, 5.0)
 
@@ -98,3 +98,32 @@ def format_table(rows, columns=None, title_header: str = "method") -> str:
 
     sep = "|" + "|".join(("-" * (w + 2)) if i == 0 else ("-" * (w + 1) + ":") for i, w in enumerate(widths)) + "|"
     return "\n".join([line(header), sep] + [line(r) for r in body])
+
+
+def chessboard_region(white: np.ndarray, inner_corners=(9, 7)) -> np.ndarray:
+    """[H, W] bool: the quadrilateral spanned by the outermost inner corners of a chessboard that OpenCV
+    finds in `white` (float [0, 1] or 8-bit). Raises ValueError when no board is found."""
+    import cv2
+
+    img = np.asarray(white)
+    if img.dtype != np.uint8:
+        img = np.clip(np.rint(img * 255), 0, 255).astype(np.uint8)
+    found, corners = cv2.findChessboardCorners(img, tuple(inner_corners))
+    if not found:
+        raise ValueError(f"no {inner_corners[0]}x{inner_corners[1]} chessboard found in the image")
+    c = corners.reshape(inner_corners[1], inner_corners[0], 2)
+    quad = np.round([c[0, 0], c[0, -1], c[-1, -1], c[-1, 0]]).astype(np.int32)
+    mask = np.zeros(img.shape[:2], np.uint8)
+    cv2.fillConvexPoly(mask, quad, 1)
+    return mask.astype(bool)
+
+
+def plane_rms(points: np.ndarray) -> tuple[float, int]:
+    """RMS distance (mm) of the finite points [P, 3] to their least-squares plane, and their count."""
+    P = np.asarray(points, np.float64).reshape(-1, 3)
+    P = P[np.isfinite(P).all(1)]
+    if len(P) < 3:
+        return math.nan, len(P)
+    c = P.mean(0)
+    normal = np.linalg.svd(P - c, full_matrices=False)[2][2]
+    return float(np.sqrt((((P - c) @ normal) ** 2).mean())), len(P)

@@ -82,11 +82,18 @@ class TrainConfig:
 
 
 PRESETS = {
-    # the paper: 4000 iterations, 2048 rays, 32 + 32 samples, NeuS MLP 8 x 256, Adam 1e-4
-    "paper": TrainConfig(),
-    # CPU: a smaller field and batch that trains in minutes on two cores (small rig)
-    "cpu": TrainConfig(iters=1200, rays=512, n_samples=24, n_importance=16, up_sample_steps=2, lr=5e-4, sc_start=300,
-                       hidden=64, layers=4, skip=2, n_freqs=6, mc_resolution=192, checkpoint_every=200, log_every=25),
+    # the paper: 4000 iterations, 2048 rays, 32 + 32 samples, NeuS MLP 8 x 256, Adam 1e-4 constant,
+    # lambda_sc 0 then 1 after 1000 iterations, lambda_reg 0.1 (plus our depth-search start; TF32 on CUDA,
+    # which changed the bunny's MAE by 3% against full float32)
+    "paper": TrainConfig(matmul="tf32"),
+    # measured better on the virtual scanner (default-rig bunny: MAE 0.77 mm against 2.0 mm for "paper"):
+    # NeuS's learning rate 5e-4 with cosine decay, and no surface-colour loss (it samples the sharp pattern
+    # at one point and disagrees with the blurred edges the camera sees)
+    "tuned": TrainConfig(matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0),
+    # CPU: the tuned recipe with a smaller field and batch, minutes on two cores (small rig)
+    "cpu": TrainConfig(iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, lr=5e-4,
+                       lr_decay="cosine", lambda_sc=0.0, hidden=64, layers=4, skip=2, n_freqs=6, search_step_mm=2.0,
+                       mc_resolution=192, checkpoint_every=250, log_every=25),
     # tests: a few hundred iterations of the CPU field
     "tiny": TrainConfig(iters=300, rays=256, n_samples=16, n_importance=8, up_sample_steps=1, lr=5e-4, lr_decay="cosine",
                         sc_start=100, hidden=48, layers=3, skip=None, n_freqs=4, init_iters=100, search_step_mm=2.0,
