@@ -1,0 +1,65 @@
+"""Table: the neural SDF (paper and tuned presets, GPU runs of bench/train_variants.py) next to the classical
+baselines (bench/classical_baselines.py) on the six built-in scenes, default rig and noise.
+
+    python bench/six_scene_table.py [--neural bench/results/neural-variants-cuda.json]
+                                    [--classical bench/results/classical-cpu.json]
+Writes bench/results/six-scenes.md. Runs named paper_<scene> / tuned_<scene> are picked up; the bunny
+runs V1 (paper) and V2 (tuned settings) come from the first tuning batch.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+SCENES = ("spheres", "torus", "boxes", "bunny", "vase", "steps")
+ALIASES = {("paper", "bunny"): "V1", ("tuned", "bunny"): "V2"}
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--neural", default=str(REPO / "bench/results/neural-variants-cuda.json"))
+    p.add_argument("--classical", default=str(REPO / "bench/results/classical-cpu.json"))
+    p.add_argument("--out", default=str(REPO / "bench/results/six-scenes.md"))
+    args = p.parse_args(argv)
+    neural = json.loads(Path(args.neural).read_text())
+    classical = json.loads(Path(args.classical).read_text())["per_scene"]
+
+    def ours(preset, scene):
+        key = ALIASES.get((preset, scene), f"{preset}_{scene}")
+        return neural.get(key, {}).get("metrics")
+
+    methods = [("GC(6) interp", lambda s: classical["GC(6) interp"].get(s)),
+               ("GC(7) interp", lambda s: classical["GC(7) interp"].get(s)),
+               ("ours, paper preset", lambda s: ours("paper", s)),
+               ("ours, tuned preset", lambda s: ours("tuned", s))]
+    device = next(iter(neural.values()))["device"]
+    lines = [f"# Six built-in scenes, default rig and noise: neural SDF (6 random patterns, {device}) vs Gray code", "",
+             "Classical rows from bench/results/classical-cpu.json; neural rows from bench/results/neural-variants-cuda.json.", ""]
+    for key, title, fmt in (("mae", "MAE (mm)", "{:.3f}"), ("median", "median |error| (mm)", "{:.3f}"),
+                            ("over_5mm", "share of pixels with |error| > 5 mm", "{:.2%}"),
+                            ("completeness", "completeness", "{:.1%}")):
+        lines += [f"## {title}", "", "| method | " + " | ".join(SCENES) + " | mean |", "|---" * (len(SCENES) + 2) + "|"]
+        means = {}
+        for name, get in methods:
+            vals = [get(s)[key] if get(s) else None for s in SCENES]
+            ok = [v for v in vals if v is not None]
+            mean = sum(ok) / len(ok) if len(ok) == len(SCENES) else None
+            means[name] = mean
+            cells = [fmt.format(v) if v is not None else "-" for v in vals] + [fmt.format(mean) if mean is not None else "-"]
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
+        if key == "mae":
+            lines.append("")
+            for name in ("ours, paper preset", "ours, tuned preset"):
+                if means.get(name):
+                    lines.append(f"- {name}: mean MAE {means[name]:.3f} mm = {means[name] / means['GC(7) interp']:.2f}x GC(7) "
+                                 f"interp, {means[name] / means['GC(6) interp']:.2f}x GC(6) interp (targets: 0.6x and 0.4x)")
+        lines.append("")
+    text = "\n".join(lines)
+    print(text)
+    Path(args.out).write_text(text)
+
+
+if __name__ == "__main__":
+    main()
