@@ -211,15 +211,21 @@ class Trainer:
 
     # --- frames -------------------------------------------------------------------------------
     def add_frames(self, images=None, patterns=None, count: int = 1):
-        """Add frames to the running optimisation: the next `count` frames of the scan, or the given
-        images [k, H, W] and patterns [k, Hp, Wp] (appended to the scan)."""
+        """Add frames to the running optimisation: the next `count` frames of the scan, or the given images
+        [k, H, W] and patterns [k, Hp, Wp] (inserted right after the frames in use, so they count now)."""
         if images is not None:
-            images = np.asarray(images, np.float32).reshape(-1, self.scan.camera.height, self.scan.camera.width)
-            patterns = np.asarray(patterns, np.float32).reshape(-1, self.scan.projector.height, self.scan.projector.width)
+            cam, prj = self.scan.camera, self.scan.projector
+            images = np.asarray(images, np.float32).reshape(-1, cam.height, cam.width)
+            patterns = np.asarray(patterns, np.float32)
+            if patterns.shape[1:] != (prj.height, prj.width) or len(patterns) != len(images):
+                raise ValueError(f"add_frames: {len(images)} images need as many patterns of {prj.width}x{prj.height} px, "
+                                 f"got {patterns.shape}")
+            n = self.n_frames
             names = [f"added{len(self.scan) + i}" for i in range(len(images))]
-            self.scan = dataclasses.replace(self.scan, images=np.concatenate([self.scan.images, images]),
-                                            patterns=np.concatenate([self.scan.patterns, patterns]),
-                                            names=self.scan.names + names)
+            self.scan = dataclasses.replace(
+                self.scan, images=np.concatenate([self.scan.images[:n], images, self.scan.images[n:]]),
+                patterns=np.concatenate([self.scan.patterns[:n], patterns, self.scan.patterns[n:]]),
+                names=self.scan.names[:n] + names + self.scan.names[n:])
             count = len(images)
         self.n_frames = min(self.n_frames + count, len(self.scan))
         self.renderer.set_frames(self.scan.images[: self.n_frames], self.scan.patterns[: self.n_frames])
