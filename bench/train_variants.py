@@ -70,11 +70,49 @@ def run_one(name: str, kv: dict, out: Path) -> dict:
     print(f"{name}: simulated {scene} in {t1 - t0:.1f} s; training {cfg.iters} iterations", flush=True)
     res = reconstruct(scan, cfg, out_dir=out / name, progress=False, log_every_s=20.0)
     doc = {"name": name, "scene": scene, "rig": rig, "patterns": patterns, "frames": scan.names, "preset": pname,
-           "config": cfg.to_dict(), "metrics": res.metrics, "timings": {**res.timings, "simulate_s": t1 - t0},
+           "config": cfg.to_dict(), "pattern_blur_px": res.trainer.renderer.pattern_blur, "metrics": res.metrics, "timings": {**res.timings, "simulate_s": t1 - t0},
            "device": torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu",
            "peak_gpu_mem_GB": torch.cuda.max_memory_allocated() / 1e9 if torch.cuda.is_available() else None}
     (out / f"{name}.json").write_text(json.dumps(doc, indent=1, default=float))
     return doc
+
+
+def run_variants(specs: list[str], out: Path, parallel: int = 4, log=print) -> dict:
+    """Run each spec in its own process, `parallel` at a time; returns name -> result doc (missing on failure)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    pending = list(specs)
+    running = []
+    t0 = time.perf_counter()
+    while pending or running:
+        while pending and len(running) < parallel:
+            spec = pending.pop(0)
+            name = parse(spec)[0]
+            logf = open(out / f"{name}.log", "w")
+            running.append((name, subprocess.Popen([sys.executable, __file__, "--one", "--out", str(out), spec],
+                                                   stdout=logf, stderr=subprocess.STDOUT, env=os.environ.copy())))
+        time.sleep(1.0)
+        for item in list(running):
+            if item[1].poll() is not None:
+                running.remove(item)
+                f = out / f"{item[0]}.json"
+                msg = ""
+                if f.is_file():
+                    d = json.loads(f.read_text())
+                    m, t = d["metrics"] or {}, d["timings"]
+                    msg = (f": MAE {m.get('mae', float('nan')):.3f} mm, median {m.get('median', float('nan')):.3f}, "
+                           f">5 mm {m.get('over_5mm', float('nan')):.2%}, train {t['train_s']:.1f} s")
+                log(f"[{time.perf_counter() - t0:6.0f} s] {item[0]} finished (exit {item[1].returncode}){msg}")
+    docs = {}
+    for spec in specs:
+        name = parse(spec)[0]
+        f = out / f"{name}.json"
+        if f.is_file():
+            docs[name] = json.loads(f.read_text())
+        else:
+            tail = (out / f"{name}.log").read_text()[-600:] if (out / f"{name}.log").is_file() else ""
+            log(f"{name}: no result\n{tail}")
+    return docs
 
 
 def main(argv=None):
@@ -90,37 +128,13 @@ def main(argv=None):
         name, kv = parse(args.variants[0])
         run_one(name, kv, out)
         return 0
-    pending = list(args.variants)
-    running = []
-    t0 = time.perf_counter()
-    while pending or running:
-        while pending and len(running) < args.parallel:
-            spec = pending.pop(0)
-            name = parse(spec)[0]
-            log = open(out / f"{name}.log", "w")
-            running.append((name, subprocess.Popen([sys.executable, __file__, "--one", "--out", str(out), spec],
-                                                   stdout=log, stderr=subprocess.STDOUT, env=os.environ.copy())))
-        time.sleep(1.0)
-        for item in list(running):
-            if item[1].poll() is not None:
-                running.remove(item)
-                f = out / f"{item[0]}.json"
-                msg = ""
-                if f.is_file():
-                    d = json.loads(f.read_text())
-                    m, t = d["metrics"] or {}, d["timings"]
-                    msg = (f": MAE {m.get('mae', float('nan')):.3f} mm, median {m.get('median', float('nan')):.3f}, "
-                           f">5 mm {m.get('over_5mm', float('nan')):.2%}, train {t['train_s']:.1f} s")
-                print(f"[{time.perf_counter() - t0:6.0f} s] {item[0]} finished (exit {item[1].returncode}){msg}", flush=True)
+    docs = run_variants(args.variants, out, args.parallel, log=lambda s: print(s, flush=True))
     rows = []
     for spec in args.variants:
         name = parse(spec)[0]
-        f = out / f"{name}.json"
-        if not f.is_file():
-            tail = (out / f"{name}.log").read_text()[-600:] if (out / f"{name}.log").is_file() else ""
-            print(f"{name}: no result\n{tail}")
+        if name not in docs:
             continue
-        d = json.loads(f.read_text())
+        d = docs[name]
         m, t = d["metrics"] or {}, d["timings"]
         rows.append(f"| {name} | {spec.partition(':')[2]} | {m.get('mae', float('nan')):.3f} | {m.get('median', float('nan')):.3f} | "
                     f"{m.get('over_1mm', float('nan')):.2%} | {m.get('over_5mm', float('nan')):.2%} | {m.get('completeness', float('nan')):.1%} | "

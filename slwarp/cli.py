@@ -278,7 +278,8 @@ def cmd_reconstruct(args) -> int:
     name = args.preset or ("paper" if dev.type == "cuda" else "cpu")
     cfg = preset(name, iters=args.iters, rays=args.rays, lr=args.lr, seed=args.seed, device=str(dev), backend=args.backend,
                  incremental=args.incremental or None, start_frames=args.start_frames, add_every=args.add_every,
-                 matmul=args.matmul, depth_method=args.depth_method, mc_resolution=args.mc_resolution)
+                 matmul=args.matmul, depth_method=args.depth_method, mc_resolution=args.mc_resolution,
+                 pattern_blur=_parse_blur(args.pattern_blur), photometric_filter=args.photometric_filter)
     depth_range = _parse_range(args.depth_range)
     if depth_range is None and scan.depth_range is None:
         raise UserError(f"{args.scan}: the scan declares no depth range: pass --depth-range NEAR,FAR (mm)")
@@ -321,9 +322,25 @@ def _add_reconstruct(sub):
     p.add_argument("--depth-method", choices=["mesh", "sphere"], help="depth from the marching-cubes mesh (default) or by sphere tracing")
     p.add_argument("--mc-resolution", type=int, help="marching-cubes cells along the volume's longest side")
     p.add_argument("--matmul", choices=["fp32", "tf32"], help="CUDA matrix precision for the MLP (default: fp32)")
+    p.add_argument("--pattern-blur", help="Gaussian blur of the rendered patterns, projector px, or 'auto' (default: "
+                   "fitted to the images at the depth-search map)")
+    p.add_argument("--photometric-filter", type=float, help="drop depth pixels whose relative RMS residual reaches this "
+                   "(default: 0.4; 0 = off)")
     p.add_argument("--use-mask", action="store_true", help="also restrict the depth map to the scan's mask")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_reconstruct)
+
+
+def _parse_blur(text):
+    if text is None or text == "auto":
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        raise UserError(f"--pattern-blur: expected a number of projector px or 'auto', got {text!r}") from None
+    if not value >= 0:
+        raise UserError(f"--pattern-blur must be >= 0, got {text}")
+    return value
 
 
 def cmd_demo(args) -> int:

@@ -172,3 +172,41 @@ def save_points_ply(path, points: np.ndarray, intensity: np.ndarray | None = Non
         g = (np.clip(intensity, 0, 1) * 255).astype(np.uint8)
         colors = np.stack([g, g, g, np.full_like(g, 255)], -1)
     trimesh.PointCloud(points, colors=colors).export(path)
+
+
+def predicted_intensities(depth: np.ndarray, camera, projector, patterns: np.ndarray) -> np.ndarray:
+    """[N, H, W]: each pattern sampled bilinearly where each pixel's depth point projects into the projector
+    (0 outside the projector image or where depth is NaN). patterns [N, Hp, Wp], already blurred as rendered."""
+    import cv2
+
+    rays = camera.pixel_to_ray(camera.pixel_grid())
+    with np.errstate(invalid="ignore"):
+        X = rays * (np.asarray(depth, np.float64) / rays[..., 2])[..., None]
+        uv = np.asarray(projector.project_camera_points(X.reshape(-1, 3)), np.float64).reshape(camera.height, camera.width, 2)
+    uv = np.where(np.isfinite(uv), uv, -10.0).astype(np.float32)
+    return np.stack([cv2.remap(np.asarray(p, np.float32), uv[..., 0], uv[..., 1], cv2.INTER_LINEAR,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=0.0) for p in patterns])
+
+
+def photometric_residual(depth: np.ndarray, camera, projector, images: np.ndarray, patterns: np.ndarray) -> np.ndarray:
+    """[H, W]: RMS over the frames of I - (a + b P(pi(x))), relative to the pixel's modulation b (a, b: min and
+    max - min over the images, as in training); NaN where depth is NaN. patterns as rendered (blurred)."""
+    images = np.asarray(images, np.float32)
+    a = images.min(0)
+    b = images.max(0) - a
+    pred = predicted_intensities(depth, camera, projector, patterns)
+    r = np.sqrt(np.mean((images - a - b * pred) ** 2, axis=0)) / np.maximum(b, 1e-3)
+    return np.where(np.isfinite(depth), r, np.nan).astype(np.float32)
+
+
+def photometric_filter(depth: np.ndarray, camera, projector, images: np.ndarray, patterns: np.ndarray,
+                       threshold: float = 0.4) -> np.ndarray:
+    """Depth with the pixels whose rendered intensities disagree with the images removed (NaN).
+
+    At an occlusion edge a smooth field can leave a pixel or two on the wrong side's surface; there the
+    random binary codes predicted from the depth do not match what the pixel saw. Pixels whose relative RMS
+    residual (`photometric_residual`) is at or above `threshold` are dropped (measured on the small-rig
+    bunny: correct pixels have a 99th percentile of 0.39, pixels off by more than 20 mm a 10th of 0.47).
+    """
+    r = photometric_residual(depth, camera, projector, images, patterns)
+    return np.where(r < threshold, depth, np.nan).astype(np.float32)

@@ -18,7 +18,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .extract import depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, save_points_ply, sphere_trace_depth
+from .extract import (depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, photometric_filter, save_points_ply,
+                      sphere_trace_depth)
+from .render import blur_patterns
 from .scan import write_depth_png
 from .train import TrainConfig, Trainer
 
@@ -57,6 +59,11 @@ def extract_depth(trainer: Trainer, config: TrainConfig, valid: np.ndarray | Non
     depth[(depth < near) | (depth > far)] = np.nan
     if config.edge_filter > 0:
         depth = flying_pixel_filter(depth, cam, config.edge_filter)
+    if config.photometric_filter > 0:
+        n = trainer.n_frames
+        patterns = blur_patterns(torch.as_tensor(trainer.scan.patterns[:n]), trainer.renderer.pattern_blur).numpy()
+        depth = photometric_filter(depth, cam, trainer.scan.projector, trainer.scan.images[:n], patterns,
+                                   config.photometric_filter)
     field_.train()
     return depth, mesh, {"marching_cubes_s": t1 - t0, "depth_s": time.perf_counter() - t1}
 
@@ -118,5 +125,7 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
             save_map_with_colorbar(out / "error_map.png", error_map(depth, scan.gt_depth, scan.mask),
                                    f"|depth error|, MAE {metrics['mae']:.3f} mm", "mm", value_range=(0.0, 5.0), cmap="inferno")
         (out / "timings.json").write_text(json.dumps(timings, indent=1))
-        (out / "config.json").write_text(json.dumps(config.to_dict(), indent=1))
+        fitted = {"pattern_blur_px": trainer.renderer.pattern_blur, "pattern_blur_fit_mse": trainer.blur_fit,
+                  "depth_search": {k: v for k, v in (trainer.search_info or {}).items() if k != "pattern_blur_fit"}}
+        (out / "config.json").write_text(json.dumps({**config.to_dict(), "fitted": fitted}, indent=1, default=float))
     return Reconstruction(depth, mesh, points, metrics, timings, trainer)

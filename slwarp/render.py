@@ -59,6 +59,20 @@ def offset_and_modulation(images: torch.Tensor) -> tuple[torch.Tensor, torch.Ten
     return lo, images.max(dim=0).values - lo
 
 
+def blur_patterns(patterns: torch.Tensor, sigma: float) -> torch.Tensor:
+    """patterns [N, Hp, Wp] Gaussian-blurred by `sigma` projector px (separable, edge values replicated)."""
+    if sigma <= 0:
+        return patterns
+    r = int(np.ceil(3.0 * sigma))
+    x = torch.arange(-r, r + 1, dtype=torch.float32, device=patterns.device)
+    k = torch.exp(-0.5 * (x / sigma) ** 2)
+    k = k / k.sum()
+    p = patterns[:, None]
+    p = torch.nn.functional.conv2d(torch.nn.functional.pad(p, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
+    p = torch.nn.functional.conv2d(torch.nn.functional.pad(p, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1))
+    return p[:, 0].contiguous()
+
+
 class StructuredLightRenderer(nn.Module):
     """Sampling, field evaluation and the fused renderer for one rig and its captured frames.
 
@@ -68,12 +82,18 @@ class StructuredLightRenderer(nn.Module):
     Eikonal term counts and up-sampling trusts the SDF (default: the frustum box of the valid pixels).
     variance: a module returning inv_s (1/mm); default a NeuS LearnedVariance scaled to the volume.
     n_samples coarse + n_importance up-sampled samples in up_sample_steps steps; backend "warp" | "torch".
+    pattern_blur: Gaussian sigma (projector px) applied to the patterns before they are sampled, so that a
+    sample sees the pattern as the camera does (projector defocus, the camera pixel's footprint); 0 = sharp.
     """
 
     def __init__(self, sdf: nn.Module, camera, projector, patterns, images, *, depth_range, volume: Volume | None = None,
                  variance: nn.Module | None = None, n_samples: int = 32, n_importance: int = 32, up_sample_steps: int = 4,
-                 contrast_threshold: float = 0.05, backend: str = "warp", device=None, compile_field: bool = False):
+                 contrast_threshold: float = 0.05, backend: str = "warp", device=None, compile_field: bool = False,
+                 pattern_blur: float = 0.0):
         super().__init__()
+        if not pattern_blur >= 0:
+            raise ValueError(f"pattern_blur must be >= 0 projector px, got {pattern_blur}")
+        self.pattern_blur = float(pattern_blur)
         if backend not in ops.BACKENDS:
             raise ValueError(f"backend must be one of {ops.BACKENDS}, got {backend!r}")
         if up_sample_steps > 0 and n_importance % up_sample_steps:
@@ -127,7 +147,14 @@ class StructuredLightRenderer(nn.Module):
         self.valid_map = (b > self.contrast_threshold)
         self.valid_index = torch.nonzero(self.valid_map.reshape(-1)).squeeze(1)
         self.patterns = patterns
-        self.patterns_hwn = ops.pack_patterns(patterns)
+        self.patterns_hwn = ops.pack_patterns(blur_patterns(patterns, self.pattern_blur))
+
+    def set_pattern_blur(self, sigma: float) -> None:
+        """Change the Gaussian blur (projector px) of the patterns as sampled."""
+        if not sigma >= 0:
+            raise ValueError(f"pattern_blur must be >= 0 projector px, got {sigma}")
+        self.pattern_blur = float(sigma)
+        self.patterns_hwn = ops.pack_patterns(blur_patterns(self.patterns, self.pattern_blur))
 
     @property
     def n_frames(self) -> int:

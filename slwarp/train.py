@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from .field import NeuSField, Volume
-from .render import StructuredLightRenderer
+from .render import StructuredLightRenderer, blur_patterns
 
 __all__ = ["TrainConfig", "preset", "PRESETS", "Trainer", "TrainingDiverged", "resolve_device"]
 
@@ -46,11 +46,17 @@ class TrainConfig:
     lr: float = 1e-4
     lr_decay: str = "none"  # "none" (paper: constant) | "cosine" (NeuS: cosine decay to lr_final of lr)
     lr_final: float = 0.05
+    lambda_rc: float = 1.0  # rendered-colour loss weight (0 only for the loss ablation)
     lambda_sc: float = 1.0
     sc_start: int = 1000
     lambda_reg: float = 0.1
     anneal_end: int = 0  # NeuS cos-anneal over this many iterations (0: no annealing)
     contrast_threshold: float = 0.05
+    # Gaussian sigma (projector px) of the patterns as the renderer samples them (projector defocus and the
+    # camera pixel's footprint; see StructuredLightRenderer): a number, or "auto" = fitted to the images at the
+    # depth-search map (1.0 px when there is none)
+    pattern_blur: float | str = "auto"
+    photometric_filter: float = 0.4  # drop depth pixels whose relative RMS residual reaches this (0: off)
     hidden: int = 256
     layers: int = 8
     skip: int | None = 4
@@ -177,6 +183,7 @@ class Trainer:
             depth_range=self.depth_range, n_samples=config.n_samples, n_importance=config.n_importance,
             up_sample_steps=config.up_sample_steps, contrast_threshold=config.contrast_threshold,
             backend=config.backend, device=self.device, compile_field=config.compile and self.device.type == "cuda",
+            pattern_blur=0.0 if config.pattern_blur == "auto" else float(config.pattern_blur),
         )
         self.volume: Volume = self.renderer.volume
         if config.init not in ("search", "sphere", "camera"):
@@ -191,14 +198,27 @@ class Trainer:
                                           lr=config.lr)
         self.init_depth = None
         self.search_info = None
+        self.blur_fit = None
         if init_depth is None and config.init == "search" and config.init_iters > 0 and not resume:
             from .search import search_depth
 
             wdev = f"cuda:{self.device.index or 0}" if self.device.type == "cuda" else "cpu"
+            search_blur = 1.0 if config.pattern_blur == "auto" else float(config.pattern_blur)
             init_depth, self.search_info = search_depth(
-                scan.camera, scan.projector, scan.images[: self.n_frames], scan.patterns[: self.n_frames], self.depth_range,
+                scan.camera, scan.projector, scan.images[: self.n_frames],
+                blur_patterns(torch.as_tensor(scan.patterns[: self.n_frames]), search_blur).numpy(), self.depth_range,
                 valid=self.renderer.valid_map.cpu().numpy(), step_mm=config.search_step_mm, stride=config.search_stride,
                 device=wdev)
+        if config.pattern_blur == "auto" and not resume:
+            sigma, fit = 1.0, None
+            if init_depth is not None:
+                from .search import estimate_pattern_blur
+
+                sigma, fit = estimate_pattern_blur(scan.camera, scan.projector, scan.images[: self.n_frames],
+                                                   scan.patterns[: self.n_frames], np.asarray(init_depth, np.float32).reshape(
+                                                       scan.camera.height, scan.camera.width))
+            self.renderer.set_pattern_blur(sigma)
+            self.blur_fit = fit
         if init_depth is not None:
             self.init_depth = torch.as_tensor(np.asarray(init_depth, np.float32).reshape(-1), device=self.device)
         self.iteration = 0
@@ -259,6 +279,7 @@ class Trainer:
             "history": dataclasses.asdict(self.history),
             "elapsed": self.elapsed,
             "init_depth": self.init_depth,
+            "pattern_blur": self.renderer.pattern_blur,
         }
 
     def save_checkpoint(self, path=None) -> Path | None:
@@ -288,6 +309,7 @@ class Trainer:
         self.history = History(**ck["history"])
         self.elapsed = ck.get("elapsed", 0.0)
         self.init_depth = ck.get("init_depth")
+        self.renderer.set_pattern_blur(ck.get("pattern_blur", 0.0))
 
     # --- training -----------------------------------------------------------------------------
     @property
@@ -312,7 +334,7 @@ class Trainer:
             loss = depth_err / self.volume.scale + opacity + self.cfg.lambda_reg * losses.eikonal
         else:
             it_p = it - self.warmup_iters
-            loss = losses.color + self.lambda_sc(it_p) * losses.surface + self.cfg.lambda_reg * losses.eikonal
+            loss = self.cfg.lambda_rc * losses.color + self.lambda_sc(it_p) * losses.surface + self.cfg.lambda_reg * losses.eikonal
         lr = self.learning_rate(it)
         for group in self.optimizer.param_groups:
             group["lr"] = lr
