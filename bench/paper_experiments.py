@@ -38,9 +38,10 @@ SCENES = ("spheres", "torus", "boxes", "bunny", "vase", "steps")
 CLASSICAL_ROWS = [("GC(6) interp", "GC(6)"), ("GC(7) interp", "GC(7)"), ("CGC(6): 3 GC + 3-step W/4", "CGC(6)"),
                   ("CGC(7): 4 GC + 3-step W/8", "CGC(7)"), ("H-PMP(6): 3-step W + 80 px", "H-PMP(6)"),
                   ("N-PMP(6): 3-step 48 + 70 px", "N-PMP(6)")]
-ABLATION = [("L_rc", "lambda_sc=0,lambda_reg=0"), ("L_rc + L_reg", "lambda_sc=0"),
-            ("L_sc", "lambda_rc=0,sc_start=0,lambda_reg=0"), ("L_sc + L_reg", "lambda_rc=0,sc_start=0"),
-            ("L_rc + L_sc + L_reg", "")]
+ABLATION = [("L_rc", "lambda_sc=0,lambda_reg=0"), ("L_rc + L_reg", "lambda_sc=0,lambda_reg=0.1"),
+            ("L_sc", "lambda_rc=0,lambda_sc=1,sc_start=0,lambda_reg=0"),
+            ("L_sc + L_reg", "lambda_rc=0,lambda_sc=1,sc_start=0,lambda_reg=0.1"),
+            ("L_rc + L_sc + L_reg", "lambda_sc=1,lambda_reg=0.1")]  # L_sc from iteration sc_start (1000), as in the paper
 
 
 def device_name() -> str:
@@ -83,8 +84,13 @@ def plt():
     return p
 
 
+def rig_of(args) -> str:
+    extra = dict(kv.split("=", 1) for kv in args.extra.split(",") if "=" in kv)
+    return extra.get("rig", "default")
+
+
 def header(title: str, args, runs_note: str) -> str:
-    return (f"# {title}\n\n{device_name()}, {datetime.date.today().isoformat()}; default rig, SimOptions() noise "
+    return (f"# {title}\n\n{device_name()}, {datetime.date.today().isoformat()}; {rig_of(args)} rig, SimOptions() noise "
             f"(seed 0); preset `{args.preset}`, {runs_note}.\n")
 
 
@@ -172,7 +178,7 @@ def fig7(args, out: Path, work: Path) -> None:
     specs = [spec(f"f7_k{k}{'inv' if inv else ''}", f"scene={args.scene}", f"patterns={pats}", f"frames={frames(k, inv)}",
                   f"preset={args.preset}{it}", args.extra) for inv in (False, True) for k in ks]
     docs = run_variants(specs, work / "fig7", args.parallel)
-    scan = simulate_scene(args.scene, pats, rig="default", options=SimOptions(seed=0),
+    scan = simulate_scene(args.scene, pats, rig=rig_of(args), options=SimOptions(seed=0),
                           device="cuda:0" if torch.cuda.is_available() else "cpu")
     gc = {}
     for inv in (False, True):
