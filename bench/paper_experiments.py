@@ -84,6 +84,11 @@ def plt():
     return p
 
 
+def iters_run(docs: dict, args):
+    """The training iterations the runs used (the preset's unless --iters)."""
+    return next(iter(docs.values()))["config"]["iters"] if docs else args.iters
+
+
 def rig_of(args) -> str:
     extra = dict(kv.split("=", 1) for kv in args.extra.split(",") if "=" in kv)
     return extra.get("rig", "default")
@@ -103,7 +108,7 @@ def table1(args, out: Path, work: Path) -> None:
     classical = json.loads(Path(args.classical).read_text())["per_scene"]
     rows = [(f"ours, 6 random ({args.preset})", {s: docs.get(f"t1_{s}", {}).get("metrics") for s in scenes})]
     rows += [(short, {s: classical[label].get(s) for s in scenes}) for label, short in CLASSICAL_ROWS if label in classical]
-    iters = next(iter(docs.values()))["config"]["iters"] if docs else args.iters
+    iters = iters_run(docs, args)
     md = [header("Table 1: the six built-in scenes", args, f"{iters} iterations (+ the depth-search warm-up)"),
           "Classical rows: bench/results/classical-cpu.json (same rig, noise model and seed; decoded on the CPU).", "",
           "| method | " + " | ".join(scenes) + " | mean MAE | >1 mm | >2 mm | >5 mm |",
@@ -141,7 +146,7 @@ def ablation(args, out: Path, work: Path) -> None:
     specs = [spec(f"ab{j}", f"scene={args.scene}", f"preset={args.preset}{it}", s, args.extra)
              for j, (_, s) in enumerate(ABLATION)]
     docs = run_variants(specs, work / "ablation", args.parallel)
-    iters = next(iter(docs.values()))["config"]["iters"] if docs else args.iters
+    iters = iters_run(docs, args)
     md = [header(f"Table 2: loss ablation ({args.scene})", args, f"{iters} iterations"),
           "| losses | settings | MAE mm | median mm | >1 mm | >2 mm | >5 mm | complete |", "|---|---|---|---|---|---|---|---|"]
     for j, (label, s) in enumerate(ABLATION):
@@ -185,7 +190,7 @@ def fig7(args, out: Path, work: Path) -> None:
         for k in ks:
             depth, _, _ = reconstruct_depth(scan, "gc-interp", frames=frames(k, inv).replace(";", ","))
             gc[f"k{k}{'inv' if inv else ''}"] = depth_metrics(depth, scan.gt_depth, scan.mask)
-    iters = next(iter(docs.values()))["config"]["iters"] if docs else args.iters
+    iters = iters_run(docs, args)
     md = [header(f"Fig. 7: ours vs Gray code with the same patterns ({args.scene})", args, f"{iters} iterations"),
           "K most significant column Gray code patterns; 'with inverses' uses 2K images. MAE in mm (>5 mm share).", "",
           "| K | ours | GC interp | ours, with inverses | GC interp, with inverses |", "|---|---|---|---|---|"]
@@ -221,7 +226,7 @@ def fig8(args, out: Path, work: Path) -> None:
     base = [f"scene={args.scene}", "patterns=random9", f"preset={args.preset}{it}", args.extra]
     specs = [spec("f8_batch", *base), spec("f8_incremental", *base, f"incremental=true,start_frames=3,add_every={args.add_every}")]
     docs = run_variants(specs, work / "fig8", args.parallel)
-    iters = next(iter(docs.values()))["config"]["iters"] if docs else args.iters
+    iters = iters_run(docs, args)
     md = [header(f"Fig. 8: batch vs incremental training, 9 random patterns ({args.scene})", args, f"{iters} iterations"),
           f"Incremental: 3 patterns (the 20 px scale) at the start, one more every {args.add_every} iterations.", "",
           "| training | MAE mm | median mm | >1 mm | >5 mm | complete | train s |", "|---|---|---|---|---|---|---|"]

@@ -84,8 +84,9 @@ def inside_box(x: wp.vec3, bmin: wp.vec3, bmax: wp.vec3) -> bool:
 
 
 @functools.lru_cache(maxsize=None)
-def render_kernels(N: int):
-    """(forward, backward) kernels for N patterns."""
+def pattern_sampler(N: int):
+    """(vecN, sample_all): the Warp vector type of N pattern values and the bilinear lookup of all N patterns
+    (pattern stack [H, W, N]) at a projector position (u, v, ok); shared by the renderer and the depth search."""
     vecN = wp.types.vector(length=N, dtype=wp.float32)
 
     @wp.func
@@ -111,6 +112,14 @@ def render_kernels(N: int):
                     for n in range(N):
                         out[n] += wgt * pat[y, x, n]
         return out
+
+    return vecN, sample_all
+
+
+@functools.lru_cache(maxsize=None)
+def render_kernels(N: int):
+    """(forward, backward) kernels for N patterns."""
+    vecN, sample_all = pattern_sampler(N)
 
     @wp.func
     def sample_all_grad(pat: wp.array3d(dtype=float), uvo: wp.vec3, cot: vecN) -> wp.vec2:

@@ -9,34 +9,12 @@ import functools
 import warp as wp
 
 from .geometry import ProjectorParams, project_to_projector
+from .render import pattern_sampler
 
 
 @functools.lru_cache(maxsize=None)
 def search_kernel(N: int):
-    vecN = wp.types.vector(length=N, dtype=wp.float32)
-
-    @wp.func
-    def patterns_at(pat: wp.array3d(dtype=float), uvo: wp.vec3) -> vecN:
-        out = vecN()
-        if uvo[2] == 0.0:
-            return out
-        H = pat.shape[0]
-        W = pat.shape[1]
-        u0 = wp.floor(uvo[0])
-        v0 = wp.floor(uvo[1])
-        fu = uvo[0] - u0
-        fv = uvo[1] - v0
-        iu = int(u0)
-        iv = int(v0)
-        for dy in range(2):
-            for dx in range(2):
-                x = iu + dx
-                y = iv + dy
-                if x >= 0 and x < W and y >= 0 and y < H:
-                    wgt = wp.where(dx == 0, 1.0 - fu, fu) * wp.where(dy == 0, 1.0 - fv, fv)
-                    for n in range(N):
-                        out[n] += wgt * pat[y, x, n]
-        return out
+    _, patterns_at = pattern_sampler(N)
 
     @wp.kernel(module="unique")
     def search(

@@ -174,18 +174,28 @@ def save_points_ply(path, points: np.ndarray, intensity: np.ndarray | None = Non
     trimesh.PointCloud(points, colors=colors).export(path)
 
 
-def predicted_intensities(depth: np.ndarray, camera, projector, patterns: np.ndarray) -> np.ndarray:
-    """[N, H, W]: each pattern sampled bilinearly where each pixel's depth point projects into the projector
-    (0 outside the projector image or where depth is NaN). patterns [N, Hp, Wp], already blurred as rendered."""
-    import cv2
-
+def projector_coords(depth: np.ndarray, camera, projector) -> np.ndarray:
+    """[H, W, 2] float32 projector pixel where each pixel's depth point projects (-10, off the image, where
+    depth is NaN)."""
     rays = camera.pixel_to_ray(camera.pixel_grid())
     with np.errstate(invalid="ignore"):
         X = rays * (np.asarray(depth, np.float64) / rays[..., 2])[..., None]
         uv = np.asarray(projector.project_camera_points(X.reshape(-1, 3)), np.float64).reshape(camera.height, camera.width, 2)
-    uv = np.where(np.isfinite(uv), uv, -10.0).astype(np.float32)
+    return np.where(np.isfinite(uv), uv, -10.0).astype(np.float32)
+
+
+def sample_patterns(patterns: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """[N, H, W]: each pattern [N, Hp, Wp] sampled bilinearly at projector pixels uv [H, W, 2] (0 outside)."""
+    import cv2
+
     return np.stack([cv2.remap(np.asarray(p, np.float32), uv[..., 0], uv[..., 1], cv2.INTER_LINEAR,
                                borderMode=cv2.BORDER_CONSTANT, borderValue=0.0) for p in patterns])
+
+
+def predicted_intensities(depth: np.ndarray, camera, projector, patterns: np.ndarray) -> np.ndarray:
+    """[N, H, W]: each pattern sampled bilinearly where each pixel's depth point projects into the projector
+    (0 outside the projector image or where depth is NaN). patterns [N, Hp, Wp], already blurred as rendered."""
+    return sample_patterns(patterns, projector_coords(depth, camera, projector))
 
 
 def photometric_residual(depth: np.ndarray, camera, projector, images: np.ndarray, patterns: np.ndarray) -> np.ndarray:

@@ -20,7 +20,6 @@ import torch
 
 from .extract import (depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, photometric_filter, save_points_ply,
                       sphere_trace_depth)
-from .render import blur_patterns
 from .scan import write_depth_png
 from .train import TrainConfig, Trainer
 
@@ -60,9 +59,8 @@ def extract_depth(trainer: Trainer, config: TrainConfig, valid: np.ndarray | Non
     if config.edge_filter > 0:
         depth = flying_pixel_filter(depth, cam, config.edge_filter)
     if config.photometric_filter > 0:
-        n = trainer.n_frames
-        patterns = blur_patterns(torch.as_tensor(trainer.scan.patterns[:n]), trainer.renderer.pattern_blur).numpy()
-        depth = photometric_filter(depth, cam, trainer.scan.projector, trainer.scan.images[:n], patterns,
+        patterns = trainer.renderer.rendered_patterns.cpu().numpy()
+        depth = photometric_filter(depth, cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames], patterns,
                                    config.photometric_filter)
     field_.train()
     return depth, mesh, {"marching_cubes_s": t1 - t0, "depth_s": time.perf_counter() - t1}

@@ -157,6 +157,11 @@ class StructuredLightRenderer(nn.Module):
         self.patterns_hwn = ops.pack_patterns(blur_patterns(self.patterns, self.pattern_blur))
 
     @property
+    def rendered_patterns(self) -> torch.Tensor:
+        """[N, Hp, Wp]: the patterns as the renderer samples them (blurred by pattern_blur)."""
+        return self.patterns_hwn.permute(2, 0, 1)
+
+    @property
     def n_frames(self) -> int:
         return int(self.patterns.shape[0])
 

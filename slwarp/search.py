@@ -94,7 +94,7 @@ def estimate_pattern_blur(camera, projector, images, patterns, depth, sigmas=Non
     (refined by a parabola through the best grid value and its neighbours). Depth errors of the search map (a
     fraction of a projector pixel) barely move the optimum. Returns (sigma, {sigma: mse}).
     """
-    from .extract import predicted_intensities
+    from .extract import projector_coords, sample_patterns
     from .render import blur_patterns
 
     sigmas = np.round(np.arange(0.0, 2.51, 0.25), 2) if sigmas is None else np.asarray(sigmas, float)
@@ -105,9 +105,10 @@ def estimate_pattern_blur(camera, projector, images, patterns, depth, sigmas=Non
     if ok.sum() < 100:
         raise ValueError(f"estimate_pattern_blur: only {int(ok.sum())} pixels with depth and contrast")
     pats = torch.as_tensor(np.asarray(patterns, np.float32))
+    uv = projector_coords(np.where(ok, depth, np.nan), camera, projector)  # the same for every sigma
     mse = {}
     for s in sigmas:
-        pred = predicted_intensities(np.where(ok, depth, np.nan), camera, projector, blur_patterns(pats, float(s)).numpy())
+        pred = sample_patterns(blur_patterns(pats, float(s)).numpy(), uv)
         mse[float(s)] = float(np.mean(((images - a - b * pred) ** 2)[:, ok]))
     keys = sorted(mse)
     j = keys.index(min(mse, key=mse.get))
