@@ -1,10 +1,20 @@
-"""Training speed: milliseconds per iteration of the paper preset under several settings, with a GPU-time
-breakdown (our Warp kernels, matrix products, other GPU work, and host time the GPU waits for).
+"""Training speed: milliseconds per iteration of a preset under several settings, where the time of an
+iteration goes, and the end-to-end time from a loaded scan to a depth map for the Warp and torch backends.
 
-    python bench/train_speed.py                       # bunny, default rig, paper preset, CUDA
-    python bench/train_speed.py --configs warp:eager:fp32 warp:compile:tf32 torch:compile:tf32
-Each config is BACKEND:MODE:MATMUL (backend warp|torch, mode eager|compile, matmul fp32|tf32).
-Writes bench/results/train-speed-<device>.json and .md.
+    python bench/train_speed.py                                  # CUDA: paper preset, bunny, default rig
+    python bench/train_speed.py --configs warp:compile:tf32:graph torch:compile:tf32:graph
+    python bench/train_speed.py --end-to-end                     # + reconstruct() with backend warp and torch
+    python bench/train_speed.py --preset cpu --rig small         # CPU: the demo preset
+
+Each config is BACKEND:MODE:MATMUL[:graph]: backend warp|torch, mode eager|compile (torch.compile of the
+field), matmul fp32|tf32, and graph = the whole step captured once as a CUDA graph and replayed.
+
+Breakdown (CUDA): the step announces its phases to the renderer's phase_hook; the bench turns each
+announcement into an empty marker kernel, so the profiler's kernel timeline splits into phases: MLP
+forward (the up-sampling and final field evaluations, explicit gradient included), losses and gathers,
+MLP backward (the gradient of the explicit Eikonal gradient is this model's double backward), our Warp
+kernels (every phase), Adam, and the rest of the wall time (Python, launches, synchronisation: the GPU idles).
+Writes <out>/train-speed-<device>.json and .md (and end-to-end rows with --end-to-end).
 """
 from __future__ import annotations
 
@@ -19,101 +29,228 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 WARP_KERNEL_MARKERS = ("render_kernels", "cast_camera", "upsample", "merge_sorted", "stratified", "camera_rays")
-GEMM_MARKERS = ("gemm", "xmma", "cutlass", "sm90_", "sm80_", "ampere", "hopper", "cublas")
+MARKER_KERNEL = "spin_kernel"  # torch.cuda._sleep's kernel: the phase marker
+PHASE_COLUMNS = {"batch": "losses_other", "rays": "mlp_forward", "field": "mlp_forward", "render": "losses_other",
+                 "backward": "mlp_backward", "optimizer": "adam", "end": "losses_other"}
+
+
+def is_warp_kernel(name: str) -> bool:
+    return any(m in name for m in WARP_KERNEL_MARKERS)
 
 
 def breakdown(trainer, steps: int = 5) -> dict:
-    """GPU time per iteration (ms) by category, from the torch profiler."""
+    """GPU ms per iteration by phase, from marker kernels in the profiler's timeline (see module doc)."""
     import torch
+    from torch.autograd import DeviceType
     from torch.profiler import ProfilerActivity, profile
 
+    phases: list[str] = []
+
+    def hook(name):
+        phases.append(name)
+        torch.cuda._sleep(0)
+
+    trainer.renderer.phase_hook = hook
+    trainer._graph = None  # recapture with the markers inside
+    trainer.step()
+    trainer.step()
     torch.cuda.synchronize()
-    t0 = time.perf_counter()
+    phases.clear()
     with profile(activities=[ProfilerActivity.CUDA]) as prof:
         for _ in range(steps):
             trainer.step()
         torch.cuda.synchronize()
-    wall = (time.perf_counter() - t0) / steps * 1e3
-    cats = {"warp_kernels": 0.0, "matmul": 0.0, "other_gpu": 0.0}
-    for ev in prof.key_averages():
-        t = (getattr(ev, "device_time_total", None) or getattr(ev, "cuda_time_total", 0)) / 1e3 / steps
-        if not t or ev.key.startswith(("aten::", "autograd::", "Optimizer.", "ProfilerStep", "cudaGraph")):
+    trainer.renderer.phase_hook = None
+    trainer._graph = None
+    evs = [e for e in prof.profiler.kineto_results.events() if e.device_type() == DeviceType.CUDA]
+    evs.sort(key=lambda e: e.start_ns())
+    order = ["batch", "rays", "field", "render", "backward", "optimizer", "end"]
+    cats = {"mlp_forward": 0.0, "losses_other": 0.0, "mlp_backward": 0.0, "warp_kernels": 0.0, "adam": 0.0}
+    phase = "end"
+    n_markers = 0
+    for e in evs:
+        ms = e.duration_ns() / 1e6 / steps
+        if e.name() == MARKER_KERNEL:
+            phase = order[n_markers % len(order)]
+            n_markers += 1
             continue
-        k = ev.key.lower()
-        if any(m.lower() in k for m in WARP_KERNEL_MARKERS):
-            cats["warp_kernels"] += t
-        elif any(m in k for m in GEMM_MARKERS):
-            cats["matmul"] += t
+        if is_warp_kernel(e.name()):
+            cats["warp_kernels"] += ms
         else:
-            cats["other_gpu"] += t
-    gpu = sum(cats.values())
-    cats["gpu_total"] = gpu
-    cats["wall_profiled"] = wall
-    cats["host_wait"] = max(0.0, wall - gpu)
+            cats[PHASE_COLUMNS[phase]] += ms
+    cats["gpu_total"] = sum(cats.values())
+    cats["markers_seen"] = n_markers
+    cats["markers_expected"] = steps * len(order)
     return cats
+
+
+def cpu_breakdown(trainer, steps: int = 10) -> dict:
+    """CPU ms per iteration by phase (work on the CPU is synchronous: host timestamps at the phase
+    announcements). Our Warp kernels run inside the phases here: the up-sampling kernels with the MLP
+    forward, the fused render with the losses, its backward with the MLP backward."""
+    marks: list = []
+    trainer.renderer.phase_hook = lambda name: marks.append((name, time.perf_counter()))
+    trainer.step()
+    marks.clear()
+    for _ in range(steps):
+        trainer.step()
+    trainer.renderer.phase_hook = None
+    cats = {"mlp_forward": 0.0, "losses_other": 0.0, "mlp_backward": 0.0, "adam": 0.0}
+    for (name, t), (_, t_next) in zip(marks, marks[1:]):
+        if name != "end":
+            cats[PHASE_COLUMNS[name]] += (t_next - t) * 1e3 / steps
+    cats["warp_kernels"] = float("nan")
+    cats["gpu_total"] = sum(v for k, v in cats.items() if k != "warp_kernels")  # here: CPU time inside the phases
+    return cats
+
+
+def time_config(scan, spec: str, preset_name: str, warmup: int, iters: int, dev: str) -> dict:
+    import torch
+
+    from slwarp.train import Trainer, preset
+
+    parts = spec.split(":")
+    backend, mode, mm = parts[:3]
+    graph = len(parts) > 3 and parts[3] == "graph"
+    cfg = preset(preset_name, backend=backend, compile=(mode == "compile"), matmul=mm, cuda_graph=graph, init="sphere")
+    if dev == "cuda":
+        torch.cuda.reset_peak_memory_stats()
+    tr = Trainer(scan, cfg, progress=False)
+    sync = torch.cuda.synchronize if dev == "cuda" else (lambda: None)
+    t0 = time.perf_counter()
+    for _ in range(warmup):
+        tr.step()
+    sync()
+    t_warm = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    for _ in range(iters):
+        tr.step()
+    sync()
+    ms = (time.perf_counter() - t0) / iters * 1e3
+    row = {"config": spec, "preset": preset_name, "ms_per_it": ms, "it_per_s": 1e3 / ms, "warmup_s": t_warm,
+           "projected_s": cfg.iters * ms / 1e3, "iters_of_preset": cfg.iters, "graph_used": bool(tr._graph is not None)}
+    if dev == "cuda":
+        b = breakdown(tr)
+        b["host_and_idle"] = max(0.0, ms - b["gpu_total"])
+        row["breakdown_ms"] = b
+        row["peak_gpu_mem_GB"] = torch.cuda.max_memory_allocated() / 1e9
+    else:
+        b = cpu_breakdown(tr)
+        b["host_and_idle"] = max(0.0, ms - b["gpu_total"])
+        row["breakdown_ms"] = b
+    torch.backends.cuda.matmul.allow_tf32 = False
+    return row
+
+
+def end_to_end(scan, backend: str, preset_name: str, dev: str) -> dict:
+    """reconstruct() from the loaded scan: wall time of each stage, it/s, MAE, peak GPU memory."""
+    import torch
+
+    from slwarp.reconstruct import reconstruct
+    from slwarp.train import preset
+
+    cfg = preset(preset_name, backend=backend)
+    if dev == "cuda":
+        torch.cuda.synchronize()
+        torch.cuda.reset_peak_memory_stats()
+    t0 = time.perf_counter()
+    res = reconstruct(scan, cfg, out_dir=None, progress=False)
+    wall = time.perf_counter() - t0
+    t = res.timings
+    row = {"backend": backend, "preset": preset_name, "wall_s": wall, "timings": t, "it_per_s": t["iterations"] / t["train_s"],
+           "graph_used": bool(res.trainer._graph is not None), "pattern_blur_px": res.trainer.renderer.pattern_blur,
+           "metrics": res.metrics}
+    if dev == "cuda":
+        row["peak_gpu_mem_GB"] = torch.cuda.max_memory_allocated() / 1e9
+    torch.backends.cuda.matmul.allow_tf32 = False
+    return row
+
+
+def markdown(doc: dict) -> str:
+    nan = float("nan")
+    lines = [f"# Training speed, preset `{doc['preset']}`, {doc['scene']} ({doc['rig']} rig), {doc['device']}, {doc['date']}", ""]
+    if doc["rows"]:
+        lines += [f"Per iteration ({doc['iters']} timed after {doc['warmup']} warm-up iterations; the preset runs "
+                  f"{doc['rows'][0]['iters_of_preset']} + the depth-search warm-up). Breakdown: GPU ms per iteration "
+                  "by phase, from the profiler; 'host/idle' is the wall time the GPU had no work (Python, launches, "
+                  "synchronisation)." + (" On the CPU: CPU ms per phase, our Warp kernels counted inside the phases "
+                  "(sampling kernels in MLP fwd, the fused render in losses, its backward in MLP bwd); 'host/idle' is the "
+                  "rest (drawing the batch, Python between phases)." if doc["device"] == "CPU" else ""), "",
+                  "| backend:mode:matmul[:graph] | ms/it | it/s | preset iters (s) | MLP fwd | losses, gathers | MLP bwd (incl. Eikonal) | our Warp kernels | Adam | host/idle | peak GB |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in doc["rows"]:
+            b = r.get("breakdown_ms", {})
+            cells = [f"{b.get(k, nan):.2f}" for k in ("mlp_forward", "losses_other", "mlp_backward", "warp_kernels", "adam", "host_and_idle")]
+            lines.append(f"| {r['config']}{'' if r['graph_used'] or not r['config'].endswith('graph') else ' (capture failed)'} | "
+                         f"{r['ms_per_it']:.2f} | {r['it_per_s']:.1f} | {r['projected_s']:.1f} | " + " | ".join(cells)
+                         + f" | {r.get('peak_gpu_mem_GB', nan):.2f} |")
+        base = {r["config"]: r["ms_per_it"] for r in doc["rows"]}
+        for fast, slow in (("warp:compile:tf32:graph", "torch:compile:tf32:graph"), ("warp:compile:tf32:graph", "torch:compile:tf32"),
+                           ("warp:compile:tf32:graph", "warp:compile:tf32"), ("warp:compile:tf32", "torch:compile:tf32"),
+                           ("warp:eager:fp32", "torch:eager:fp32")):
+            if fast in base and slow in base:
+                lines.append(f"\n{slow} / {fast}: {base[slow] / base[fast]:.2f}x")
+    if doc.get("end_to_end"):
+        lines += ["", "## End to end: loaded scan to depth map (reconstruct(), default options of the preset)", "",
+                  "| backend | wall s | search + blur fit s | train s | it/s | marching cubes s | depth s | MAE mm | median mm | >5 mm | complete | peak GB |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in doc["end_to_end"]:
+            t, m = r["timings"], r["metrics"] or {}
+            lines.append(f"| {r['backend']}{' (graph)' if r['graph_used'] else ''} | {r['wall_s']:.1f} | {t['setup_s']:.1f} | {t['train_s']:.1f} | "
+                         f"{r['it_per_s']:.1f} | {t['marching_cubes_s']:.1f} | {t['depth_s']:.1f} | {m.get('mae', nan):.3f} | "
+                         f"{m.get('median', nan):.3f} | {100 * m.get('over_5mm', nan):.2f}% | {100 * m.get('completeness', nan):.1f}% | "
+                         f"{r.get('peak_gpu_mem_GB', nan):.2f} |")
+        e = {r["backend"]: r for r in doc["end_to_end"]}
+        if "warp" in e and "torch" in e:
+            lines.append(f"\ntraining torch / warp: {e['torch']['timings']['train_s'] / e['warp']['timings']['train_s']:.2f}x; "
+                         f"end to end: {e['torch']['wall_s'] / e['warp']['wall_s']:.2f}x")
+    return "\n".join(lines)
 
 
 def main(argv=None):
     import torch
 
     from slwarp.simulate import simulate_scene
-    from slwarp.train import Trainer, preset
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--configs", nargs="*", default=["warp:eager:fp32", "warp:compile:fp32", "warp:compile:tf32",
-                                                     "torch:compile:tf32", "torch:eager:fp32"])
+    p.add_argument("--configs", nargs="*", default=None,
+                   help="default CUDA: warp:eager:fp32 warp:compile:tf32 warp:compile:tf32:graph torch:compile:tf32 "
+                        "torch:compile:tf32:graph; CPU: warp:eager:fp32 torch:eager:fp32")
+    p.add_argument("--preset", default=None, help="default: paper on CUDA, cpu on the CPU")
     p.add_argument("--scene", default="bunny")
-    p.add_argument("--rig", default="default")
+    p.add_argument("--rig", default=None, help="default: default on CUDA, small on the CPU")
     p.add_argument("--warmup", type=int, default=20)
     p.add_argument("--iters", type=int, default=50)
+    p.add_argument("--end-to-end", action="store_true", help="also run reconstruct() with backend warp and torch")
     p.add_argument("--out", default=str(REPO / "bench" / "results"))
     args = p.parse_args(argv)
     dev = "cuda" if torch.cuda.is_available() else "cpu"
-    scan = simulate_scene(args.scene, "random6", rig=args.rig, device="cuda:0" if dev == "cuda" else "cpu")
-    rows = []
-    for spec in args.configs:
-        backend, mode, mm = spec.split(":")
-        cfg = preset("paper" if dev == "cuda" else "cpu", backend=backend, compile=(mode == "compile"), matmul=mm,
-                     init="sphere")
-        torch.manual_seed(0)
-        torch.cuda.reset_peak_memory_stats() if dev == "cuda" else None
-        tr = Trainer(scan, cfg, progress=False)
-        t0 = time.perf_counter()
-        for _ in range(args.warmup):
-            tr.step()
-        if dev == "cuda":
-            torch.cuda.synchronize()
-        t_warm = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        for _ in range(args.iters):
-            tr.step()
-        if dev == "cuda":
-            torch.cuda.synchronize()
-        ms = (time.perf_counter() - t0) / args.iters * 1e3
-        row = {"config": spec, "ms_per_it": ms, "it_per_s": 1e3 / ms, "warmup_s": t_warm,
-               "projected_4000_it_s": 4000 * ms / 1e3}
-        if dev == "cuda":
-            row["breakdown_ms"] = breakdown(tr)
-            row["peak_gpu_mem_GB"] = torch.cuda.max_memory_allocated() / 1e9
-        rows.append(row)
-        print(json.dumps(row), flush=True)
-        torch.backends.cuda.matmul.allow_tf32 = False
-        del tr
+    preset_name = args.preset or ("paper" if dev == "cuda" else "cpu")
+    rig = args.rig or ("default" if dev == "cuda" else "small")
+    configs = args.configs if args.configs is not None else (
+        ["warp:eager:fp32", "warp:compile:tf32", "warp:compile:tf32:graph", "torch:compile:tf32", "torch:compile:tf32:graph"]
+        if dev == "cuda" else ["warp:eager:fp32", "torch:eager:fp32"])
+    scan = simulate_scene(args.scene, "random6", rig=rig, device="cuda:0" if dev == "cuda" else "cpu")
     name = torch.cuda.get_device_name(0) if dev == "cuda" else "CPU"
-    lines = [f"# Training speed, paper preset, {args.scene} ({args.rig} rig), {name}, {datetime.date.today()}", "",
-             "| backend:mode:matmul | ms/it | it/s | 4000 it (s) | warm-up (s) | Warp kernels ms | matmul ms | other GPU ms | host wait ms | peak GB |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
-    for r in rows:
-        b = r.get("breakdown_ms", {})
-        lines.append(f"| {r['config']} | {r['ms_per_it']:.2f} | {r['it_per_s']:.1f} | {r['projected_4000_it_s']:.1f} | "
-                     f"{r['warmup_s']:.1f} | {b.get('warp_kernels', float('nan')):.2f} | {b.get('matmul', float('nan')):.2f} | "
-                     f"{b.get('other_gpu', float('nan')):.2f} | {b.get('host_wait', float('nan')):.2f} | {r.get('peak_gpu_mem_GB', float('nan')):.2f} |")
-    print("\n".join(lines))
+    doc = {"device": name, "date": str(datetime.date.today()), "preset": preset_name, "scene": args.scene, "rig": rig,
+           "warmup": args.warmup, "iters": args.iters, "rows": [], "end_to_end": []}
+    for spec in configs:
+        torch.manual_seed(0)
+        row = time_config(scan, spec, preset_name, args.warmup, args.iters, dev)
+        doc["rows"].append(row)
+        print(json.dumps(row), flush=True)
+    if args.end_to_end:
+        for backend in ("warp", "torch"):
+            row = end_to_end(scan, backend, preset_name, dev)
+            doc["end_to_end"].append(row)
+            print(json.dumps(row, default=float), flush=True)
+    md = markdown(doc)
+    print(md)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     tag = "cuda" if dev == "cuda" else "cpu"
-    (out / f"train-speed-{tag}.json").write_text(json.dumps({"device": name, "date": str(datetime.date.today()), "rows": rows}, indent=1))
-    (out / f"train-speed-{tag}.md").write_text("\n".join(lines) + "\n")
+    (out / f"train-speed-{tag}.json").write_text(json.dumps(doc, indent=1, default=float))
+    (out / f"train-speed-{tag}.md").write_text(md + "\n")
 
 
 if __name__ == "__main__":

@@ -107,6 +107,7 @@ class StructuredLightRenderer(nn.Module):
         self.backend = backend
         self.compile_field = compile_field
         self._compiled = {}
+        self.phase_hook = None  # callable(name) told when each phase of a render starts (benchmarks)
         device = torch.device(device) if device is not None else next(sdf.parameters(), torch.empty(0)).device
         self._projector_packed = ops.pack_projector(projector)
         self.set_frames(images, patterns, device=device)
@@ -141,6 +142,7 @@ class StructuredLightRenderer(nn.Module):
             raise ValueError(f"images are {tuple(images.shape[1:])}, camera is {self.camera.height}x{self.camera.width}")
         if tuple(patterns.shape[1:]) != (self.projector.height, self.projector.width):
             raise ValueError(f"patterns are {tuple(patterns.shape[1:])}, projector is {self.projector.height}x{self.projector.width}")
+        self.frames_version = getattr(self, "frames_version", 0) + 1  # tells captured steps the inputs changed
         a, b = offset_and_modulation(images)
         self.images_flat = images.reshape(images.shape[0], -1).t().contiguous()  # [H*W, N]: one gather per batch
         self.a_flat, self.b_flat = a.reshape(-1), b.reshape(-1)
@@ -154,6 +156,7 @@ class StructuredLightRenderer(nn.Module):
         if not sigma >= 0:
             raise ValueError(f"pattern_blur must be >= 0 projector px, got {sigma}")
         self.pattern_blur = float(sigma)
+        self.frames_version += 1
         self.patterns_hwn = ops.pack_patterns(blur_patterns(self.patterns, self.pattern_blur))
 
     @property
@@ -176,8 +179,12 @@ class StructuredLightRenderer(nn.Module):
         """n random valid pixels (uniform, with replacement)."""
         if self.valid_index.numel() == 0:
             raise ValueError("no valid pixel (lit with enough contrast) in the frames")
-        pick = torch.randint(0, self.valid_index.numel(), (n,), generator=generator, device=generator.device if generator is not None else "cpu")
-        return self.batch(self.valid_index[pick.to(self.valid_index.device)])
+        return self.batch(self.valid_index[self.draw_pick(n, generator).to(self.valid_index.device)])
+
+    def draw_pick(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
+        """n random positions [n] (long) in valid_index, on the generator's device."""
+        dev = generator.device if generator is not None else "cpu"
+        return torch.randint(0, self.valid_index.numel(), (n,), generator=generator, device=dev)
 
     # --- sampling -----------------------------------------------------------------------------
     def inv_s(self) -> torch.Tensor:
@@ -193,16 +200,27 @@ class StructuredLightRenderer(nn.Module):
             self._compiled[kind] = fn
         return fn
 
+    def _phase(self, name: str) -> None:
+        """Report the start of a phase of the step to `phase_hook` (benchmarks time the phases with it)."""
+        if self.phase_hook is not None:
+            self.phase_hook(name)
+
+    def draw_jitter(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Per-ray stratification offsets [n] in [-0.5, 0.5), on the generator's device."""
+        dev = generator.device if generator is not None else "cpu"
+        return torch.rand(n, generator=generator, device=dev) - 0.5
+
     @torch.no_grad()
-    def sample_rays(self, batch: PixelBatch, perturb: bool = True, generator: torch.Generator | None = None):
-        """(rays_o, rays_d, z_vals [R, n_samples + n_importance]) with NeuS up-sampling."""
+    def sample_rays(self, batch: PixelBatch, perturb: bool = True, generator: torch.Generator | None = None,
+                    jitter: torch.Tensor | None = None):
+        """(rays_o, rays_d, z_vals [R, n_samples + n_importance]) with NeuS up-sampling. jitter [R]: the
+        stratification offsets to use (default: drawn from `generator` when perturb, else 0)."""
+        self._phase("rays")
         be = self.backend
         o, d, near, far = ops.camera_rays(batch.uv, self.camera, self.depth_range, backend=be)
         R = batch.uv.shape[0]
-        if perturb:
-            jitter = torch.rand(R, generator=generator, device=generator.device if generator is not None else "cpu").to(o.device) - 0.5
-        else:
-            jitter = torch.zeros(R, device=o.device)
+        if jitter is None:
+            jitter = self.draw_jitter(R, generator).to(o.device) if perturb else torch.zeros(R, device=o.device)
         z = ops.stratified_samples(near, far, self.n_samples, jitter, backend=be)
         if self.n_importance > 0 and self.up_sample_steps > 0:
             bounds = self.volume.as_bounds()
@@ -218,14 +236,16 @@ class StructuredLightRenderer(nn.Module):
 
     # --- forward ------------------------------------------------------------------------------
     def render(self, batch: PixelBatch, *, cos_anneal_ratio: float = 1.0, perturb: bool = True,
-               generator: torch.Generator | None = None) -> tuple[ops.RenderOutput, torch.Tensor]:
+               generator: torch.Generator | None = None, jitter: torch.Tensor | None = None) -> tuple[ops.RenderOutput, torch.Tensor]:
         """(RenderOutput, z_vals) for a batch: gradients reach the SDF module and the variance."""
-        o, d, z = self.sample_rays(batch, perturb, generator)
+        o, d, z = self.sample_rays(batch, perturb, generator, jitter)
+        self._phase("field")
         # sample-major memory ([S, R] viewed as [R, S]): consecutive rays are adjacent, so the kernels'
         # one-thread-per-ray loads coalesce; the field does not care about the order of its points
         z_sr = z.t().contiguous()
         x = o[None, :, :] + z_sr[..., None] * d[None, :, :]
         sdf, grad = self._field_fn("grad")(x)
+        self._phase("render")
         out = ops.render_structured_light(
             sdf.t(), grad.transpose(0, 1), z_sr.t(), o, d, batch.a, batch.b, self.patterns_hwn, self._projector_packed, self.inv_s(),
             cos_anneal_ratio=cos_anneal_ratio, backend=self.backend, bounds=self.volume.as_bounds(),
@@ -234,8 +254,8 @@ class StructuredLightRenderer(nn.Module):
         return out, z_sr.t()
 
     def forward(self, batch: PixelBatch, *, cos_anneal_ratio: float = 1.0, perturb: bool = True,
-                generator: torch.Generator | None = None) -> RenderLosses:
-        out, z = self.render(batch, cos_anneal_ratio=cos_anneal_ratio, perturb=perturb, generator=generator)
+                generator: torch.Generator | None = None, jitter: torch.Tensor | None = None) -> RenderLosses:
+        out, z = self.render(batch, cos_anneal_ratio=cos_anneal_ratio, perturb=perturb, generator=generator, jitter=jitter)
         color, surface, eikonal = structured_light_losses(out, batch.observed, batch.valid)
         return RenderLosses(color, surface, eikonal, out, z, batch.valid)
 

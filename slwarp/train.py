@@ -22,6 +22,7 @@ import json
 import math
 import os
 import time
+from contextlib import nullcontext as _nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -73,6 +74,10 @@ class TrainConfig:
     device: str = "auto"
     matmul: str = "fp32"  # "fp32" | "tf32" (CUDA matrix units in float32 mode)
     compile: bool = True  # torch.compile the field on CUDA (ignored on the CPU)
+    # CUDA: capture the whole training step (render, losses, backward, Adam) once as a CUDA graph and replay
+    # it every iteration, so no Python, launch or allocation cost remains per step; falls back to plain
+    # launches (with a warning) if capture fails. Same random draws and results as without it.
+    cuda_graph: bool = True
     incremental: bool = False
     start_frames: int = 3
     add_every: int = 500
@@ -194,8 +199,14 @@ class Trainer:
                                                             far=self.depth_range[1])
         self.renderer.sdf = self.field.to(self.device)
         self.renderer.to(self.device)
+        # a captured step reads the learning rate from a device tensor and keeps Adam's step count on the GPU
+        self.use_graph = bool(config.cuda_graph) and self.device.type == "cuda"
         self.optimizer = torch.optim.Adam(list(self.field.parameters()) + list(self.renderer.variance.parameters()),
                                           lr=config.lr)
+        self._configure_optimizer()
+        self._graph = None  # the captured step (see _graph_step)
+        self._eager_since_change = 0  # plain steps since the frames changed (capture needs warm kernels)
+        self._stream = torch.cuda.Stream(self.device) if self.use_graph else None
         self.init_depth = None
         self.search_info = None
         self.blur_fit = None
@@ -304,6 +315,7 @@ class Trainer:
         self.field.load_state_dict(ck["field"])
         self.renderer.variance.load_state_dict(ck["variance"])
         self.optimizer.load_state_dict(ck["optimizer"])
+        self._configure_optimizer()
         self.generator.set_state(ck["generator"])
         self.iteration = ck["iteration"]
         self.history = History(**ck["history"])
@@ -319,31 +331,128 @@ class Trainer:
     def in_warmup(self, it: int) -> bool:
         return it < self.warmup_iters
 
+    def _configure_optimizer(self) -> None:
+        """Adam as the step needs it: with CUDA graphs, capturable (step count on the GPU) and the learning
+        rate a device tensor that each replay reads; otherwise a plain float learning rate."""
+        for group in self.optimizer.param_groups:
+            lr = float(group["lr"])
+            group["capturable"] = self.use_graph
+            group["lr"] = torch.tensor(lr, device=self.device) if self.use_graph else lr
+        for st in self.optimizer.state.values():
+            if "step" in st and torch.is_tensor(st["step"]):
+                st["step"] = st["step"].to(self.device if self.use_graph else "cpu", torch.float32)
+
+    def _set_lr(self, lr: float) -> None:
+        for group in self.optimizer.param_groups:
+            if torch.is_tensor(group["lr"]):
+                group["lr"].fill_(lr)
+            else:
+                group["lr"] = lr
+
     def step(self) -> dict:
-        """One optimisation step; returns the scalar losses (floats, synchronising only when logged)."""
+        """One optimisation step; returns the scalar losses (0-d tensors: reading them synchronises)."""
         it = self.iteration
-        batch = self.renderer.sample_pixels(self.cfg.rays, self.generator)
-        losses = self.renderer(batch, cos_anneal_ratio=self.cos_anneal(it), generator=self.generator)
-        if self.in_warmup(it):
+        # the random draws come from the CPU generator in the same order with or without a CUDA graph, so
+        # both give the same run and a resumed run continues an interrupted one exactly
+        pick = self.renderer.draw_pick(self.cfg.rays, self.generator)
+        jitter = self.renderer.draw_jitter(self.cfg.rays, self.generator)
+        weights = {"warmup": 1.0 if self.in_warmup(it) else 0.0,
+                   "lambda_sc": 0.0 if self.in_warmup(it) else self.lambda_sc(it - self.warmup_iters)}
+        self._set_lr(self.learning_rate(it))
+        vals = None
+        if self.use_graph and self.cos_anneal(it) == 1.0:
+            vals = self._graph_step(pick, jitter, weights)
+        if vals is None:
+            stream = torch.cuda.stream(self._stream) if self._stream is not None else _nullcontext()
+            if self._stream is not None:
+                self._stream.wait_stream(torch.cuda.current_stream(self.device))
+            with stream:
+                vals = self._step_body(pick.to(self.device), jitter.to(self.device), weights, self.cos_anneal(it))
+            if self._stream is not None:
+                torch.cuda.current_stream(self.device).wait_stream(self._stream)
+            self._eager_since_change += 1
+        self.iteration += 1
+        return vals
+
+    def _step_body(self, pick: torch.Tensor, jitter: torch.Tensor, weights: dict, cos_anneal_ratio: float = 1.0) -> dict:
+        """Render a batch, the losses, backward and Adam. pick [R] positions in the valid-pixel list and
+        jitter [R] on the device; weights "warmup" (1 in the depth-search warm-up, else 0) and "lambda_sc":
+        floats, or 0-d device tensors inside a captured graph (then every term is computed, weighted)."""
+        r = self.renderer
+        r._phase("batch")
+        batch = r.batch(r.valid_index[pick])
+        losses = r(batch, cos_anneal_ratio=cos_anneal_ratio, jitter=jitter)
+        warm, w_sc = weights["warmup"], weights["lambda_sc"]
+        captured = torch.is_tensor(warm)
+        loss = self.cfg.lambda_reg * losses.eikonal
+        if self.init_depth is not None and (captured or warm != 0.0):
             # warm-up: pull the rendered depth (and full opacity) onto the initial depth map
             target = self.init_depth[batch.index]
             ok = torch.isfinite(target).to(target.dtype)
             n = ok.sum().clamp(min=1.0)
             depth_err = ((losses.output.depth - torch.nan_to_num(target)).abs() * ok).sum() / n
             opacity = ((1.0 - losses.output.weight_sum).abs() * ok).sum() / n
-            loss = depth_err / self.volume.scale + opacity + self.cfg.lambda_reg * losses.eikonal
-        else:
-            it_p = it - self.warmup_iters
-            loss = self.cfg.lambda_rc * losses.color + self.lambda_sc(it_p) * losses.surface + self.cfg.lambda_reg * losses.eikonal
-        lr = self.learning_rate(it)
-        for group in self.optimizer.param_groups:
-            group["lr"] = lr
+            loss = loss + warm * (depth_err / self.volume.scale + opacity)
+        if captured or warm != 1.0:
+            photometric = self.cfg.lambda_rc * losses.color
+            if captured or w_sc != 0.0:
+                photometric = photometric + w_sc * losses.surface
+            loss = loss + (1.0 - warm) * photometric
+        r._phase("backward")
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        r._phase("optimizer")
         self.optimizer.step()
-        self.iteration += 1
+        r._phase("end")
         return {"loss": loss.detach(), "color": losses.color.detach(), "surface": losses.surface.detach(),
                 "eikonal": losses.eikonal.detach()}
+
+    def _graph_step(self, pick: torch.Tensor, jitter: torch.Tensor, weights: dict) -> dict | None:
+        """Replay the captured step on this iteration's draws and weights (capturing it first when needed);
+        None when this step must run without the graph (the first steps after a change of frames, which
+        compile kernels and create Adam's state, or after a failed capture)."""
+        r = self.renderer
+        key = (r.frames_version, self.init_depth is not None)
+        g = self._graph
+        if g is not None and g["key"] != key:
+            self._graph = g = None
+            self._eager_since_change = 0
+        if g is None:
+            if self._eager_since_change < 2:
+                return None
+            g = self._capture(key)
+            if g is None:
+                return None
+        g["pick"].copy_(pick)
+        g["jitter"].copy_(jitter)
+        g["warmup"].fill_(weights["warmup"])
+        g["lambda_sc"].fill_(weights["lambda_sc"])
+        self._stream.wait_stream(torch.cuda.current_stream(self.device))
+        with torch.cuda.stream(self._stream):
+            g["graph"].replay()
+            vals = {k: v.clone() for k, v in g["out"].items()}  # the graph's outputs change with the next replay
+        torch.cuda.current_stream(self.device).wait_stream(self._stream)
+        return vals
+
+    def _capture(self, key) -> dict | None:
+        import warnings
+
+        R, dev = self.cfg.rays, self.device
+        g = {"key": key, "pick": torch.zeros(R, dtype=torch.long, device=dev), "jitter": torch.zeros(R, device=dev),
+             "warmup": torch.zeros((), device=dev), "lambda_sc": torch.zeros((), device=dev),
+             "graph": torch.cuda.CUDAGraph()}
+        self._stream.wait_stream(torch.cuda.current_stream(dev))
+        try:
+            with torch.cuda.graph(g["graph"], stream=self._stream):
+                g["out"] = self._step_body(g["pick"], g["jitter"], {"warmup": g["warmup"], "lambda_sc": g["lambda_sc"]})
+        except Exception as e:  # noqa: BLE001 - any capture failure leaves plain launches, which always work
+            warnings.warn(f"CUDA graph capture of the training step failed ({type(e).__name__}: {e}); "
+                          "training continues without it (TrainConfig.cuda_graph=False silences this)", RuntimeWarning)
+            self.use_graph = False
+            torch.cuda.synchronize(dev)
+            return None
+        self._graph = g
+        return g
 
     def train(self, iters: int | None = None, callback=None) -> History:
         """Run to `iters` (default: the config's) iterations, checkpointing as configured.
