@@ -117,8 +117,10 @@ def sample_intervals(z_vals: torch.Tensor, last_delta: float) -> torch.Tensor:
 
 def transmittance_weights(alpha: torch.Tensor) -> torch.Tensor:
     """w_k = alpha_k prod_{j<k} (1 - alpha_j + 1e-7)."""
-    ones = torch.ones_like(alpha[:, :1])
-    trans = torch.cumprod(torch.cat([ones, 1.0 - alpha + TRANS_EPS], dim=1), dim=1)[:, :-1]
+    # the product as exp(cumsum(log)): torch's cumprod backward checks the input for zeros on the host (a
+    # synchronisation per step, and no CUDA graph capture); 1 - alpha + 1e-7 > 0, so the log is finite
+    log_keep = torch.log(1.0 - alpha + TRANS_EPS)
+    trans = torch.exp(torch.cumsum(torch.cat([torch.zeros_like(log_keep[:, :1]), log_keep[:, :-1]], dim=1), dim=1))
     return alpha * trans
 
 
