@@ -321,7 +321,7 @@ def _add_reconstruct(sub):
     p.add_argument("--depth-range", help="NEAR,FAR camera depth in mm (default: the scan's)")
     p.add_argument("--depth-method", choices=["mesh", "sphere"], help="depth from the marching-cubes mesh (default) or by sphere tracing")
     p.add_argument("--mc-resolution", type=int, help="marching-cubes cells along the volume's longest side")
-    p.add_argument("--matmul", choices=["fp32", "tf32"], help="CUDA matrix precision for the MLP (default: fp32)")
+    p.add_argument("--matmul", choices=["fp32", "tf32"], help="CUDA matrix precision for the MLP (default: the preset's; tf32 for paper and tuned)")
     p.add_argument("--pattern-blur", help="Gaussian blur of the rendered patterns, projector px, or 'auto' (default: "
                    "fitted to the images at the depth-search map)")
     p.add_argument("--photometric-filter", type=float, help="drop depth pixels whose relative RMS residual reaches this "

@@ -37,6 +37,14 @@ def _const(value, like):
     return np.asarray(value, dtype=np.result_type(like.dtype, np.float32))
 
 
+def _rotate(x, M):
+    """x [..., 3] -> M x [..., 3]. For torch tensors written out elementwise, since a matmul would run in
+    TF32 (10-bit mantissa: ~1 mm at 1 m) whenever training has switched TF32 on."""
+    if _is_torch(x):
+        return (x[..., None, :] * _const(M, x)).sum(-1)
+    return x @ np.asarray(M).T
+
+
 def _stack(parts, like):
     return torch.stack(parts, dim=-1) if _is_torch(like) else np.stack(parts, axis=-1)
 
@@ -333,7 +341,7 @@ class Projector(Camera):
     def camera_to_projector(self, Xc):
         """Camera-frame points [..., 3] -> projector-frame points [..., 3]."""
         Xc = _as_float(Xc)
-        return Xc @ _const(self.R.T, Xc) + _const(self.T, Xc)
+        return _rotate(Xc, self.R) + _const(self.T, Xc)
 
     def project_camera_points(self, Xc):
         """Camera-frame points [..., 3] -> projector pixels [..., 2] (distorted; NaN behind the lens)."""
@@ -342,7 +350,7 @@ class Projector(Camera):
     def pixel_to_ray_in_camera(self, uv):
         """Projector pixels [..., 2] -> unit ray directions [..., 3] in the camera frame."""
         d = self.pixel_to_ray(uv)
-        return d @ _const(self.R, d)
+        return _rotate(d, self.R.T)
 
     def _replace(self, **kw):
         d = dict(width=self.width, height=self.height, K=self.K, dist=self.dist, R=self.R, T=self.T)

@@ -44,7 +44,7 @@ def project_to_projector(x: torch.Tensor, proj: list[float]) -> tuple[torch.Tens
     R = _const(proj[0:9], x).reshape(3, 3)
     T = _const(proj[9:12], x)
     fx, fy, cx, cy, k1, k2, k3, p1, p2, _, _, max_r2 = proj[12:24]
-    xp = x @ R.T + T
+    xp = (x[..., None, :] * R).sum(-1) + T  # x R^T, written out: a matmul would run in TF32 when that is on
     zp = xp[..., 2]
     in_front = zp > 1.0e-6
     zs = torch.where(in_front, zp, torch.ones_like(zp))  # safe: no inf/NaN in either branch's gradient
@@ -145,7 +145,7 @@ def render(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns, projector: lis
     uv, _ = project_to_projector(x, projector)
     pat = bilinear_patterns(patterns, uv)  # [R, S, N]
     weight_sum = weights.sum(1)
-    rendered = a[:, None] * weight_sum[:, None] + b[:, None] * torch.einsum("rs,rsn->rn", weights, pat)
+    rendered = a[:, None] * weight_sum[:, None] + b[:, None] * (weights[..., None] * pat).sum(1)
     surface = (weights[..., None] * x).sum(1) / (weight_sum[:, None] + WSUM_EPS)
     uv_s, _ = project_to_projector(surface, projector)
     surface_rendered = a[:, None] + b[:, None] * bilinear_patterns(patterns, uv_s)
