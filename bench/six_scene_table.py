@@ -41,13 +41,15 @@ def main(argv=None):
         label = f"ours, tuned + fitted pattern blur ({t1['device']})"
         methods.append((label, lambda s: t1["runs"].get(f"t1_{s}", {}).get("metrics")))
     device = next(iter(neural.values()))["device"]
-    lines = [f"# Six built-in scenes, default rig and noise: neural SDF (6 random patterns) vs Gray code, 2026-11-22", "",
+    lines = [f"# Six built-in scenes, default rig and noise: neural SDF (6 random patterns) vs Gray code", "",
              f"Neural runs on the GPU: {device} (paper and tuned preset rows), "
              f"{t1['device'] if t1 else '-'} (last row).", "",
              "Classical rows from bench/results/classical-cpu.json. Rows 'paper preset' and 'tuned preset': "
              "bench/results/neural-variants-cuda.json, runs of the earlier code (the renderer sampled the sharp patterns, "
              "no photometric check). Last row: bench/results/table1-cuda.json, the current code (pattern blur fitted "
-             "to the images, photometric check), run for three scenes only (the GPU time of the session ran out).", ""]
+             "to the images, photometric check, training step as a CUDA graph), run on "
+             f"{t1['date'] if t1 else '-'} for the scenes " + (", ".join(s for s in SCENES if f"t1_{s}" in t1["runs"]) if t1 else "-")
+             + " ('-' where a scene was not run).", ""]
     for key, title, fmt in (("mae", "MAE (mm)", "{:.3f}"), ("median", "median |error| (mm)", "{:.3f}"),
                             ("over_5mm", "share of pixels with |error| > 5 mm", "{:.2%}"),
                             ("completeness", "completeness", "{:.1%}")):
