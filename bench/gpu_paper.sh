@@ -4,8 +4,9 @@
 # (bench/results/ layout), plus the stage's log.
 #   bash bench/gpu_paper.sh speed      # graph test on CUDA, training speed per config with the breakdown
 #   bash bench/gpu_paper.sh e2e        # loaded scan -> depth map, backend warp and torch (paper preset)
+#   (seeds 1, 2 of both backends: bench/train_variants.py NAME:scene=bunny,preset=paper,backend=B,seed=S)
 #   bash bench/gpu_paper.sh table1     # Table 1, six scenes, tuned preset, 6 runs side by side
-#   bash bench/gpu_paper.sh ablation   # Table 2 (bunny) and Fig. 8, 7 runs side by side
+#   bash bench/gpu_paper.sh ablation   # Table 2 (bunny, 2000 iterations) and Fig. 8, 7 runs side by side
 #   bash bench/gpu_paper.sh fig7       # Fig. 7, K = 3, 5, 7, 9 with and without inverses, 2000 iterations
 set -uo pipefail
 export PYTHONUNBUFFERED=1
@@ -25,7 +26,7 @@ case "$stage" in
   table1)
     timeout "$limit" python3 bench/paper_experiments.py table1 --preset tuned --parallel 6 --out "$RES" --work /tmp/work 2>&1 ;;
   ablation)
-    timeout "$limit" python3 bench/paper_experiments.py ablation --preset tuned --parallel 5 --out "$RES" --work /tmp/work 2>&1 &
+    timeout "$limit" python3 bench/paper_experiments.py ablation --preset tuned --iters 2000 --parallel 5 --out "$RES" --work /tmp/work 2>&1 &
     sleep 20  # let the ablation's processes start first
     timeout $((limit - 20)) python3 bench/paper_experiments.py fig8 --preset tuned --parallel 2 --out "$RES" --work /tmp/work 2>&1 &
     wait ;;
