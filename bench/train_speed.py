@@ -267,11 +267,18 @@ def main(argv=None):
             row = end_to_end(scan, backend, preset_name, dev)
             doc["end_to_end"].append(row)
             print(json.dumps(row, default=float), flush=True)
-    md = markdown(doc)
-    print(md)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     tag = "cuda" if dev == "cuda" else "cpu"
+    old = out / f"train-speed-{tag}.json"
+    if old.is_file():  # a run of only the per-config rows or only --end-to-end keeps the other part
+        prev = json.loads(old.read_text())
+        if prev.get("device") == name and prev.get("preset") == preset_name:
+            for part in ("rows", "end_to_end", "seeds"):
+                if not doc.get(part) and prev.get(part):
+                    doc[part] = prev[part]
+    md = markdown(doc)
+    print(md)
     (out / f"train-speed-{tag}.json").write_text(json.dumps(doc, indent=1, default=float))
     (out / f"train-speed-{tag}.md").write_text(md + "\n")
 
