@@ -75,6 +75,15 @@ def write(out: Path, stem: str, doc: dict, md: str, fig=None) -> None:
     print(md, flush=True)
 
 
+def finish_log_plot(ax, xlabel: str, ylabel: str, title: str) -> None:
+    """Log y axis, labels, legend and a title naming the device."""
+    ax.set_yscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.legend()
+    ax.set_title(f"{title} ({device_name()})", fontsize=9)
+
+
 def plt():
     import matplotlib
 
@@ -211,11 +220,7 @@ def fig7(args, out: Path, work: Path) -> None:
     for name, style, label in (("ours", "o-", "ours"), ("gc", "s-", "GC interp"), ("ours_inv", "o--", "ours, with inverses"),
                                ("gc_inv", "s--", "GC interp, with inverses")):
         ax.plot(ks, series[name], style, label=label)
-    ax.set_yscale("log")
-    ax.set_xlabel("Gray code patterns K")
-    ax.set_ylabel("MAE (mm, log)")
-    ax.legend()
-    ax.set_title(f"Fig. 7 on the virtual scanner, {args.scene} ({device_name()})", fontsize=9)
+    finish_log_plot(ax, "Gray code patterns K", "MAE (mm, log)", f"Fig. 7 on the virtual scanner, {args.scene}")
     write(out, f"fig7-{slug(device_name())}", {"device": device_name(), "date": datetime.date.today().isoformat(),
           "scene": args.scene, "ks": ks, "runs": docs, "gc_interp": gc}, "\n".join(md), fig)
 
@@ -245,11 +250,7 @@ def fig8(args, out: Path, work: Path) -> None:
             h = json.loads(hist.read_text())
             ax.plot(h["iters"], h["color"], label=f"{name[3:]}: rendered-colour loss")
             d["history"] = {k: h[k] for k in ("iters", "color", "frames") if k in h}
-    ax.set_xlabel("iteration")
-    ax.set_ylabel("L_rc")
-    ax.set_yscale("log")
-    ax.legend()
-    ax.set_title(f"Fig. 8 on the virtual scanner, {args.scene} ({device_name()})", fontsize=9)
+    finish_log_plot(ax, "iteration", "L_rc", f"Fig. 8 on the virtual scanner, {args.scene}")
     write(out, f"fig8-{slug(device_name())}", {"device": device_name(), "date": datetime.date.today().isoformat(),
           "scene": args.scene, "add_every": args.add_every, "runs": docs}, "\n".join(md), fig)
 

@@ -30,18 +30,33 @@ def _is_torch(x) -> bool:
     return torch is not None and isinstance(x, torch.Tensor)
 
 
-def _const(value, like):
-    """`value` (numpy) as an array of the same kind, dtype and device as `like`."""
-    if _is_torch(like):
-        return torch.as_tensor(np.asarray(value), dtype=like.dtype, device=like.device)
-    return np.asarray(value, dtype=np.result_type(like.dtype, np.float32))
+_SMALL_CONSTANTS: dict = {}
+
+
+def const_like(value, like):
+    """`value` (numpy, list) as an array of the same kind, dtype and device as `like`.
+
+    Small torch constants (rig parameters, bounds: up to 16 numbers) are made once per dtype and device:
+    building one each call copies host memory to the GPU and synchronises, which a CUDA graph capture forbids."""
+    if not _is_torch(like):
+        return np.asarray(value, dtype=np.result_type(like.dtype, np.float32))
+    arr = np.asarray(value)
+    if arr.size > 16:
+        return torch.as_tensor(arr, dtype=like.dtype, device=like.device)
+    key = (arr.shape, arr.astype(np.float64).tobytes(), like.dtype, like.device)
+    t = _SMALL_CONSTANTS.get(key)
+    if t is None:
+        if len(_SMALL_CONSTANTS) > 256:
+            _SMALL_CONSTANTS.clear()
+        t = _SMALL_CONSTANTS[key] = torch.as_tensor(arr, dtype=like.dtype, device=like.device)
+    return t
 
 
 def _rotate(x, M):
     """x [..., 3] -> M x [..., 3]. For torch tensors written out elementwise, since a matmul would run in
     TF32 (10-bit mantissa: ~1 mm at 1 m) whenever training has switched TF32 on."""
     if _is_torch(x):
-        return (x[..., None, :] * _const(M, x)).sum(-1)
+        return (x[..., None, :] * const_like(M, x)).sum(-1)
     return x @ np.asarray(M).T
 
 
@@ -242,7 +257,7 @@ class Camera:
         """All pixel centres as uv [H, W, 2] (float64 numpy, or a tensor like `like`)."""
         v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
         uv = np.stack([u, v], axis=-1)
-        return uv if like is None else _const(uv, like)
+        return uv if like is None else const_like(uv, like)
 
     def in_image(self, uv):
         """Boolean mask [...]: the continuous coordinate lies within the pixel area of the image."""
@@ -341,7 +356,7 @@ class Projector(Camera):
     def camera_to_projector(self, Xc):
         """Camera-frame points [..., 3] -> projector-frame points [..., 3]."""
         Xc = _as_float(Xc)
-        return _rotate(Xc, self.R) + _const(self.T, Xc)
+        return _rotate(Xc, self.R) + const_like(self.T, Xc)
 
     def project_camera_points(self, Xc):
         """Camera-frame points [..., 3] -> projector pixels [..., 2] (distorted; NaN behind the lens)."""

@@ -449,6 +449,7 @@ class Trainer:
             warnings.warn(f"CUDA graph capture of the training step failed ({type(e).__name__}: {e}); "
                           "training continues without it (TrainConfig.cuda_graph=False silences this)", RuntimeWarning)
             self.use_graph = False
+            self._configure_optimizer()  # back to plain Adam with a float learning rate
             torch.cuda.synchronize(dev)
             return None
         self._graph = g

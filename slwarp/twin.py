@@ -9,26 +9,13 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from .scanner import const_like
+
 ALPHA_EPS = 1.0e-5
 TRANS_EPS = 1.0e-7
 NORM_EPS = 1.0e-12
 WSUM_EPS = 1.0e-6
 FAR_AWAY = -1.0e6  # projector pixel used for points that do not project (zero taps)
-
-_CONSTANTS: dict = {}
-
-
-def _const(values, like: torch.Tensor) -> torch.Tensor:
-    """A small constant tensor (rig parameters, bounds) in like's dtype and device, made once: building it
-    from a Python list each call copies host memory to the GPU and synchronises, which a CUDA graph
-    capture forbids."""
-    key = (tuple(float(v) for v in values), like.dtype, like.device)
-    t = _CONSTANTS.get(key)
-    if t is None:
-        if len(_CONSTANTS) > 256:
-            _CONSTANTS.clear()
-        t = _CONSTANTS[key] = torch.tensor(key[0], dtype=like.dtype, device=like.device)
-    return t
 
 
 # ----------------------------------------------------------------------------------------------
@@ -41,8 +28,8 @@ def project_to_projector(x: torch.Tensor, proj: list[float]) -> tuple[torch.Tens
     `proj` is the packed projector (see slwarp.ops.pack_projector). Points behind the lens or beyond the
     trusted distortion radius are not ok; their pixel is far outside the image (so they sample zero).
     """
-    R = _const(proj[0:9], x).reshape(3, 3)
-    T = _const(proj[9:12], x)
+    R = const_like(proj[0:9], x).reshape(3, 3)
+    T = const_like(proj[9:12], x)
     fx, fy, cx, cy, k1, k2, k3, p1, p2, _, _, max_r2 = proj[12:24]
     xp = (x[..., None, :] * R).sum(-1) + T  # x R^T, written out: a matmul would run in TF32 when that is on
     zp = xp[..., 2]
@@ -125,8 +112,8 @@ def transmittance_weights(alpha: torch.Tensor) -> torch.Tensor:
 
 
 def inside_box(x: torch.Tensor, bounds: list[float]) -> torch.Tensor:
-    lo = _const(bounds[0:3], x)
-    hi = _const(bounds[3:6], x)
+    lo = const_like(bounds[0:3], x)
+    hi = const_like(bounds[3:6], x)
     return ((x >= lo) & (x <= hi)).all(dim=-1)
 
 
