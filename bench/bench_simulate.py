@@ -21,8 +21,8 @@ sys.path.insert(0, str(REPO))
 def main(argv=None):
     import torch
 
-    from slwarp.scenes import SCENE_NAMES
-    from slwarp.simulate import simulate_scene
+    from slwarp.sim.scenes import SCENE_NAMES
+    from slwarp.sim.simulate import simulate_scene
 
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--device", default="cuda:0" if torch.cuda.is_available() else "cpu")

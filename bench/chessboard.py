@@ -28,11 +28,11 @@ def main(argv=None):
     import torch
 
     from slwarp.decode import reconstruct_depth
-    from slwarp.extract import depth_to_points
-    from slwarp.metrics import chessboard_region, plane_rms
-    from slwarp.reconstruct import reconstruct
-    from slwarp.scan import load_scan
-    from slwarp.train import preset
+    from slwarp.neural.extract import depth_to_points
+    from slwarp.evaluation.metrics import chessboard_region, plane_rms
+    from slwarp.neural.reconstruct import reconstruct
+    from slwarp.scans.scan import load_scan
+    from slwarp.neural.train import preset
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", default=str(DEFAULT_DATA))

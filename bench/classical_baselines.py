@@ -70,9 +70,9 @@ def main(argv=None) -> int:
     import os
 
     from slwarp.decode import reconstruct_depth
-    from slwarp.metrics import METRIC_COLUMNS, depth_metrics, format_table
-    from slwarp.scenes import SCENE_NAMES
-    from slwarp.simulate import SimOptions, simulate_scene
+    from slwarp.evaluation.metrics import METRIC_COLUMNS, depth_metrics, format_table
+    from slwarp.sim.scenes import SCENE_NAMES
+    from slwarp.sim.simulate import SimOptions, simulate_scene
 
     scenes = args.scenes.split(",") if args.scenes else list(SCENE_NAMES)
     options = SimOptions(seed=args.seed)

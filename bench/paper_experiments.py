@@ -177,8 +177,8 @@ def fig7(args, out: Path, work: Path) -> None:
     import torch
 
     from slwarp.decode import reconstruct_depth
-    from slwarp.metrics import depth_metrics
-    from slwarp.simulate import SimOptions, simulate_scene
+    from slwarp.evaluation.metrics import depth_metrics
+    from slwarp.sim.simulate import SimOptions, simulate_scene
 
     ks = [int(k) for k in args.ks.split(",")]
     kmax = max(ks)

@@ -110,7 +110,7 @@ def cpu_breakdown(trainer, steps: int = 10) -> dict:
 def time_config(scan, spec: str, preset_name: str, warmup: int, iters: int, dev: str) -> dict:
     import torch
 
-    from slwarp.train import Trainer, preset
+    from slwarp.neural.train import Trainer, preset
 
     parts = spec.split(":")
     backend, mode, mm = parts[:3]
@@ -149,8 +149,8 @@ def end_to_end(scan, backend: str, preset_name: str, dev: str) -> dict:
     """reconstruct() from the loaded scan: wall time of each stage, it/s, MAE, peak GPU memory."""
     import torch
 
-    from slwarp.reconstruct import reconstruct
-    from slwarp.train import preset
+    from slwarp.neural.reconstruct import reconstruct
+    from slwarp.neural.train import preset
 
     cfg = preset(preset_name, backend=backend)
     if dev == "cuda":
@@ -233,7 +233,7 @@ def markdown(doc: dict) -> str:
 def main(argv=None):
     import torch
 
-    from slwarp.simulate import simulate_scene
+    from slwarp.sim.simulate import simulate_scene
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--configs", nargs="*", default=None,

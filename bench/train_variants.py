@@ -48,9 +48,9 @@ def run_one(name: str, kv: dict, out: Path) -> dict:
 
     import torch
 
-    from slwarp.reconstruct import reconstruct
-    from slwarp.simulate import SimOptions, simulate_scene
-    from slwarp.train import TrainConfig, preset
+    from slwarp.neural.reconstruct import reconstruct
+    from slwarp.sim.simulate import SimOptions, simulate_scene
+    from slwarp.neural.train import TrainConfig, preset
 
     scene = kv.pop("scene", "bunny")
     rig = kv.pop("rig", "default")

@@ -1,6 +1,6 @@
 """Shared Warp device functions: OpenCV distortion, projection into the projector, bilinear taps.
 
-Conventions follow `slwarp.scanner`: mm, OpenCV axes, pixel centres at integer coordinates, X_p = R X_c + T.
+Conventions follow `slwarp.scans.scanner`: mm, OpenCV axes, pixel centres at integer coordinates, X_p = R X_c + T.
 """
 
 import numpy as np
@@ -116,7 +116,7 @@ def camera_params(camera) -> CameraParams:
 
 @wp.func
 def undistort(xd: float, yd: float, k: wp.vec3, p: wp.vec2) -> wp.vec2:
-    """Inverse of `distort` by Newton's method (12 steps, as slwarp.scanner.undistort_normalized)."""
+    """Inverse of `distort` by Newton's method (12 steps, as slwarp.scans.scanner.undistort_normalized)."""
     x = xd
     y = yd
     for _ in range(12):

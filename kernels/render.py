@@ -31,7 +31,7 @@ import functools
 
 import warp as wp
 
-from .geometry import ProjectorParams, project_to_projector, project_to_projector_grad
+from slwarp.kernels.geometry import ProjectorParams, project_to_projector, project_to_projector_grad
 
 ALPHA_EPS = 1.0e-5  # NeuS's alpha regulariser
 TRANS_EPS = 1.0e-7  # NeuS's transmittance regulariser

@@ -10,8 +10,8 @@ merge_sorted:   merge two per-ray sorted sample lists (z and SDF) into one, stab
 
 import warp as wp
 
-from .geometry import CameraParams, pixel_ray
-from .render import inside_box, sigmoid
+from slwarp.kernels.geometry import CameraParams, pixel_ray
+from slwarp.kernels.render import inside_box, sigmoid
 
 
 @wp.kernel

@@ -8,8 +8,8 @@ import functools
 
 import warp as wp
 
-from .geometry import ProjectorParams, project_to_projector
-from .render import pattern_sampler
+from slwarp.kernels.geometry import ProjectorParams, project_to_projector
+from slwarp.kernels.render import pattern_sampler
 
 
 @functools.lru_cache(maxsize=None)

@@ -12,7 +12,7 @@ first_hit_depth, mesh_hits: camera z of the first (K) hit(s) of each camera ray 
 
 import warp as wp
 
-from .geometry import ProjectorParams, project_to_projector
+from slwarp.kernels.geometry import ProjectorParams, project_to_projector
 
 
 @wp.func

@@ -24,10 +24,10 @@ class UserError(Exception):
 
 
 def _known_errors():
-    from .scan import ScanError
-    from .scanner import CalibrationError
+    from .scans.scan import ScanError
+    from .scans.scanner import CalibrationError
 
-    from .train import TrainingDiverged
+    from .neural.train import TrainingDiverged
 
     return (UserError, ScanError, CalibrationError, FileNotFoundError, ValueError, TrainingDiverged)
 
@@ -36,7 +36,7 @@ def _known_errors():
 
 
 def cmd_info(args) -> int:
-    from .scan import load_scan
+    from .scans.scan import load_scan
 
     scan = load_scan(args.scan, frames=args.frames)
     print(scan.summary())
@@ -51,14 +51,14 @@ def _add_info(sub):
 
 
 def cmd_simulate(args) -> int:
-    from .patterns import named_set
-    from .rigs import DEPTH_RANGE_MM, make_rig
-    from .scenes import SCENE_NAMES, build_scene, load_mesh_objects
-    from .simulate import SimOptions, simulate
-    from .viz import save_scan_preview
+    from .scans.patterns import named_set
+    from .sim.rigs import DEPTH_RANGE_MM, make_rig
+    from .sim.scenes import SCENE_NAMES, build_scene, load_mesh_objects
+    from .sim.simulate import SimOptions, simulate
+    from .evaluation.viz import save_scan_preview
 
     if args.list:
-        from .patterns import NAMED_SETS
+        from .scans.patterns import NAMED_SETS
 
         print("scenes: " + ", ".join(SCENE_NAMES))
         print("rigs: default, small")
@@ -127,8 +127,8 @@ def _write_metrics(out: Path, pred, scan, mask, title: str, extra: dict) -> dict
 
     import numpy as np
 
-    from .metrics import depth_metrics
-    from .viz import save_error_map
+    from .evaluation.metrics import depth_metrics
+    from .evaluation.viz import save_error_map
 
     m = depth_metrics(pred, scan.gt_depth, mask)
     doc = {**extra, "mask": "scan mask" if mask is not None else "none", "metrics": m}
@@ -144,9 +144,9 @@ def cmd_decode(args) -> int:
     import numpy as np
 
     from .decode import METHODS, reconstruct_depth, write_ply
-    from .metrics import format_table
-    from .scan import load_scan, write_depth_png
-    from .viz import ensure_dir, save_depth_color
+    from .evaluation.metrics import format_table
+    from .scans.scan import load_scan, write_depth_png
+    from .evaluation.viz import ensure_dir, save_depth_color
 
     scan = load_scan(args.scan)
     params = {"min_amplitude": args.min_amplitude}
@@ -222,9 +222,9 @@ def _add_decode(sub):
 def cmd_evaluate(args) -> int:
     import numpy as np
 
-    from .metrics import format_table
-    from .scan import load_scan, read_depth
-    from .viz import ensure_dir
+    from .evaluation.metrics import format_table
+    from .scans.scan import load_scan, read_depth
+    from .evaluation.viz import ensure_dir
 
     pred = read_depth(args.pred, "prediction")
     scan = load_scan(args.scan)
@@ -268,10 +268,10 @@ def cmd_reconstruct(args) -> int:
     import numpy as np
     import torch
 
-    from .metrics import format_table
-    from .reconstruct import reconstruct
-    from .scan import load_scan
-    from .train import preset, resolve_device
+    from .evaluation.metrics import format_table
+    from .neural.reconstruct import reconstruct
+    from .scans.scan import load_scan
+    from .neural.train import preset, resolve_device
 
     scan = load_scan(args.scan, frames=args.frames)
     dev = resolve_device(args.device)
@@ -300,7 +300,7 @@ def cmd_reconstruct(args) -> int:
 
 
 def _add_reconstruct(sub):
-    from .train import PRESETS
+    from .neural.train import PRESETS
 
     p = sub.add_parser("reconstruct", help="depth, mesh and point cloud from a scan with the neural SDF method")
     p.add_argument("scan", help="scan folder")
@@ -353,8 +353,8 @@ def cmd_demo(args) -> int:
 
 def _add_demo(sub):
     from .demo import DEMO_SCENE
-    from .scenes import SCENE_NAMES
-    from .train import PRESETS
+    from .sim.scenes import SCENE_NAMES
+    from .neural.train import PRESETS
 
     p = sub.add_parser("demo", help="simulate a scene, reconstruct it with the neural SDF and with Gray code, compare")
     p.add_argument("--out", default="slwarp-demo", help="output folder (default: ./slwarp-demo)")

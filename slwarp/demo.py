@@ -57,13 +57,13 @@ def run_demo(out_dir="slwarp-demo", scene: str = DEMO_SCENE, device: str = "auto
     import torch
 
     from .decode import reconstruct_depth
-    from .extract import depth_to_points
-    from .metrics import depth_metrics, format_table
-    from .reconstruct import reconstruct
-    from .scan import write_depth_png
-    from .simulate import simulate_scene
-    from .train import preset, resolve_device
-    from .viz import save_depth_color, save_error_map, save_point_cloud_render
+    from .neural.extract import depth_to_points
+    from .evaluation.metrics import depth_metrics, format_table
+    from .neural.reconstruct import reconstruct
+    from .scans.scan import write_depth_png
+    from .sim.simulate import simulate_scene
+    from .neural.train import preset, resolve_device
+    from .evaluation.viz import save_depth_color, save_error_map, save_point_cloud_render
 
     t0 = time.perf_counter()
     dev = resolve_device(device)

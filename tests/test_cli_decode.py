@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from slwarp.cli import main as cli_main
-from slwarp.scan import load_scan, read_depth
-from slwarp.simulate import SimOptions, simulate_scene
+from slwarp.scans.scan import load_scan, read_depth
+from slwarp.sim.simulate import SimOptions, simulate_scene
 
 
 @pytest.fixture(scope="module")

@@ -9,11 +9,11 @@ from slwarp.decode.frames import describe_names
 from slwarp.decode.gray import HOW_EXTRAPOLATED, HOW_INTERPOLATED, GrayTable
 from slwarp.decode.phase import (NumberTheoreticTable, coarse_position, unwrap_number_theoretic,
                                  unwrap_with_reference, wrapped_phase, wrapped_position)
-from slwarp.patterns import gray_code, named_set, phase_shift
-from slwarp.rigs import make_rig
-from slwarp.scan import Scan
-from slwarp.scenes import SceneObject
-from slwarp.simulate import SimOptions, simulate, simulate_scene
+from slwarp.scans.patterns import gray_code, named_set, phase_shift
+from slwarp.sim.rigs import make_rig
+from slwarp.scans.scan import Scan
+from slwarp.sim.scenes import SceneObject
+from slwarp.sim.simulate import SimOptions, simulate, simulate_scene
 
 IDEAL = SimOptions(noise=False, defocus=False, gamma=1.0, bits=0)
 # every code and phase set of the baselines in one scan; gray10inv's first 7 bits are the gt set's gray7inv

@@ -16,7 +16,7 @@ import pytest
 from slwarp.cli import main as cli_main
 from slwarp.decode import decode, reconstruct_depth, triangulate
 from slwarp.decode.gray import GrayTable
-from slwarp.scan import load_scan
+from slwarp.scans.scan import load_scan
 
 
 @pytest.fixture(scope="module")

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from slwarp.cli import main as cli_main
-from slwarp.metrics import depth_metrics, error_map, format_table
-from slwarp.scan import Scan, load_scan, write_depth_png
-from slwarp.scanner import Camera, Projector, look_at_rotation
+from slwarp.evaluation.metrics import depth_metrics, error_map, format_table
+from slwarp.scans.scan import Scan, load_scan, write_depth_png
+from slwarp.scans.scanner import Camera, Projector, look_at_rotation
 
 
 def test_depth_metrics_hand_computed():

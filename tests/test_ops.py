@@ -13,9 +13,9 @@ import math
 import pytest
 import torch
 
-from slwarp import ops, twin
-from slwarp.patterns import random_binary
-from slwarp.rigs import make_rig
+from slwarp.neural import ops, twin
+from slwarp.scans.patterns import random_binary
+from slwarp.sim.rigs import make_rig
 
 CAM, PROJ = make_rig("small")
 FIELDS = ["rendered", "surface_points", "surface_rendered", "weights", "depth", "eikonal", "weight_sum", "eikonal_sum"]

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from slwarp.extract import photometric_filter, photometric_residual
-from slwarp.render import blur_patterns
-from slwarp.search import estimate_pattern_blur
-from slwarp.simulate import SimOptions, simulate_scene
+from slwarp.neural.extract import photometric_filter, photometric_residual
+from slwarp.neural.render import blur_patterns
+from slwarp.neural.search import estimate_pattern_blur
+from slwarp.sim.simulate import SimOptions, simulate_scene
 
 
 @pytest.fixture(scope="module")

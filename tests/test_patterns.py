@@ -101,7 +101,7 @@ def test_unknown_and_bad_named_sets():
 
 
 def test_procam_patterns_are_opencv_gray_code(chessboard_path):
-    from slwarp.scan import load_scan
+    from slwarp.scans.scan import load_scan
 
     scan = load_scan(chessboard_path)
     ours = P.gray_code(1024, 768, 10, "col", inverse=True)

@@ -8,9 +8,9 @@ import pytest
 import yaml
 
 from slwarp.cli import main as cli_main
-from slwarp.patterns import gray_code
-from slwarp.scan import Scan, ScanError, load_scan, read_depth, write_depth_png
-from slwarp.scanner import Camera, Projector, look_at_rotation
+from slwarp.scans.patterns import gray_code
+from slwarp.scans.scan import Scan, ScanError, load_scan, read_depth, write_depth_png
+from slwarp.scans.scanner import Camera, Projector, look_at_rotation
 
 
 def tiny_scan(n=3, with_gt=True) -> Scan:

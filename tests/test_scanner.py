@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from slwarp.rigs import make_rig
-from slwarp.scanner import CalibrationError, Camera, Projector, check_rotation, look_at_rotation
+from slwarp.sim.rigs import make_rig
+from slwarp.scans.scanner import CalibrationError, Camera, Projector, check_rotation, look_at_rotation
 
 
 def random_camera(rng, strength=1.0):

@@ -4,11 +4,11 @@ import pytest
 import trimesh
 
 from slwarp.cli import main as cli_main
-from slwarp.patterns import named_set, random_binary
-from slwarp.rigs import make_rig
-from slwarp.scan import load_scan
-from slwarp.scenes import SCENE_NAMES, SceneObject
-from slwarp.simulate import SimOptions, simulate
+from slwarp.scans.patterns import named_set, random_binary
+from slwarp.sim.rigs import make_rig
+from slwarp.scans.scan import load_scan
+from slwarp.sim.scenes import SCENE_NAMES, SceneObject
+from slwarp.sim.simulate import SimOptions, simulate
 
 IDEAL = SimOptions(noise=False, defocus=False, gamma=1.0, bits=0)
 

@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from slwarp.cli import main as cli_main
-from slwarp.reconstruct import reconstruct
-from slwarp.simulate import SimOptions, simulate_scene
-from slwarp.train import Trainer, preset
+from slwarp.neural.reconstruct import reconstruct
+from slwarp.sim.simulate import SimOptions, simulate_scene
+from slwarp.neural.train import Trainer, preset
 
 # Bounds set from measurement with margin: small rig, 'spheres' (noise seed 3), 6 random patterns, the
 # 'tiny' preset (100 warm-up + 300 iterations) on the CPU gave, for seeds 0, 1, 2: median 1.96, 2.10,
@@ -88,7 +88,7 @@ def test_incremental_mode_adds_frames_and_keeps_improving(small_scan):
 
 
 def test_non_finite_loss_stops_with_a_clear_message(small_scan, tmp_path):
-    from slwarp.train import TrainingDiverged
+    from slwarp.neural.train import TrainingDiverged
 
     tr = Trainer(small_scan.select("0:3"), tiny(iters=40, checkpoint_every=20, log_every=5), out_dir=tmp_path, progress=False)
     tr.train(iters=20)

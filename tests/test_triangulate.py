@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from slwarp.decode import choose_plane_axis, reconstruct_depth, triangulate, triangulate_midpoint, triangulate_plane, write_ply
-from slwarp.rigs import make_rig
-from slwarp.scanner import Camera, Projector
+from slwarp.sim.rigs import make_rig
+from slwarp.scans.scanner import Camera, Projector
 
 
 def real_like_rig():
@@ -80,7 +80,7 @@ def test_plane_iteration_handles_projector_distortion():
 
 def test_simulated_scan_correspondences(device):
     """GT depth of a simulated scan -> its projector coordinates -> triangulation gives the GT back."""
-    from slwarp.simulate import simulate_scene
+    from slwarp.sim.simulate import simulate_scene
 
     scan = simulate_scene("steps", "whiteblack", "small", device=device)
     uv, _ = correspondences(scan.camera, scan.projector, scan.gt_depth.astype(np.float64))
@@ -143,7 +143,7 @@ def test_write_ply(tmp_path):
 
 
 def test_reconstruct_depth_uses_scan_depth_range(device):
-    from slwarp.simulate import SimOptions, simulate_scene
+    from slwarp.sim.simulate import SimOptions, simulate_scene
 
     scan = simulate_scene("spheres", "gray7inv", "small", SimOptions(noise=False, defocus=False, bits=0), device=device)
     depth, points, dec = reconstruct_depth(scan, "gc-interp")

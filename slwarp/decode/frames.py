@@ -1,4 +1,4 @@
-"""Which frames of a scan play which role, read from their names (the contract in `slwarp.patterns`).
+"""Which frames of a scan play which role, read from their names (the contract in `slwarp.scans.patterns`).
 
     gc_{col|row}_b{k}[_inv]          Gray code bit k (k = 0 most significant) and its inverse
     white, black                     full-on and full-off frames

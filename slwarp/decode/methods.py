@@ -217,7 +217,7 @@ def _axis_method(fn):
 @dataclass
 class Method:
     """A decoding method: `fn(scan, **params) -> (col, row, frames used, extra)`, a one-line summary,
-    and the pattern sets (`slwarp.patterns.named_set`) that provide its frames."""
+    and the pattern sets (`slwarp.scans.patterns.named_set`) that provide its frames."""
 
     name: str
     fn: object

@@ -4,7 +4,7 @@ Image model of step k of an N-step set with period P (projector px), shift d_k =
 
     I_k = A + B cos(phi - d_k),   phi = 2 pi u / P
 
-(the patterns are 0.5 + 0.5 cos(2 pi u / P - d_k), see `slwarp.patterns`). With S = sum_k I_k sin d_k and
+(the patterns are 0.5 + 0.5 cos(2 pi u / P - d_k), see `slwarp.scans.patterns`). With S = sum_k I_k sin d_k and
 C = sum_k I_k cos d_k: phi = atan2(S, C) (mod 2 pi), B = (2 / N) sqrt(S^2 + C^2), A = mean_k I_k. The
 wrapped position is u_w = P phi / (2 pi) in [0, P); the absolute one is u = u_w + m P for an integer
 period order m that the unwrapping finds.

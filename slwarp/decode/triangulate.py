@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..scanner import Camera, Projector
+from ..scans.scanner import Camera, Projector
 
 __all__ = ["choose_plane_axis", "camera_rays", "triangulate_plane", "triangulate_midpoint", "triangulate",
            "write_ply"]
@@ -53,7 +53,7 @@ def _plane_intersection(d: np.ndarray, projector: Projector, n_coord: np.ndarray
 
 
 def _distort_with_jacobian(x, y, dist):
-    """OpenCV's radial-tangential model (as `slwarp.scanner.distort_normalized`) and its Jacobian:
+    """OpenCV's radial-tangential model (as `slwarp.scans.scanner.distort_normalized`) and its Jacobian:
     (xd, yd, dxd/dx, dxd/dy = dyd/dx, dyd/dy)."""
     k1, k2, p1, p2, k3 = (float(c) for c in dist)
     r2 = x * x + y * y

@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from .scanner import const_like
+from ..scans.scanner import const_like
 
 ALPHA_EPS = 1.0e-5
 TRANS_EPS = 1.0e-7
@@ -25,7 +25,7 @@ FAR_AWAY = -1.0e6  # projector pixel used for points that do not project (zero t
 def project_to_projector(x: torch.Tensor, proj: list[float]) -> tuple[torch.Tensor, torch.Tensor]:
     """Camera-frame points [..., 3] -> projector pixels [..., 2] and ok mask [...].
 
-    `proj` is the packed projector (see slwarp.ops.pack_projector). Points behind the lens or beyond the
+    `proj` is the packed projector (see slwarp.neural.ops.pack_projector). Points behind the lens or beyond the
     trusted distortion radius are not ok; their pixel is far outside the image (so they sample zero).
     """
     R = const_like(proj[0:9], x).reshape(3, 3)

@@ -125,7 +125,7 @@ class Scan:
     """A calibrated rig and its frames.
 
     camera, projector: the rig (X_p = R X_c + T, mm); images [N, H, W] and patterns [N, Hp, Wp] float32 in
-    [0, 1]; names: one frame name per pair (see `slwarp.patterns`); depth_range: (near, far) mm or None;
+    [0, 1]; names: one frame name per pair (see `slwarp.scans.patterns`); depth_range: (near, far) mm or None;
     gt_depth [H, W] mm (NaN invalid) or None; mask [H, W] bool or None; source: where it was loaded from.
     """
 

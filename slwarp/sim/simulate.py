@@ -18,10 +18,10 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from .patterns import PatternSet, named_set
+from ..scans.patterns import PatternSet, named_set
 from .rigs import DEPTH_RANGE_MM, make_rig
-from .scan import Scan
-from .scanner import Camera, Projector
+from ..scans.scan import Scan
+from ..scans.scanner import Camera, Projector
 from .scenes import SceneObject, build_scene
 
 __all__ = ["SimOptions", "simulate", "simulate_scene", "RenderedGeometry"]
@@ -221,7 +221,7 @@ def simulate(objects: list[SceneObject], camera: Camera, projector: Projector, p
 
 def simulate_scene(scene: str = "bunny", patterns: str | PatternSet = "random6", rig: str = "default",
                    options: SimOptions | None = None, device: str | None = None, pattern_seed: int = 0) -> Scan:
-    """A built-in scene on a built-in rig with a named pattern set (see `slwarp.patterns.named_set`)."""
+    """A built-in scene on a built-in rig with a named pattern set (see `slwarp.scans.patterns.named_set`)."""
     camera, projector = make_rig(rig)
     if isinstance(patterns, str):
         pset = named_set(patterns, projector.width, projector.height, seed=pattern_seed)

@@ -20,7 +20,7 @@ import torch
 
 from .extract import (depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, photometric_filter, save_points_ply,
                       sphere_trace_depth)
-from .scan import write_depth_png
+from ..scans.scan import write_depth_png
 from .train import TrainConfig, Trainer
 
 
@@ -73,8 +73,8 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
     use_mask: also restrict the depth map to the scan's mask (by default only to the pixels lit with
     enough contrast in the images, the same information the classical decoders use).
     """
-    from .metrics import depth_metrics, error_map
-    from .viz import save_depth_color, save_map_with_colorbar
+    from ..evaluation.metrics import depth_metrics, error_map
+    from ..evaluation.viz import save_depth_color, save_map_with_colorbar
 
     out = Path(out_dir) if out_dir is not None else None
     if out is not None:

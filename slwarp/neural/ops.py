@@ -1,7 +1,7 @@
 """Torch-facing ops: the Warp kernels wrapped as torch custom ops, with a pure-torch twin each.
 
 Public functions take `backend="warp"` (default: fused Warp kernels, CPU or CUDA, float32) or
-`backend="torch"` (the twin in slwarp.twin: any dtype, differentiable by autograd).
+`backend="torch"` (the twin in slwarp.neural.twin: any dtype, differentiable by autograd).
 
     render_structured_light(...)  the fused renderer (differentiable in sdf, sdf_grad and inv_s)
     camera_rays(...)              pixels -> rays and near/far distances
@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from . import twin
-from .kernels import runtime
+from slwarp.kernels import runtime
 
 __all__ = [
     "RenderOutput",
@@ -106,7 +106,7 @@ def _wp_params(projector: list[float]):
     key = tuple(projector)
     prm = _PARAMS_CACHE.get(key)
     if prm is None:
-        from .kernels.geometry import ProjectorParams
+        from slwarp.kernels.geometry import ProjectorParams
 
         wp = runtime.init()
         prm = ProjectorParams()
@@ -126,7 +126,7 @@ def _camera_params(camera):
     key = ("camera", camera.fx, camera.fy, camera.cx, camera.cy, *map(float, camera.dist))
     prm = _PARAMS_CACHE.get(key)
     if prm is None:
-        from .kernels.geometry import camera_params
+        from slwarp.kernels.geometry import camera_params
 
         prm = _PARAMS_CACHE[key] = camera_params(camera)
     return prm
@@ -181,7 +181,7 @@ def _empty_like_layout(ref: torch.Tensor, *tail: int) -> torch.Tensor:
 
 def _render_forward_impl(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector, inv_s,
                          cos_anneal_ratio, last_delta, bounds):
-    from .kernels.render import render_kernels
+    from slwarp.kernels.render import render_kernels
 
     R, S = z_vals.shape
     N = patterns_hwn.shape[2]
@@ -212,7 +212,7 @@ def _render_forward_impl(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_h
 def _render_backward_impl(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector, inv_s,
                           cos_anneal_ratio, last_delta, bounds, trans, surface, weight_sum, g_weights, g_rendered, g_surface,
                           g_surface_rendered, g_depth, g_weight_sum, g_eikonal, g_eikonal_sum):
-    from .kernels.render import render_kernels
+    from slwarp.kernels.render import render_kernels
 
     R, S = z_vals.shape
     N = patterns_hwn.shape[2]
@@ -414,7 +414,7 @@ def camera_rays(pixels: torch.Tensor, camera, depth_range, *, backend: str = "wa
     if backend == "torch" or R == 0:
         d, near, far = twin.camera_rays(pixels, camera, z_near, z_far)
     else:
-        from .kernels.sampling import camera_rays as kernel
+        from slwarp.kernels.sampling import camera_rays as kernel
 
         dev = pixels.device
         d = torch.empty(R, 3, dtype=torch.float32, device=dev)
@@ -434,7 +434,7 @@ def stratified_samples(near: torch.Tensor, far: torch.Tensor, n: int, jitter: to
         jitter = torch.zeros_like(near)
     if backend == "torch" or R == 0:
         return twin.stratified(near, far, n, jitter)
-    from .kernels.sampling import stratified as kernel
+    from slwarp.kernels.sampling import stratified as kernel
 
     z = torch.empty(R, n, dtype=torch.float32, device=near.device)
     _launch(kernel, (R, n), [_desc(_f32(near)), _desc(_f32(far)), _desc(_f32(jitter)), _desc(z)], near.device)
@@ -450,7 +450,7 @@ def upsample_samples(z_vals: torch.Tensor, sdf: torch.Tensor, rays_o: torch.Tens
     R = z_vals.shape[0]
     if backend == "torch" or R == 0:
         return twin.upsample(z_vals, sdf, rays_o, rays_d, n_new, float(inv_s), bnd)
-    from .kernels.sampling import upsample as kernel
+    from slwarp.kernels.sampling import upsample as kernel
 
     z_new = torch.empty(R, n_new, dtype=torch.float32, device=z_vals.device)
     _launch(kernel, R, [_desc(_f32(z_vals)), _desc(_f32(sdf)), _desc(_f32v(rays_o), 3), _desc(_f32v(rays_d), 3),
@@ -464,7 +464,7 @@ def merge_samples(z_a: torch.Tensor, f_a: torch.Tensor, z_b: torch.Tensor, f_b: 
     R = z_a.shape[0]
     if backend == "torch" or R == 0:
         return twin.merge_sorted(z_a, f_a, z_b, f_b)
-    from .kernels.sampling import merge_sorted as kernel
+    from slwarp.kernels.sampling import merge_sorted as kernel
 
     n = z_a.shape[1] + z_b.shape[1]
     z = torch.empty(R, n, dtype=torch.float32, device=z_a.device)

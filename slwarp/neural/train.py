@@ -6,7 +6,7 @@
 
 Schedule (paper): lambda_sc = 0 for the first `sc_start` iterations, then `lambda_sc`; lambda_reg
 throughout; Adam at a constant learning rate. Before it (init="search", the default), `init_iters`
-warm-up iterations pull the volume-rendered depth onto a depth-search map (slwarp.search): the
+warm-up iterations pull the volume-rendered depth onto a depth-search map (slwarp.neural.search): the
 photometric loss is not convex in depth, and NeuS's sphere initialisation leaves surfaces hundreds of
 mm from the truth stuck in other minima (measured: 232 mm MAE on the small-rig bunny without it). Incremental mode (paper Fig. 8): start with
 `start_frames` frames and add the next one every `add_every` iterations without restarting;

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .scanner import Camera, Projector, look_at_rotation
+from ..scans.scanner import Camera, Projector, look_at_rotation
 
 RIG_NAMES = ("default", "small")
 BASELINE_MM = 150.0

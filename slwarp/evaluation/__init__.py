@@ -1,0 +1,1 @@
+"""Evaluation and outputs: depth metrics (metrics) and pictures (viz)."""

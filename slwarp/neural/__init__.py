@@ -1,0 +1,3 @@
+"""Neural reconstruction: the SDF field (field), the fused Warp renderer as torch ops with their torch twins
+(ops, twin), sampling and losses (render), the depth-search start (search), training (train), surface and
+depth extraction (extract) and the end-to-end pipeline (reconstruct)."""
