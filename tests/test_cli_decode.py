@@ -67,7 +67,8 @@ def test_cli_decode_gc6_frames(scan_dir, tmp_path):
 def test_cli_decode_missing_frames_and_bad_input(scan_dir, tmp_path, capsys):
     assert cli_main(["decode", str(scan_dir), "--method", "npmp", "--frames", "gc_col_b*", "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err
-    assert "method npmp needs two 3-step phase shifts" in err and "ps_col_p48_s*of3" in err and "the scan has: gc_col_b0..b6 (+inv)" in err
+    assert "method npmp needs two 3-step phase shifts" in err and "phase:col:period=48" in err
+    assert err.strip().endswith("the scan has: gray:col:bit=0-6 (+inv)")
     assert len(err.strip().splitlines()) == 1
     assert cli_main(["decode", str(scan_dir), "--method", "gc", "--frames", "nope*", "--out", str(tmp_path / "x")]) == 2
     assert "no frame matches 'nope*'" in capsys.readouterr().err

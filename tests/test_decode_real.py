@@ -96,4 +96,7 @@ def test_cli_decode_real_capture(chessboard_path, tmp_path, capsys):
     doc = json.loads((out / "decode.json").read_text())
     assert doc["triangulation"] == "midpoint" and doc["valid_share"] > 0.8
     assert cli_main(["decode", str(chessboard_path), "--method", "cgc", "--out", str(tmp_path / "x")]) == 2
-    assert "method cgc needs frames gc_col_b0" in capsys.readouterr().err
+    # the phase methods look for the rows' frames first on this vertical baseline, and name those
+    err = capsys.readouterr().err
+    assert "method cgc needs Gray code bits 0..2 along row (gray:row:bit=0-2)" in err
+    assert "the scan has: gray:col:bit=0-9 (+inv), gray:row:bit=0-9 (+inv), white, black" in err

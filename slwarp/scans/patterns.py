@@ -1,8 +1,9 @@
 """Projector pattern sets: the paper's random multi-scale binary squares and the classical codes.
 
 Every generator returns a `PatternSet`: `patterns` [N, H, W] float32 in [0, 1] in projector pixels
-(pixel (u, v) = column, row; centre of pixel (0, 0) at (0, 0)) and one frame name per pattern.
-Frame names are the contract between patterns, scans and decoders:
+(pixel (u, v) = column, row; centre of pixel (0, 0) at (0, 0)) and one frame name per pattern. The names are
+slwarp's role names (`slwarp.scans.roles.FrameRole.name`), so a simulated scan knows each frame's role, and
+writes it to scan.yaml:
 
     rand{size}_{i}          random binary squares of `size` px, i-th pattern of that scale
     gc_{col|row}_b{k}       Gray code bit k, k = 0 the most significant bit
@@ -22,6 +23,8 @@ import re
 from dataclasses import dataclass
 
 import numpy as np
+
+from .roles import FrameRole
 
 __all__ = [
     "PatternSet",
@@ -89,7 +92,7 @@ def random_binary(width: int, height: int, scales=(20, 10, 5), per_scale: int = 
             cells = rng.integers(0, 2, size=(math.ceil(height / s), math.ceil(width / s)))
             img = np.repeat(np.repeat(cells, s, axis=0), s, axis=1)[:height, :width]
             pats.append(img.astype(np.float32))
-            names.append(f"rand{s}_{i}")
+            names.append(FrameRole("random", size=float(s), index=i).name)
     return PatternSet(np.stack(pats), names)
 
 
@@ -128,19 +131,16 @@ def gray_code(width: int, height: int, bits: int, axis: str = "col", inverse: bo
         bit = ((g >> (bits - 1 - k)) & 1).astype(np.float32)
         img = np.broadcast_to(bit[None, :], (height, width)) if axis == "col" else np.broadcast_to(bit[:, None], (height, width))
         pats.append(np.array(img))
-        names.append(f"gc_{axis}_b{k}")
+        names.append(FrameRole("gray", axis=axis, bit=k).name)
         if inverse:
             pats.append(1.0 - pats[-1])
-            names.append(f"gc_{axis}_b{k}_inv")
+            names.append(FrameRole("gray", axis=axis, bit=k, inverse=True).name)
     return PatternSet(np.stack(pats), names)
 
 
 def white_black(width: int, height: int) -> PatternSet:
-    return PatternSet(np.stack([np.ones((height, width), np.float32), np.zeros((height, width), np.float32)]), ["white", "black"])
-
-
-def _fmt_period(period: float) -> str:
-    return f"{period:g}"
+    return PatternSet(np.stack([np.ones((height, width), np.float32), np.zeros((height, width), np.float32)]),
+                      [FrameRole("white").name, FrameRole("black").name])
 
 
 def phase_shift(width: int, height: int, period: float, steps: int, axis: str = "col") -> PatternSet:
@@ -156,7 +156,7 @@ def phase_shift(width: int, height: int, period: float, steps: int, axis: str = 
         prof = 0.5 + 0.5 * np.cos(2 * np.pi * coord / period - 2 * np.pi * k / steps)
         img = np.broadcast_to(prof[None, :], (height, width)) if axis == "col" else np.broadcast_to(prof[:, None], (height, width))
         pats.append(np.array(img, dtype=np.float32))
-        names.append(f"ps_{axis}_p{_fmt_period(period)}_s{k}of{steps}")
+        names.append(FrameRole("phase", axis=axis, period=float(period), step=k, steps=steps).name)
     return PatternSet(np.stack(pats), names)
 
 
