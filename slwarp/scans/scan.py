@@ -280,11 +280,14 @@ class Scan:
             f"  camera:    {self.camera.describe()}",
             f"  projector: {self.projector.describe()}",
             f"  depth range: {self.depth_range[0]:.1f} .. {self.depth_range[1]:.1f} mm" if self.depth_range else "  depth range: not given",
-            f"  frames: {len(self.names)}",
+            f"  frames: {len(self.names)}, by role (selectors for --frames):",
         ]
-        for label, members in role_groups(self.names, self.roles):
+        groups = role_groups(self.names, self.roles)
+        width = max(len(label) for label, _ in groups)
+        for label, members in groups:
             shown = ", ".join(members) if len(members) <= 6 else f"{', '.join(members[:3])}, ... {members[-1]}"
-            lines.append(f"    {label}: {len(members)}: {shown}")
+            count = f"{len(members)} frame{'s' if len(members) > 1 else ''}"
+            lines.append(f"    {label:{width}s}  {count}: {shown}")
         if self.gt_depth is not None:
             valid = np.isfinite(self.gt_depth)
             if valid.any():
