@@ -48,9 +48,11 @@ def test_interpolation_follows_the_code_gradient_at_any_angle(angle):
     err = np.abs(pos - u)[inter]
     # the position bends slightly (the sin term): linear interpolation across a 5 px stripe is off by < 0.05 px
     assert err.max() < 0.1, (angle, err.max())
-    # the weight of camera rows is cos^2 of the gradient's angle to them (1 along rows, 0 down columns)
+    # the weight of camera rows: cos^4 / (cos^4 + sin^4) of the gradient's angle to them (1 along rows, 0 down
+    # columns, 1/2 at 45 deg)
+    c4, s4 = np.cos(np.radians(angle)) ** 4, np.sin(np.radians(angle)) ** 4
     w = info["weight_row"][stripe >= 0]
-    assert np.median(w) == pytest.approx(np.cos(np.radians(angle)) ** 2, abs=0.08)
+    assert np.median(w) == pytest.approx(c4 / (c4 + s4), abs=0.08)
 
 
 def test_interpolation_along_rows_alone_fails_on_stripes_parallel_to_rows():

@@ -73,10 +73,22 @@ def choose_triangulation(projector: Projector, has_col: bool, has_row: bool) -> 
     return "row" if has_row else "col"
 
 
+_RAYS_CACHE: dict = {}
+
+
 def camera_rays(camera: Camera, uv: np.ndarray | None = None) -> np.ndarray:
-    """Unit ray directions [..., 3] (camera frame) of pixels uv [..., 2] (default: every pixel, [H, W, 3])."""
-    uv = camera.pixel_grid() if uv is None else np.asarray(uv, np.float64)
-    return camera.pixel_to_ray(uv)
+    """Unit ray directions [..., 3] (camera frame) of pixels uv [..., 2] (default: every pixel, [H, W, 3]; the
+    last few cameras' grids are cached, read-only: undistorting every pixel costs more than a triangulation)."""
+    if uv is not None:
+        return camera.pixel_to_ray(np.asarray(uv, np.float64))
+    key = (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes())
+    rays = _RAYS_CACHE.get(key)
+    if rays is None:
+        if len(_RAYS_CACHE) >= 4:
+            _RAYS_CACHE.clear()
+        rays = _RAYS_CACHE[key] = camera.pixel_to_ray(camera.pixel_grid())
+        rays.flags.writeable = False
+    return rays
 
 
 def _plane_intersection(d: np.ndarray, projector: Projector, n_coord: np.ndarray, axis: str) -> np.ndarray:
@@ -157,7 +169,8 @@ def _solve_along_rays(camera: Camera, projector: Projector, col, row, iterations
                 r, j = projector.fy * yd + projector.cy - c_row, projector.fy * (jxy * dx + jyy * dy)
                 num, den, sq = num + r * j, den + j * j, sq + r * r
             step = np.where(trusted, num / den, np.nan)
-            if it == iterations:
+            # converged everywhere (the start is within a few px; Newton halves the digits' error each step)
+            if it == iterations or not (np.abs(step) * np.sqrt(den) > 1e-6 * tol_px).any():
                 break
             t = t - step
             t = np.where(t > 0, t, np.nan)
