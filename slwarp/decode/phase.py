@@ -1,13 +1,15 @@
 """Phase shifting: wrapped phase and modulation, and the temporal unwrapping schemes of the baselines.
 
-Image model of step k of an N-step set with period P (projector px), shift d_k = 2 pi k / N:
+Image model of step k of an N-step set with period P (projector px) and shift d_k:
 
     I_k = A + B cos(phi - d_k),   phi = 2 pi u / P
 
-(the patterns are 0.5 + 0.5 cos(2 pi u / P - d_k), see `slwarp.scans.patterns`). With S = sum_k I_k sin d_k and
-C = sum_k I_k cos d_k: phi = atan2(S, C) (mod 2 pi), B = (2 / N) sqrt(S^2 + C^2), A = mean_k I_k. The
-wrapped position is u_w = P phi / (2 pi) in [0, P); the absolute one is u = u_w + m P for an integer
-period order m that the unwrapping finds.
+where the pattern of step k is a + b cos(2 pi u / P - d_k). slwarp's patterns have d_k = 2 pi k / N
+(`slwarp.scans.patterns`); other conventions decode too, since the decoders measure each d_k from its pattern
+(`slwarp.decode.frames.measure_phase_shifts`). A, B cos phi and B sin phi are the least-squares solution of the
+N equations (for equally spaced shifts: S = sum_k I_k sin d_k, C = sum_k I_k cos d_k, phi = atan2(S, C),
+B = (2 / N) sqrt(S^2 + C^2), A = mean_k I_k). The wrapped position is u_w = P phi / (2 pi) in [0, P); the
+absolute one is u = u_w + m P for an integer period order m that the unwrapping finds.
 """
 from __future__ import annotations
 
