@@ -4,9 +4,10 @@
     reconstruct_depth(scan, method, ...) -> (depth [H, W] mm NaN invalid, points [H, W, 3], Decoding)
     METHODS: gc, gc-interp, ps, cgc, hpmp, npmp, gt
 
-Modules: frames (which frames a method uses, from the scan's frame roles), gray (Gray code tables, binarisation, stripe
-interpolation), phase (wrapped phase, unwrapping), cgc (Gray code + phase: CGC and the GT pipeline),
-triangulate (plane, both-coordinate and ray-ray midpoint triangulation chosen from the rig, PLY output), methods (the registry).
+Modules: frames (which frames a method uses, from the scan's frame roles), gray (Gray code tables,
+binarisation, stripe interpolation along the code gradient), phase (wrapped phase, unwrapping), cgc (Gray
+code + phase: CGC and the GT pipeline), triangulate (plane, both-coordinate and ray-ray midpoint
+triangulation chosen from the rig, PLY output), methods (the registry).
 """
 from .frames import MissingFrames
 from .methods import METHODS, Decoding, decode, finalize_positions, reconstruct_depth

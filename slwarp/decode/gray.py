@@ -301,11 +301,12 @@ def interpolate_stripes(stripe: np.ndarray, signal: np.ndarray, table: GrayTable
     pixel is interpolated along camera rows and along camera columns (`interpolate_transitions`) and the
     two are weighted by how well each follows the local code gradient (`code_gradient`, (gx, gy)):
     w_row = gx^4 / (gx^4 + gy^4), w_col = 1 - w_row (the fourth power keeps the better-aligned direction
-    alone except near 45 deg; squares, i.e. cos^2, let a direction 60 deg off the gradient add its noise,
-    +2% MAE on the default rig). A direction with weight below `min_weight` (0.3: more than ~51 deg from
+    alone except near 45 deg; squares, i.e. cos^2, let a direction 60 deg off the gradient add its noise:
+    +1 to 2% MAE on the default rig). A direction with weight below `min_weight` (0.3: more than ~51 deg from
     the gradient) is not used. Among the usable ones, an interpolated position is preferred to an
     extrapolated one and that to the stripe centre; two of the same kind are averaged with their weights
-    (at 45 deg the two estimates use different edge crossings, and their mean is ~20% better than either).
+    (at 45 deg the two estimates use different edge crossings, and their mean was 20 to 26% better than
+    either on a projector rolled 45 deg).
     For column codes on a horizontal baseline this is interpolation along rows, for row codes along columns,
     for a projector rolled 90 deg the other way round, and for stripes at 45 deg the mean of both.
 
