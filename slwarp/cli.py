@@ -35,24 +35,29 @@ def _known_errors():
 # ----------------------------------------------------------------------------------------------
 
 
+FRAMES_HELP = ("frame selection, comma-separated tokens: frame names, indices, slices (0:7), role selectors "
+               "(gray:col:bit=0-6:noinv, phase:row:period=40, white, random:size=20) or name globs (gc_col_b*)")
+
+
 def cmd_info(args) -> int:
     from .scans.scan import load_scan
 
     scan = load_scan(args.scan, frames=args.frames)
-    print(scan.summary())
+    print(scan.summary(each_frame=args.roles))
     return 0
 
 
 def _add_info(sub):
     p = sub.add_parser("info", help="validate a scan and print its summary (rig, frames, ground truth)")
     p.add_argument("scan", help="scan folder (native scan.yaml, NeSS config.ini or procam calibration_result.xml)")
-    p.add_argument("--frames", help="frame selection: names, globs, indices or slices, comma-separated")
+    p.add_argument("--frames", help=FRAMES_HELP)
+    p.add_argument("--roles", action="store_true", help="also list every frame with its role")
     p.set_defaults(func=cmd_info)
 
 
 def cmd_simulate(args) -> int:
     from .scans.patterns import named_set
-    from .sim.rigs import DEPTH_RANGE_MM, make_rig
+    from .sim.rigs import DEPTH_RANGE_MM, describe_rigs, make_rig
     from .sim.scenes import SCENE_NAMES, build_scene, load_mesh_objects
     from .sim.simulate import SimOptions, simulate
     from .evaluation.viz import save_scan_preview
@@ -61,7 +66,9 @@ def cmd_simulate(args) -> int:
         from .scans.patterns import NAMED_SETS
 
         print("scenes: " + ", ".join(SCENE_NAMES))
-        print("rigs: default, small")
+        print("rigs (geometry / small-resolution twin; full: camera 1280x1024, projector 1280x800; small: 320x256, 640x400):")
+        for line in describe_rigs():
+            print(f"  {line}")
         print("pattern sets (join with '+'):")
         for k, v in NAMED_SETS.items():
             print(f"  {k:22s} {v}")
@@ -101,11 +108,15 @@ def cmd_simulate(args) -> int:
 
 
 def _add_simulate(sub):
+    from .sim.rigs import RIG_NAMES
+
     p = sub.add_parser("simulate", help="render a scan with exact ground truth on the virtual scanner")
     p.add_argument("--scene", help="built-in scene (see --list)")
     p.add_argument("--mesh", action="append", help="mesh file in mm, camera frame (repeatable)")
     p.add_argument("--patterns", default="random6", help="pattern set, e.g. random6, gray7, gt, random6+gray7 (default: random6)")
-    p.add_argument("--rig", default="default", choices=["default", "small"], help="built-in rig (default: default)")
+    p.add_argument("--rig", default="default", choices=list(RIG_NAMES),
+                   help="built-in rig: geometry default, vertical, oblique or rolled, at full resolution or small "
+                        "(small, small-vertical, ...; see --list; default: default)")
     p.add_argument("--seed", type=int, default=0, help="noise seed (default: 0)")
     p.add_argument("--pattern-seed", type=int, default=0, help="seed of the random patterns (default: 0)")
     p.add_argument("--out", help="output scan folder")
@@ -169,13 +180,18 @@ def cmd_decode(args) -> int:
     for axis, coord in (("col", dec.col), ("row", dec.row)):
         if coord is not None:
             np.save(out / f"projector_{axis}.npy", coord.astype(np.float32))
-    shade = scan.image("white") if "white" in scan.names else scan.images.max(axis=0)
+    white = scan.frames_with("white")
+    shade = scan.images[white[0]] if white else scan.images.max(axis=0)
     n_pts = write_ply(out / "points.ply", points, shade)
     valid = np.isfinite(depth)
     print(f"decoded {scan.source or 'scan'} with {args.method} ({METHODS[args.method].summary})")
     print(f"  frames ({len(dec.frames)}): {', '.join(dec.frames)}")
     print(f"  triangulation: {dec.extra['triangulation']}; valid depth: {valid.mean():.1%} of pixels"
           + (f", {np.nanmin(depth):.1f} .. {np.nanmax(depth):.1f} mm" if valid.any() else ""))
+    if dec.extra["baseline_alignment"] < 0.5:
+        print(f"  warning: the decoded projector {dec.extra['triangulation']}s see only "
+              f"{dec.extra['baseline_alignment']:.0%} of the baseline on this rig: depth from them is ill-conditioned "
+              "(decode the codes of the other projector axis)")
     print(f"  time: decode {dec.extra['decode_s']:.2f} s, triangulate {dec.extra['triangulate_s']:.2f} s, "
           f"total {t1 - t0:.2f} s")
     info = {"scan": scan.source, "method": args.method, "frames": dec.frames, "triangulation": dec.extra["triangulation"],
@@ -201,13 +217,15 @@ def _add_decode(sub):
     p.add_argument("scan", help="scan folder")
     p.add_argument("--method", required=True, choices=list(METHODS),
                    help="; ".join(f"{k}: {m.summary} (sets: {m.pattern_sets})" for k, m in METHODS.items()))
-    p.add_argument("--frames", help="use only these frames (names, globs, indices, slices; comma-separated), "
-                   "e.g. 'gc_col_b[0-5]' for GC(6) from a scan with more bits")
+    p.add_argument("--frames", help="use only these frames: " + FRAMES_HELP + "; e.g. 'gray:col:bit=0-5:noinv' "
+                   "for GC(6) from a scan with more bits")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--triangulation", default="auto", choices=["auto", "col", "row", "midpoint"],
-                   help="projector column/row plane, ray-ray midpoint (needs column and row codes), or auto: "
-                        "the plane along the baseline (default)")
-    p.add_argument("--axis", choices=["col", "row"], help="axis of the phase methods' patterns (default: col)")
+    p.add_argument("--triangulation", default="auto", choices=["auto", "col", "row", "both", "midpoint"],
+                   help="projector column or row plane; both: the point on the camera ray that best matches column "
+                        "and row; midpoint: ray-ray midpoint (both need column and row codes); auto (default): the "
+                        "plane of the projector axis along the baseline, or both codes on an oblique baseline")
+    p.add_argument("--axis", choices=["col", "row"], help="axis of the phase methods' patterns (default: the one "
+                   "along the baseline when the scan has its frames, else the other)")
     p.add_argument("--min-amplitude", type=float, default=DEFAULT_MIN_AMPLITUDE,
                    help="shadow threshold: half the on/off difference or the phase modulation, in full-scale units "
                         f"(images in [0, 1]; default: {DEFAULT_MIN_AMPLITUDE:g})")
