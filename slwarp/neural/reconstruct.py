@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .extract import (depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, photometric_filter, save_points_ply,
-                      sphere_trace_depth)
+from .extract import depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, save_points_ply, sphere_trace_depth
+from .pattern_model import photometric_filter
 from ..scans.scan import write_depth_png
 from .train import TrainConfig, Trainer
 

@@ -14,8 +14,8 @@ samples; the fused render; and the losses
     L_rc  = mean |I'_i(r) - I_i(r)|            rendered colour, over valid pixels and patterns
     L_sc  = mean |a + b P_i(pi(s(r))) - I_i(r)| surface colour
     L_reg = mean (|grad f| - 1)^2               Eikonal, over samples inside the working volume
-with a(r) = min_i I_i(r), b(r) = max_i I_i(r) - a(r); a pixel is valid (used by L_rc and L_sc) when it is
-lit with enough contrast: b(r) > contrast_threshold.
+with a(r) = min_i I_i(r), b(r) = max_i I_i(r) - a(r) (the pattern model, slwarp.neural.pattern_model); a pixel
+is valid (used by L_rc and L_sc) when it is lit with enough contrast: b(r) > contrast_threshold.
 """
 from __future__ import annotations
 
@@ -27,6 +27,7 @@ import torch.nn as nn
 
 from . import ops
 from .field import LearnedVariance, Volume, sdf_and_gradient
+from .pattern_model import CONTRAST_THRESHOLD, blur_patterns, lit_with_contrast, offset_and_modulation
 
 
 class RenderLosses(NamedTuple):
@@ -53,26 +54,6 @@ class PixelBatch(NamedTuple):
     valid: torch.Tensor
 
 
-def offset_and_modulation(images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """a = min_i I_i, b = max_i I_i - a over the frames [N, ...]."""
-    lo = images.min(dim=0).values
-    return lo, images.max(dim=0).values - lo
-
-
-def blur_patterns(patterns: torch.Tensor, sigma: float) -> torch.Tensor:
-    """patterns [N, Hp, Wp] Gaussian-blurred by `sigma` projector px (separable, edge values replicated)."""
-    if sigma <= 0:
-        return patterns
-    r = int(np.ceil(3.0 * sigma))
-    x = torch.arange(-r, r + 1, dtype=torch.float32, device=patterns.device)
-    k = torch.exp(-0.5 * (x / sigma) ** 2)
-    k = k / k.sum()
-    p = patterns[:, None]
-    p = torch.nn.functional.conv2d(torch.nn.functional.pad(p, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
-    p = torch.nn.functional.conv2d(torch.nn.functional.pad(p, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1))
-    return p[:, 0].contiguous()
-
-
 class StructuredLightRenderer(nn.Module):
     """Sampling, field evaluation and the fused renderer for one rig and its captured frames.
 
@@ -88,7 +69,7 @@ class StructuredLightRenderer(nn.Module):
 
     def __init__(self, sdf: nn.Module, camera, projector, patterns, images, *, depth_range, volume: Volume | None = None,
                  variance: nn.Module | None = None, n_samples: int = 32, n_importance: int = 32, up_sample_steps: int = 4,
-                 contrast_threshold: float = 0.05, backend: str = "warp", device=None, compile_field: bool = False,
+                 contrast_threshold: float = CONTRAST_THRESHOLD, backend: str = "warp", device=None, compile_field: bool = False,
                  pattern_blur: float = 0.0):
         super().__init__()
         if not pattern_blur >= 0:
@@ -146,7 +127,7 @@ class StructuredLightRenderer(nn.Module):
         a, b = offset_and_modulation(images)
         self.images_flat = images.reshape(images.shape[0], -1).t().contiguous()  # [H*W, N]: one gather per batch
         self.a_flat, self.b_flat = a.reshape(-1), b.reshape(-1)
-        self.valid_map = (b > self.contrast_threshold)
+        self.valid_map = lit_with_contrast(b, self.contrast_threshold)
         self.valid_index = torch.nonzero(self.valid_map.reshape(-1)).squeeze(1)
         self.patterns = patterns
         self.patterns_hwn = ops.pack_patterns(blur_patterns(patterns, self.pattern_blur))

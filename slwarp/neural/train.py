@@ -30,7 +30,8 @@ import numpy as np
 import torch
 
 from .field import NeuSField, Volume
-from .render import StructuredLightRenderer, blur_patterns
+from .pattern_model import blur_patterns, estimate_pattern_blur
+from .render import StructuredLightRenderer
 
 __all__ = ["TrainConfig", "preset", "PRESETS", "Trainer", "TrainingDiverged", "resolve_device"]
 
@@ -223,8 +224,6 @@ class Trainer:
         if config.pattern_blur == "auto" and not resume:
             sigma, fit = 1.0, None
             if init_depth is not None:
-                from .search import estimate_pattern_blur
-
                 sigma, fit = estimate_pattern_blur(scan.camera, scan.projector, scan.images[: self.n_frames],
                                                    scan.patterns[: self.n_frames], np.asarray(init_depth, np.float32).reshape(
                                                        scan.camera.height, scan.camera.width))
