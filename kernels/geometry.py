@@ -3,7 +3,6 @@
 Conventions follow `slwarp.scans.scanner`: mm, OpenCV axes, pixel centres at integer coordinates, X_p = R X_c + T.
 """
 
-import numpy as np
 import warp as wp
 
 
@@ -22,17 +21,18 @@ class ProjectorParams:
 
 
 def projector_params(projector) -> ProjectorParams:
-    """Pack a `slwarp.Projector` for kernels."""
+    """A projector for kernels, from its 24 packed floats (`slwarp.scans.scanner.PackedProjector`) or a
+    `slwarp.Projector` (which carries them as `.packed`)."""
+    p = getattr(projector, "packed", projector)
     prm = ProjectorParams()
-    prm.R = wp.mat33(*np.asarray(projector.R, np.float32).ravel())
-    prm.T = wp.vec3(*np.asarray(projector.T, np.float32))
-    prm.f = wp.vec2(projector.fx, projector.fy)
-    prm.c = wp.vec2(projector.cx, projector.cy)
-    d = projector.dist
-    prm.k = wp.vec3(float(d[0]), float(d[1]), float(d[4]))
-    prm.p = wp.vec2(float(d[2]), float(d[3]))
-    prm.size = wp.vec2(float(projector.width), float(projector.height))
-    prm.max_r2 = float(projector.max_normalized_r2)
+    prm.R = wp.mat33(*p.R)
+    prm.T = wp.vec3(*p.T)
+    prm.f = wp.vec2(p.fx, p.fy)
+    prm.c = wp.vec2(p.cx, p.cy)
+    prm.k = wp.vec3(p.k1, p.k2, p.k3)
+    prm.p = wp.vec2(p.p1, p.p2)
+    prm.size = wp.vec2(p.width, p.height)
+    prm.max_r2 = p.max_r2
     return prm
 
 

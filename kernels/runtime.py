@@ -32,18 +32,6 @@ def init():
     return wp
 
 
-def warp_device(device) -> str:
-    """A torch device (or string) -> Warp device name ('cpu', 'cuda:0', ...)."""
-    import torch
-
-    dev = torch.device(device)
-    if dev.type == "cuda":
-        return f"cuda:{dev.index if dev.index is not None else torch.cuda.current_device()}"
-    if dev.type != "cpu":
-        raise ValueError(f"Warp kernels run on CPU or CUDA devices, got {dev}")
-    return "cpu"
-
-
 class on_torch_stream:
     """Context: launch Warp work on torch's current stream of `device` (no-op on the CPU)."""
 

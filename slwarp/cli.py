@@ -271,10 +271,11 @@ def cmd_reconstruct(args) -> int:
     from .evaluation.metrics import format_table
     from .neural.reconstruct import reconstruct
     from .scans.scan import load_scan
-    from .neural.train import preset, resolve_device
+    from .devices import torch_device
+    from .neural.train import preset
 
     scan = load_scan(args.scan, frames=args.frames)
-    dev = resolve_device(args.device)
+    dev = torch_device(args.device)
     name = args.preset or ("paper" if dev.type == "cuda" else "cpu")
     cfg = preset(name, iters=args.iters, rays=args.rays, lr=args.lr, seed=args.seed, device=str(dev), backend=args.backend,
                  incremental=args.incremental or None, start_frames=args.start_frames, add_every=args.add_every,

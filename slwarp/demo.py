@@ -62,11 +62,12 @@ def run_demo(out_dir="slwarp-demo", scene: str = DEMO_SCENE, device: str = "auto
     from .neural.reconstruct import reconstruct
     from .scans.scan import write_depth_png
     from .sim.simulate import simulate_scene
-    from .neural.train import preset, resolve_device
+    from .devices import torch_device, warp_device
+    from .neural.train import preset
     from .evaluation.viz import save_depth_color, save_error_map, save_point_cloud_render
 
     t0 = time.perf_counter()
-    dev = resolve_device(device)
+    dev = torch_device(device)
     gpu = dev.type == "cuda"
     rig = "default" if gpu else "small"
     preset_name = preset_name or ("paper" if gpu else "cpu")
@@ -76,7 +77,7 @@ def run_demo(out_dir="slwarp-demo", scene: str = DEMO_SCENE, device: str = "auto
     log(f"slwarp demo: scene '{scene}', {rig} rig, preset '{preset_name}' ({cfg.iters} iterations), device {dev}")
 
     log("1/4 simulating the scan (paper's 6 random patterns + 7-bit Gray code) ...")
-    scan = simulate_scene(scene, "random6+gray7", rig=rig, device="cuda:0" if gpu else "cpu")
+    scan = simulate_scene(scene, "random6+gray7", rig=rig, device=warp_device(dev))
     scan.save(out / "scan")
     t_sim = time.perf_counter()
 

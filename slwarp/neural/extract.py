@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..devices import warp_device
 from .field import Volume
 
 
@@ -58,15 +59,15 @@ def camera_ray_grid(camera) -> np.ndarray:
     return camera.pixel_to_ray(camera.pixel_grid())
 
 
-def mesh_depth(mesh, camera, device: str | None = None, hits: int = 1, eps_mm: float = 1.0) -> np.ndarray:
+def mesh_depth(mesh, camera, device=None, hits: int = 1, eps_mm: float = 1.0) -> np.ndarray:
     """Depth [H, W] (camera z, mm) of the first hit of each pixel's ray on `mesh` (NaN where none), or
     with hits = K > 1 the first K hits [H, W, K] (NaN past the last), `eps_mm` apart at least (for
-    users who want every surface along a ray)."""
+    users who want every surface along a ray). device: a torch device or device string (None: auto)."""
     from slwarp.kernels import runtime
     from slwarp.kernels.simulate import first_hit_depth, mesh_hits
 
     wp = runtime.init()
-    device = device or ("cuda:0" if torch.cuda.is_available() else "cpu")
+    device = warp_device(device)
     H, W = camera.height, camera.width
     shape = (H, W) if hits == 1 else (H, W, hits)
     if mesh is None or len(mesh.faces) == 0:

@@ -20,6 +20,8 @@ import numpy as np
 import torch
 
 from . import twin
+from ..devices import warp_device
+from ..scans.scanner import PackedProjector
 from slwarp.kernels import runtime
 
 __all__ = [
@@ -66,14 +68,16 @@ def _check_backend(backend: str):
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
 
 
-def pack_projector(projector) -> list[float]:
-    """A `slwarp.Projector` as 24 floats: R (9, row-major), T (3), fx, fy, cx, cy, k1, k2, k3, p1, p2,
-    width, height, max_r2 (the trusted squared normalised radius of its distortion model)."""
+def pack_projector(projector) -> PackedProjector:
+    """The 24 packed floats (`slwarp.scans.scanner.PackedProjector`) of a `slwarp.Projector`, of a
+    PackedProjector, or of any sequence of 24 numbers in that order."""
+    if isinstance(projector, PackedProjector):
+        return projector
     if isinstance(projector, (list, tuple)):
-        if len(projector) != 24:
-            raise ValueError(f"a packed projector has 24 floats, got {len(projector)}")
-        return [float(x) for x in projector]
-    return list(projector.flat_params)
+        if len(projector) != len(PackedProjector._fields):
+            raise ValueError(f"a packed projector has {len(PackedProjector._fields)} floats, got {len(projector)}")
+        return PackedProjector(*(float(x) for x in projector))
+    return projector.packed
 
 
 def _bounds_list(bounds) -> list[float]:
@@ -102,23 +106,15 @@ _LAUNCHERS: dict = {}
 _STREAMS: dict = {}
 
 
-def _wp_params(projector: list[float]):
+def _wp_params(projector):
+    """The Warp struct of a packed projector (list or PackedProjector), made once per projector."""
     key = tuple(projector)
     prm = _PARAMS_CACHE.get(key)
     if prm is None:
-        from slwarp.kernels.geometry import ProjectorParams
+        from slwarp.kernels.geometry import projector_params
 
-        wp = runtime.init()
-        prm = ProjectorParams()
-        prm.R = wp.mat33(*projector[0:9])
-        prm.T = wp.vec3(*projector[9:12])
-        prm.f = wp.vec2(projector[12], projector[13])
-        prm.c = wp.vec2(projector[14], projector[15])
-        prm.k = wp.vec3(projector[16], projector[17], projector[18])
-        prm.p = wp.vec2(projector[19], projector[20])
-        prm.size = wp.vec2(projector[21], projector[22])
-        prm.max_r2 = projector[23]
-        _PARAMS_CACHE[key] = prm
+        runtime.init()
+        prm = _PARAMS_CACHE[key] = projector_params(PackedProjector(*key))
     return prm
 
 
@@ -153,7 +149,7 @@ def _launch(kernel, dim, inputs, device: torch.device):
         stream = _STREAMS.get(key)
         if stream is None:
             stream = _STREAMS[key] = wp.stream_from_torch(torch_stream)
-        launcher(dim, inputs, runtime.warp_device(device), stream)
+        launcher(dim, inputs, warp_device(device), stream)
     else:
         launcher(dim, inputs, "cpu")
 
@@ -394,7 +390,7 @@ def render_structured_light(
         pat_hwn = pack_patterns(patterns) if patterns_layout == "NHW" else patterns.detach().to(torch.float32).contiguous()
         sg = sdf_grad.to(torch.float32)
         args = (sdf.to(torch.float32), sg if sg.stride(-1) == 1 else sg.contiguous(), _f32(z_vals), _f32v(rays_o),
-                _f32v(rays_d), _f32(a), _f32(b), pat_hwn, proj, inv_s.to(torch.float32).reshape(1),
+                _f32v(rays_d), _f32(a), _f32(b), pat_hwn, list(proj), inv_s.to(torch.float32).reshape(1),
                 float(cos_anneal_ratio), ld, bnd)
         outs = _render_forward(*args) if torch.compiler.is_compiling() else _RenderFunction.apply(*args)
     weights, rendered, surface, surface_rendered, depth, weight_sum, eikonal, eikonal_sum, eikonal_count = outs[:9]

@@ -48,8 +48,7 @@ def extract_depth(trainer: Trainer, config: TrainConfig, valid: np.ndarray | Non
     if config.depth_method == "sphere":
         depth = sphere_trace_depth(field_, cam, trainer.depth_range, trainer.device, valid=valid)
     elif config.depth_method == "mesh":
-        wdev = f"cuda:{trainer.device.index or 0}" if trainer.device.type == "cuda" else "cpu"
-        depth = mesh_depth(mesh, cam, wdev)
+        depth = mesh_depth(mesh, cam, trainer.device)
     else:
         raise ValueError(f"depth_method must be 'mesh' or 'sphere', got {config.depth_method!r}")
     if valid is not None:

@@ -14,26 +14,27 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import torch
 
+from ..devices import warp_device
 from .pattern_model import lit_with_contrast, offset_and_modulation
 
 
 def search_depth(camera, projector, images, patterns, depth_range, *, valid=None, step_mm: float = 1.0,
                  max_hypotheses: int = 1024, radius: int = 2, stride: int = 2, ratio: float = 0.8,
-                 exclude_mm: float = 6.0, device: str | None = None) -> tuple[np.ndarray, dict]:
+                 exclude_mm: float = 6.0, device=None) -> tuple[np.ndarray, dict]:
     """Depth map [H, W] (camera z, mm; NaN where not confident) and info (timings, counts).
 
     images [N, H, W], patterns [N, Hp, Wp] in [0, 1]; valid [H, W]: the pixels to search (default: those lit
     with contrast, `pattern_model.lit_with_contrast`). Hypotheses every `step_mm` (at most `max_hypotheses`) between the near and far depth.
     A pixel is confident when its best cost < `ratio` x the best cost farther than `exclude_mm` away.
+    device: a torch device or device string (None: auto).
     """
     from slwarp.kernels import runtime
     from slwarp.kernels.geometry import projector_params
     from slwarp.kernels.search import search_kernel
 
     wp = runtime.init()
-    device = device or ("cuda:0" if torch.cuda.is_available() else "cpu")
+    device = warp_device(device)
     t0 = time.perf_counter()
     images = np.asarray(images, np.float32)
     N, H, W = images.shape

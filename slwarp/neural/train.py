@@ -29,11 +29,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..devices import torch_device
 from .field import NeuSField, Volume
 from .pattern_model import blur_patterns, estimate_pattern_blur
 from .render import StructuredLightRenderer
 
-__all__ = ["TrainConfig", "preset", "PRESETS", "Trainer", "TrainingDiverged", "resolve_device"]
+__all__ = ["TrainConfig", "preset", "PRESETS", "Trainer", "TrainingDiverged"]
 
 
 @dataclass
@@ -126,15 +127,6 @@ def preset(name: str, **overrides) -> TrainConfig:
     return cfg
 
 
-def resolve_device(device: str) -> torch.device:
-    if device in (None, "auto"):
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    dev = torch.device(device)
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError("CUDA was requested but no CUDA device is available")
-    return dev
-
-
 class TrainingDiverged(RuntimeError):
     """The loss became non-finite; the last good checkpoint is kept."""
 
@@ -162,7 +154,7 @@ class Trainer:
                  sdf: torch.nn.Module | None = None, depth_range=None, progress: bool = True, init_depth=None):
         self.scan = scan
         self.cfg = config
-        self.device = resolve_device(config.device)
+        self.device = torch_device(config.device)
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self.progress = progress
         depth_range = depth_range or scan.depth_range
@@ -214,13 +206,12 @@ class Trainer:
         if init_depth is None and config.init == "search" and config.init_iters > 0 and not resume:
             from .search import search_depth
 
-            wdev = f"cuda:{self.device.index or 0}" if self.device.type == "cuda" else "cpu"
             search_blur = 1.0 if config.pattern_blur == "auto" else float(config.pattern_blur)
             init_depth, self.search_info = search_depth(
                 scan.camera, scan.projector, scan.images[: self.n_frames],
                 blur_patterns(torch.as_tensor(scan.patterns[: self.n_frames]), search_blur).numpy(), self.depth_range,
                 valid=self.renderer.valid_map.cpu().numpy(), step_mm=config.search_step_mm, stride=config.search_stride,
-                device=wdev)
+                device=self.device)
         if config.pattern_blur == "auto" and not resume:
             sigma, fit = 1.0, None
             if init_depth is not None:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from ..scans.scanner import const_like
+from ..scans.scanner import PackedProjector, const_like, distort_normalized
 
 ALPHA_EPS = 1.0e-5
 TRANS_EPS = 1.0e-7
@@ -22,15 +22,14 @@ FAR_AWAY = -1.0e6  # projector pixel used for points that do not project (zero t
 # projection and bilinear sampling
 
 
-def project_to_projector(x: torch.Tensor, proj: list[float]) -> tuple[torch.Tensor, torch.Tensor]:
+def project_to_projector(x: torch.Tensor, proj: PackedProjector) -> tuple[torch.Tensor, torch.Tensor]:
     """Camera-frame points [..., 3] -> projector pixels [..., 2] and ok mask [...].
 
-    `proj` is the packed projector (see slwarp.neural.ops.pack_projector). Points behind the lens or beyond the
-    trusted distortion radius are not ok; their pixel is far outside the image (so they sample zero).
+    Points behind the lens or beyond the trusted distortion radius (proj.max_r2) are not ok; their pixel is
+    far outside the image (so they sample zero).
     """
-    R = const_like(proj[0:9], x).reshape(3, 3)
-    T = const_like(proj[9:12], x)
-    fx, fy, cx, cy, k1, k2, k3, p1, p2, _, _, max_r2 = proj[12:24]
+    R = const_like(proj.R, x).reshape(3, 3)
+    T = const_like(proj.T, x)
     xp = (x[..., None, :] * R).sum(-1) + T  # x R^T, written out: a matmul would run in TF32 when that is on
     zp = xp[..., 2]
     in_front = zp > 1.0e-6
@@ -38,16 +37,13 @@ def project_to_projector(x: torch.Tensor, proj: list[float]) -> tuple[torch.Tens
     xn = xp[..., 0] / zs
     yn = xp[..., 1] / zs
     r2 = xn * xn + yn * yn
-    ok = in_front & (r2 <= max_r2)
+    ok = in_front & (r2 <= proj.max_r2)
     xn = torch.where(ok, xn, torch.zeros_like(xn))
     yn = torch.where(ok, yn, torch.zeros_like(yn))
-    r2 = xn * xn + yn * yn
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
-    yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
+    xd, yd = distort_normalized(xn, yn, proj.dist)
     far = torch.full_like(xd, FAR_AWAY)
-    u = torch.where(ok, fx * xd + cx, far)
-    v = torch.where(ok, fy * yd + cy, far)
+    u = torch.where(ok, proj.fx * xd + proj.cx, far)
+    v = torch.where(ok, proj.fy * yd + proj.cy, far)
     return torch.stack([u, v], dim=-1), ok
 
 
@@ -117,7 +113,7 @@ def inside_box(x: torch.Tensor, bounds: list[float]) -> torch.Tensor:
     return ((x >= lo) & (x <= hi)).all(dim=-1)
 
 
-def render(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns, projector: list[float], inv_s,
+def render(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns, projector: PackedProjector, inv_s,
            cos_anneal_ratio: float, last_delta: float, bounds: list[float]):
     """The fused render in torch. Returns (weights [R,S], rendered [R,N], surface [R,3],
     surface_rendered [R,N], depth [R], weight_sum [R], eikonal [R,S], eikonal_sum [R], eikonal_count [R]).
