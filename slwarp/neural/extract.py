@@ -17,6 +17,8 @@ import torch
 
 from ..devices import warp_device
 from .field import Volume
+from slwarp.kernels import runtime
+from slwarp.kernels.simulate import first_hit_depth, mesh_hits
 
 
 @torch.no_grad()
@@ -63,9 +65,6 @@ def mesh_depth(mesh, camera, device=None, hits: int = 1, eps_mm: float = 1.0) ->
     """Depth [H, W] (camera z, mm) of the first hit of each pixel's ray on `mesh` (NaN where none), or
     with hits = K > 1 the first K hits [H, W, K] (NaN past the last), `eps_mm` apart at least (for
     users who want every surface along a ray). device: a torch device or device string (None: auto)."""
-    from slwarp.kernels import runtime
-    from slwarp.kernels.simulate import first_hit_depth, mesh_hits
-
     wp = runtime.init()
     device = warp_device(device)
     H, W = camera.height, camera.width

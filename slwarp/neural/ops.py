@@ -23,6 +23,12 @@ from . import twin
 from ..devices import warp_device
 from ..scans.scanner import PackedProjector
 from slwarp.kernels import runtime
+from slwarp.kernels.geometry import camera_params, projector_params
+from slwarp.kernels.render import render_kernels
+from slwarp.kernels.sampling import camera_rays as camera_rays_kernel
+from slwarp.kernels.sampling import merge_sorted as merge_sorted_kernel
+from slwarp.kernels.sampling import stratified as stratified_kernel
+from slwarp.kernels.sampling import upsample as upsample_kernel
 
 __all__ = [
     "RenderOutput",
@@ -111,8 +117,6 @@ def _wp_params(projector):
     key = tuple(projector)
     prm = _PARAMS_CACHE.get(key)
     if prm is None:
-        from slwarp.kernels.geometry import projector_params
-
         runtime.init()
         prm = _PARAMS_CACHE[key] = projector_params(PackedProjector(*key))
     return prm
@@ -122,8 +126,6 @@ def _camera_params(camera):
     key = ("camera", camera.fx, camera.fy, camera.cx, camera.cy, *map(float, camera.dist))
     prm = _PARAMS_CACHE.get(key)
     if prm is None:
-        from slwarp.kernels.geometry import camera_params
-
         prm = _PARAMS_CACHE[key] = camera_params(camera)
     return prm
 
@@ -177,8 +179,6 @@ def _empty_like_layout(ref: torch.Tensor, *tail: int) -> torch.Tensor:
 
 def _render_forward_impl(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector, inv_s,
                          cos_anneal_ratio, last_delta, bounds):
-    from slwarp.kernels.render import render_kernels
-
     R, S = z_vals.shape
     N = patterns_hwn.shape[2]
     dev = z_vals.device
@@ -208,8 +208,6 @@ def _render_forward_impl(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_h
 def _render_backward_impl(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector, inv_s,
                           cos_anneal_ratio, last_delta, bounds, trans, surface, weight_sum, g_weights, g_rendered, g_surface,
                           g_surface_rendered, g_depth, g_weight_sum, g_eikonal, g_eikonal_sum):
-    from slwarp.kernels.render import render_kernels
-
     R, S = z_vals.shape
     N = patterns_hwn.shape[2]
     dev = z_vals.device
@@ -410,13 +408,11 @@ def camera_rays(pixels: torch.Tensor, camera, depth_range, *, backend: str = "wa
     if backend == "torch" or R == 0:
         d, near, far = twin.camera_rays(pixels, camera, z_near, z_far)
     else:
-        from slwarp.kernels.sampling import camera_rays as kernel
-
         dev = pixels.device
         d = torch.empty(R, 3, dtype=torch.float32, device=dev)
         near = torch.empty(R, dtype=torch.float32, device=dev)
         far = torch.empty(R, dtype=torch.float32, device=dev)
-        _launch(kernel, R, [_desc(_f32v(pixels), 2), _camera_params(camera), z_near, z_far,
+        _launch(camera_rays_kernel, R, [_desc(_f32v(pixels), 2), _camera_params(camera), z_near, z_far,
                             _desc(d, 3), _desc(near), _desc(far)], dev)
     return torch.zeros_like(d), d, near, far
 
@@ -430,10 +426,8 @@ def stratified_samples(near: torch.Tensor, far: torch.Tensor, n: int, jitter: to
         jitter = torch.zeros_like(near)
     if backend == "torch" or R == 0:
         return twin.stratified(near, far, n, jitter)
-    from slwarp.kernels.sampling import stratified as kernel
-
     z = torch.empty(R, n, dtype=torch.float32, device=near.device)
-    _launch(kernel, (R, n), [_desc(_f32(near)), _desc(_f32(far)), _desc(_f32(jitter)), _desc(z)], near.device)
+    _launch(stratified_kernel, (R, n), [_desc(_f32(near)), _desc(_f32(far)), _desc(_f32(jitter)), _desc(z)], near.device)
     return z
 
 
@@ -446,10 +440,8 @@ def upsample_samples(z_vals: torch.Tensor, sdf: torch.Tensor, rays_o: torch.Tens
     R = z_vals.shape[0]
     if backend == "torch" or R == 0:
         return twin.upsample(z_vals, sdf, rays_o, rays_d, n_new, float(inv_s), bnd)
-    from slwarp.kernels.sampling import upsample as kernel
-
     z_new = torch.empty(R, n_new, dtype=torch.float32, device=z_vals.device)
-    _launch(kernel, R, [_desc(_f32(z_vals)), _desc(_f32(sdf)), _desc(_f32v(rays_o), 3), _desc(_f32v(rays_d), 3),
+    _launch(upsample_kernel, R, [_desc(_f32(z_vals)), _desc(_f32(sdf)), _desc(_f32v(rays_o), 3), _desc(_f32v(rays_d), 3),
                         float(inv_s), _vec3(bnd[0:3]), _vec3(bnd[3:6]), _desc(z_new)], z_vals.device)
     return z_new
 
@@ -460,10 +452,8 @@ def merge_samples(z_a: torch.Tensor, f_a: torch.Tensor, z_b: torch.Tensor, f_b: 
     R = z_a.shape[0]
     if backend == "torch" or R == 0:
         return twin.merge_sorted(z_a, f_a, z_b, f_b)
-    from slwarp.kernels.sampling import merge_sorted as kernel
-
     n = z_a.shape[1] + z_b.shape[1]
     z = torch.empty(R, n, dtype=torch.float32, device=z_a.device)
     f = torch.empty(R, n, dtype=torch.float32, device=z_a.device)
-    _launch(kernel, R, [_desc(_f32(z_a)), _desc(_f32(f_a)), _desc(_f32(z_b)), _desc(_f32(f_b)), _desc(z), _desc(f)], z_a.device)
+    _launch(merge_sorted_kernel, R, [_desc(_f32(z_a)), _desc(_f32(f_a)), _desc(_f32(z_b)), _desc(_f32(f_b)), _desc(z), _desc(f)], z_a.device)
     return z, f

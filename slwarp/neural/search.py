@@ -17,6 +17,9 @@ import numpy as np
 
 from ..devices import warp_device
 from .pattern_model import lit_with_contrast, offset_and_modulation
+from slwarp.kernels import runtime
+from slwarp.kernels.geometry import projector_params
+from slwarp.kernels.search import search_kernel
 
 
 def search_depth(camera, projector, images, patterns, depth_range, *, valid=None, step_mm: float = 1.0,
@@ -29,10 +32,6 @@ def search_depth(camera, projector, images, patterns, depth_range, *, valid=None
     A pixel is confident when its best cost < `ratio` x the best cost farther than `exclude_mm` away.
     device: a torch device or device string (None: auto).
     """
-    from slwarp.kernels import runtime
-    from slwarp.kernels.geometry import projector_params
-    from slwarp.kernels.search import search_kernel
-
     wp = runtime.init()
     device = warp_device(device)
     t0 = time.perf_counter()

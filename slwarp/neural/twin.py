@@ -2,7 +2,7 @@
 
 They are the reference in tests (compared with the Warp kernels forward and backward, and checked by
 float64 gradcheck), the fallback backend (`backend="torch"`), and what torch.compile sees in benchmarks.
-Formulas: see kernels/render.py and kernels/sampling.py.
+Formulas: see kernels/render.py and kernels/sampling.py; the constants are the kernels' own.
 """
 from __future__ import annotations
 
@@ -10,12 +10,9 @@ import torch
 import torch.nn.functional as F
 
 from ..scans.scanner import PackedProjector, const_like, distort_normalized
-
-ALPHA_EPS = 1.0e-5
-TRANS_EPS = 1.0e-7
-NORM_EPS = 1.0e-12
-WSUM_EPS = 1.0e-6
-FAR_AWAY = -1.0e6  # projector pixel used for points that do not project (zero taps)
+from slwarp.kernels.geometry import ALPHA_EPS, FAR_AWAY_PX, MIN_PROJECTOR_Z, TRANS_EPS
+from slwarp.kernels.render import NORM_EPS, WSUM_EPS
+from slwarp.kernels.sampling import CDF_EPS, MIN_SLOPE, PDF_EPS, SLOPE_EPS
 
 
 # ----------------------------------------------------------------------------------------------
@@ -32,7 +29,7 @@ def project_to_projector(x: torch.Tensor, proj: PackedProjector) -> tuple[torch.
     T = const_like(proj.T, x)
     xp = (x[..., None, :] * R).sum(-1) + T  # x R^T, written out: a matmul would run in TF32 when that is on
     zp = xp[..., 2]
-    in_front = zp > 1.0e-6
+    in_front = zp > MIN_PROJECTOR_Z
     zs = torch.where(in_front, zp, torch.ones_like(zp))  # safe: no inf/NaN in either branch's gradient
     xn = xp[..., 0] / zs
     yn = xp[..., 1] / zs
@@ -41,7 +38,7 @@ def project_to_projector(x: torch.Tensor, proj: PackedProjector) -> tuple[torch.
     xn = torch.where(ok, xn, torch.zeros_like(xn))
     yn = torch.where(ok, yn, torch.zeros_like(yn))
     xd, yd = distort_normalized(xn, yn, proj.dist)
-    far = torch.full_like(xd, FAR_AWAY)
+    far = torch.full_like(xd, FAR_AWAY_PX)
     u = torch.where(ok, proj.fx * xd + proj.cx, far)
     v = torch.where(ok, proj.fy * yd + proj.cy, far)
     return torch.stack([u, v], dim=-1), ok
@@ -99,9 +96,9 @@ def sample_intervals(z_vals: torch.Tensor, last_delta: float) -> torch.Tensor:
 
 
 def transmittance_weights(alpha: torch.Tensor) -> torch.Tensor:
-    """w_k = alpha_k prod_{j<k} (1 - alpha_j + 1e-7)."""
+    """w_k = alpha_k prod_{j<k} (1 - alpha_j + TRANS_EPS)."""
     # the product as exp(cumsum(log)): torch's cumprod backward checks the input for zeros on the host (a
-    # synchronisation per step, and no CUDA graph capture); 1 - alpha + 1e-7 > 0, so the log is finite
+    # synchronisation per step, and no CUDA graph capture); 1 - alpha + TRANS_EPS > 0, so the log is finite
     log_keep = torch.log(1.0 - alpha + TRANS_EPS)
     trans = torch.exp(torch.cumsum(torch.cat([torch.zeros_like(log_keep[:, :1]), log_keep[:, :-1]], dim=1), dim=1))
     return alpha * trans
@@ -162,14 +159,14 @@ def upsample(z: torch.Tensor, sdf: torch.Tensor, rays_o, rays_d, n_new: int, inv
     inside = inside_box(x, bounds)
     inside_iv = inside[:, :-1] | inside[:, 1:]
     dist = z[:, 1:] - z[:, :-1]
-    cos = (sdf[:, 1:] - sdf[:, :-1]) / (dist + 1.0e-5)
+    cos = (sdf[:, 1:] - sdf[:, :-1]) / (dist + SLOPE_EPS)
     prev_cos = torch.cat([torch.zeros_like(cos[:, :1]), cos[:, :-1]], dim=1)
-    c = torch.minimum(prev_cos, cos).clamp(-1.0e3, 0.0) * inside_iv
+    c = torch.minimum(prev_cos, cos).clamp(MIN_SLOPE, 0.0) * inside_iv
     mid = (sdf[:, 1:] + sdf[:, :-1]) * 0.5
     prev_cdf = torch.sigmoid((mid - c * dist * 0.5) * inv_s)
     next_cdf = torch.sigmoid((mid + c * dist * 0.5) * inv_s)
-    alpha = (prev_cdf - next_cdf + 1.0e-5) / (prev_cdf + 1.0e-5)
-    w = transmittance_weights(alpha) + 1.0e-5
+    alpha = (prev_cdf - next_cdf + ALPHA_EPS) / (prev_cdf + ALPHA_EPS)
+    w = transmittance_weights(alpha) + PDF_EPS
     pdf = w / w.sum(1, keepdim=True)
     cdf = torch.cat([torch.zeros_like(pdf[:, :1]), torch.cumsum(pdf, 1)], dim=1)  # [R, S]
     u = (torch.arange(n_new, dtype=z.dtype, device=z.device) + 0.5) / n_new
@@ -180,7 +177,7 @@ def upsample(z: torch.Tensor, sdf: torch.Tensor, rays_o, rays_d, n_new: int, inv
     c0, c1 = cdf.gather(1, below), cdf.gather(1, above)
     z0, z1 = z.gather(1, below), z.gather(1, above)
     denom = c1 - c0
-    denom = torch.where(denom < 1.0e-5, torch.ones_like(denom), denom)
+    denom = torch.where(denom < CDF_EPS, torch.ones_like(denom), denom)
     return z0 + (u - c0) / denom * (z1 - z0)
 
 
