@@ -1,4 +1,5 @@
-"""Pure-torch twins of the Warp ops: the same signatures and semantics, any dtype and device.
+"""Pure-torch twins of the Warp ops, named after the ops in slwarp.neural.ops they mirror: the same semantics,
+any dtype and device.
 
 They are the reference in tests (compared with the Warp kernels forward and backward, and checked by
 float64 gradcheck), the fallback backend (`backend="torch"`), and what torch.compile sees in benchmarks.
@@ -110,12 +111,11 @@ def inside_box(x: torch.Tensor, bounds: list[float]) -> torch.Tensor:
     return ((x >= lo) & (x <= hi)).all(dim=-1)
 
 
-def render(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns, projector: PackedProjector, inv_s,
-           cos_anneal_ratio: float, last_delta: float, bounds: list[float]):
-    """The fused render in torch. Returns (weights [R,S], rendered [R,N], surface [R,3],
+def render_structured_light(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns, projector: PackedProjector, inv_s,
+                            cos_anneal_ratio: float, last_delta: float, bounds: list[float]):
+    """The fused render in torch, on the inputs of ops.RenderInputs (any dtype) with patterns [N, H, W] and inv_s a
+    tensor broadcastable to a scalar (differentiable). Returns (weights [R,S], rendered [R,N], surface [R,3],
     surface_rendered [R,N], depth [R], weight_sum [R], eikonal [R,S], eikonal_sum [R], eikonal_count [R]).
-
-    patterns: [N, H, W]. inv_s: tensor broadcastable to a scalar (differentiable).
     """
     dz = sample_intervals(z_vals, last_delta)
     true_cos = (sdf_grad * rays_d[:, None, :]).sum(-1)
@@ -146,13 +146,13 @@ def camera_rays(pixels: torch.Tensor, camera, z_near: float, z_far: float):
     return d, z_near / d[:, 2], z_far / d[:, 2]
 
 
-def stratified(near: torch.Tensor, far: torch.Tensor, n: int, jitter: torch.Tensor) -> torch.Tensor:
+def stratified_samples(near: torch.Tensor, far: torch.Tensor, n: int, jitter: torch.Tensor) -> torch.Tensor:
     """z [R, n] = near + (far - near) (k + 0.5 + jitter_r) / n."""
     k = torch.arange(n, dtype=near.dtype, device=near.device)
     return near[:, None] + (far - near)[:, None] * (k[None, :] + 0.5 + jitter[:, None]) / n
 
 
-def upsample(z: torch.Tensor, sdf: torch.Tensor, rays_o, rays_d, n_new: int, inv_s: float, bounds: list[float]) -> torch.Tensor:
+def upsample_samples(z: torch.Tensor, sdf: torch.Tensor, rays_o, rays_d, n_new: int, inv_s: float, bounds: list[float]) -> torch.Tensor:
     """One NeuS up-sampling step: n_new new sample distances [R, n_new] (sorted)."""
     R, S = z.shape
     x = rays_o[:, None, :] + z[..., None] * rays_d[:, None, :]
@@ -181,7 +181,7 @@ def upsample(z: torch.Tensor, sdf: torch.Tensor, rays_o, rays_d, n_new: int, inv
     return z0 + (u - c0) / denom * (z1 - z0)
 
 
-def merge_sorted(z_a, f_a, z_b, f_b):
+def merge_samples(z_a, f_a, z_b, f_b):
     """Merge two per-ray sorted lists (stable: ties keep a before b)."""
     z = torch.cat([z_a, z_b], dim=1)
     f = torch.cat([f_a, f_b], dim=1)
