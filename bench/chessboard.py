@@ -32,7 +32,8 @@ def main(argv=None):
     from slwarp.evaluation.metrics import chessboard_region, plane_rms
     from slwarp.neural.reconstruct import reconstruct
     from slwarp.scans.scan import load_scan
-    from slwarp.neural.train import preset
+    from slwarp.devices import torch_device
+    from slwarp.neural.config import default_preset_name, preset
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", default=str(DEFAULT_DATA))
@@ -59,9 +60,8 @@ def main(argv=None):
         d, _, _ = reconstruct_depth(scan, method, frames=frames, depth_range=DEPTH_RANGE)
         record(name, d, time.perf_counter() - t, 40 if frames is None else 7)
     if not args.skip_neural:
-        dev = "cuda" if torch.cuda.is_available() else "cpu"
-        name = args.preset or ("paper" if dev == "cuda" else "cpu")
-        cfg = preset(name, iters=args.iters)
+        name = args.preset or default_preset_name(torch_device("auto"))
+        cfg = preset(name, **({"iters": args.iters} if args.iters is not None else {}))
         t = time.perf_counter()
         res = reconstruct(scan.select(SEVEN), cfg, out_dir=None, depth_range=DEPTH_RANGE, progress=False, log_every_s=30)
         record(f"neural SDF, 7 column bits ({name} preset)", res.depth, time.perf_counter() - t, 7)

@@ -95,7 +95,7 @@ def plt():
 
 def iters_run(docs: dict, args):
     """The training iterations the runs used (the preset's unless --iters)."""
-    return next(iter(docs.values()))["config"]["iters"] if docs else args.iters
+    return next(iter(docs.values()))["config"]["schedule"]["iters"] if docs else args.iters
 
 
 def rig_of(args) -> str:

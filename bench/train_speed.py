@@ -110,7 +110,8 @@ def cpu_breakdown(trainer, steps: int = 10) -> dict:
 def time_config(scan, spec: str, preset_name: str, warmup: int, iters: int, dev: str) -> dict:
     import torch
 
-    from slwarp.neural.train import Trainer, preset
+    from slwarp.neural.config import preset
+    from slwarp.neural.train import Trainer
 
     parts = spec.split(":")
     backend, mode, mm = parts[:3]
@@ -131,7 +132,7 @@ def time_config(scan, spec: str, preset_name: str, warmup: int, iters: int, dev:
     sync()
     ms = (time.perf_counter() - t0) / iters * 1e3
     row = {"config": spec, "preset": preset_name, "ms_per_it": ms, "it_per_s": 1e3 / ms, "warmup_s": t_warm,
-           "projected_s": cfg.iters * ms / 1e3, "iters_of_preset": cfg.iters, "graph_used": bool(tr._graph is not None)}
+           "projected_s": cfg.schedule.iters * ms / 1e3, "iters_of_preset": cfg.schedule.iters, "graph_used": bool(tr._graph is not None)}
     if dev == "cuda":
         b = breakdown(tr)
         b["host_and_idle"] = max(0.0, ms - b["gpu_total"])
@@ -150,7 +151,7 @@ def end_to_end(scan, backend: str, preset_name: str, dev: str) -> dict:
     import torch
 
     from slwarp.neural.reconstruct import reconstruct
-    from slwarp.neural.train import preset
+    from slwarp.neural.config import preset
 
     cfg = preset(preset_name, backend=backend)
     if dev == "cuda":

@@ -51,30 +51,37 @@ def comparison_figure(path, gt, results: dict, max_err: float = 3.0) -> None:
     plt.close(fig)
 
 
-def run_demo(out_dir="slwarp-demo", scene: str = DEMO_SCENE, device: str = "auto", preset_name: str | None = None,
-             iters: int | None = None, backend: str = "warp", progress: bool = True, log=print) -> dict:
-    """Run the demo (see module docstring) and return its results dict (also written to results.json)."""
+def run_demo(out_dir="slwarp-demo", scene: str = DEMO_SCENE, config=None, preset_name: str | None = None,
+             progress: bool = True, log=print) -> dict:
+    """Run the demo (see module docstring) and return its results dict (also written to results.json).
+
+    config: the TrainConfig of the neural SDF (default: preset `preset_name`, else the device's default preset);
+    its runtime.device picks the rig: the default rig on CUDA, the small one on the CPU."""
     import torch
 
     from .decode import reconstruct_depth
-    from .neural.extract import depth_to_points
+    from .devices import torch_device, warp_device
     from .evaluation.metrics import depth_metrics, format_table
+    from .evaluation.viz import save_depth_color, save_error_map, save_point_cloud_render
+    from .neural.config import default_preset_name, preset
+    from .neural.extract import depth_to_points
     from .neural.reconstruct import reconstruct
     from .scans.scan import write_depth_png
     from .sim.simulate import simulate_scene
-    from .devices import torch_device, warp_device
-    from .neural.train import preset
-    from .evaluation.viz import save_depth_color, save_error_map, save_point_cloud_render
 
     t0 = time.perf_counter()
-    dev = torch_device(device)
+    if config is None:
+        preset_name = preset_name or default_preset_name(torch_device("auto"))
+        config = preset(preset_name)
+    cfg = config
+    dev = torch_device(cfg.runtime.device)
+    cfg = cfg.with_options(device=str(dev))
     gpu = dev.type == "cuda"
     rig = "default" if gpu else "small"
-    preset_name = preset_name or ("paper" if gpu else "cpu")
-    cfg = preset(preset_name, iters=iters, device=str(dev), backend=backend)
+    preset_name = preset_name or "custom"
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    log(f"slwarp demo: scene '{scene}', {rig} rig, preset '{preset_name}' ({cfg.iters} iterations), device {dev}")
+    log(f"slwarp demo: scene '{scene}', {rig} rig, preset '{preset_name}' ({cfg.schedule.iters} iterations), device {dev}")
 
     log("1/4 simulating the scan (paper's 6 random patterns + 7-bit Gray code) ...")
     scan = simulate_scene(scene, "random6+gray7", rig=rig, device=warp_device(dev))
@@ -118,7 +125,7 @@ def run_demo(out_dir="slwarp-demo", scene: str = DEMO_SCENE, device: str = "auto
     table = format_table(rows)
     ratio = {k: results["ours (6 random)"]["metrics"]["mae"] / v["metrics"]["mae"] for k, v in results.items() if k.startswith("GC")}
     summary = {
-        "scene": scene, "rig": rig, "preset": preset_name, "iterations": cfg.iters, "device": str(dev),
+        "scene": scene, "rig": rig, "preset": preset_name, "iterations": cfg.schedule.iters, "device": str(dev),
         "device_name": torch.cuda.get_device_name(dev) if gpu else "cpu",
         "metrics": {k: v["metrics"] for k, v in results.items()},
         "ours_mae_over": ratio,

@@ -5,11 +5,13 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+import yaml
 
 from slwarp.cli import main as cli_main
 from slwarp.neural.reconstruct import reconstruct
 from slwarp.sim.simulate import SimOptions, simulate_scene
-from slwarp.neural.train import Trainer, preset
+from slwarp.neural.config import load_config, preset
+from slwarp.neural.train import Trainer
 
 # Bounds set from measurement with margin: small rig, 'spheres' (noise seed 3), 6 random patterns, the
 # 'tiny' preset (100 warm-up + 300 iterations) on the CPU gave, for seeds 0, 1, 2: median 1.96, 2.10,
@@ -40,8 +42,12 @@ def test_end_to_end_accuracy(small_scan, tmp_path):
     assert m["mae"] < E2E_MAE_BOUND_MM
     assert m["over_5mm"] < E2E_OVER_5MM_BOUND
     for f in ("depth.npy", "depth.png", "depth_color.png", "mesh.ply", "points.ply", "metrics.json", "error_map.png",
-              "loss.png", "history.json", "train/checkpoint.pt"):
+              "loss.png", "history.json", "train/checkpoint.pt", "config.yaml"):
         assert (tmp_path / "run" / f).is_file(), f
+    # the run's config reads back (its fitted values ride along in a section of their own)
+    assert load_config(tmp_path / "run" / "config.yaml") == tiny(iters=E2E_ITERS)
+    fitted = yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())["fitted"]
+    assert fitted["pattern_blur_px"] == res.trainer.renderer.pattern_blur and fitted["depth_search"]["hypotheses"] > 0
 
 
 def params_vector(trainer):
@@ -58,7 +64,7 @@ def test_resume_matches_uninterrupted_run(small_scan, tmp_path):
     resumed = Trainer(scan, cfg, out_dir=tmp_path / "part", resume=True, progress=False)
     assert resumed.iteration == 30
     resumed.train()
-    assert resumed.iteration == full.iteration == cfg.iters + cfg.init_iters  # warm-up + the schedule
+    assert resumed.iteration == full.iteration == cfg.schedule.iters + cfg.init.iters  # warm-up + the schedule
     assert torch.equal(params_vector(full), params_vector(resumed))
     # the same losses at the iterations both logged (the interrupted run also logged where it stopped)
     full_log = dict(zip(full.history.iters, full.history.loss))

@@ -5,8 +5,9 @@
     result.metrics    # when the scan has ground truth
 
 Outputs written to out_dir: depth.npy, depth.png (uint16, 0.1 mm), depth_color.png, mesh.ply,
-points.ply, history.json + loss.png, timings.json, and metrics.json + error_map.png when the scan
-has ground truth; train/checkpoint.pt holds the resumable training state.
+points.ply, history.json + loss.png, timings.json, config.yaml (the run's TrainConfig and the values it
+fitted; `--config` reads it back), and metrics.json + error_map.png when the scan has ground truth;
+train/checkpoint.pt holds the resumable training state.
 """
 from __future__ import annotations
 
@@ -21,7 +22,8 @@ import torch
 from .extract import depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, save_points_ply, sphere_trace_depth
 from .pattern_model import photometric_filter
 from ..scans.scan import write_depth_png
-from .train import TrainConfig, Trainer
+from .config import TrainConfig, save_config
+from .train import Trainer
 
 
 @dataclass
@@ -37,30 +39,30 @@ class Reconstruction:
     trainer: Trainer | None = None
 
 
-def extract_depth(trainer: Trainer, config: TrainConfig, valid: np.ndarray | None = None, progress: bool = False):
-    """(depth [H, W], mesh, timings) from a trained field: marching cubes, then the mesh ray-cast (or
-    sphere tracing when config.depth_method == 'sphere'); depth is kept only inside `valid`."""
+def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: bool = False):
+    """(depth [H, W], mesh, timings) from a trained field as its config's extraction section says: marching
+    cubes, then the mesh ray-cast (or sphere tracing when depth_method is 'sphere'), the depth range, the
+    flying-pixel and the photometric filters; depth is kept only inside `valid`."""
+    ex = trainer.cfg.extraction
     t0 = time.perf_counter()
     cam = trainer.scan.camera
     field_ = trainer.field.eval()
-    mesh = extract_mesh(field_, trainer.volume, config.mc_resolution, trainer.device, progress=progress)
+    mesh = extract_mesh(field_, trainer.volume, ex.mc_resolution, trainer.device, progress=progress)
     t1 = time.perf_counter()
-    if config.depth_method == "sphere":
+    if ex.depth_method == "sphere":
         depth = sphere_trace_depth(field_, cam, trainer.depth_range, trainer.device, valid=valid)
-    elif config.depth_method == "mesh":
-        depth = mesh_depth(mesh, cam, trainer.device)
     else:
-        raise ValueError(f"depth_method must be 'mesh' or 'sphere', got {config.depth_method!r}")
+        depth = mesh_depth(mesh, cam, trainer.device)
     if valid is not None:
         depth = np.where(valid, depth, np.nan).astype(np.float32)
     near, far = trainer.depth_range
     depth[(depth < near) | (depth > far)] = np.nan
-    if config.edge_filter > 0:
-        depth = flying_pixel_filter(depth, cam, config.edge_filter)
-    if config.photometric_filter > 0:
+    if ex.edge_filter > 0:
+        depth = flying_pixel_filter(depth, cam, ex.edge_filter)
+    if ex.photometric_filter > 0:
         patterns = trainer.renderer.rendered_patterns.cpu().numpy()
         depth = photometric_filter(depth, cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames], patterns,
-                                   config.photometric_filter)
+                                   ex.photometric_filter)
     field_.train()
     return depth, mesh, {"marching_cubes_s": t1 - t0, "depth_s": time.perf_counter() - t1}
 
@@ -99,7 +101,7 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
     valid = trainer.renderer.valid_map.cpu().numpy()
     if use_mask and scan.mask is not None:
         valid &= scan.mask
-    depth, mesh, ext_t = extract_depth(trainer, config, valid, progress=progress)
+    depth, mesh, ext_t = extract_depth(trainer, valid, progress=progress)
     points = depth_to_points(depth, scan.camera)
     metrics = None
     if scan.gt_depth is not None:
@@ -124,5 +126,5 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
         (out / "timings.json").write_text(json.dumps(timings, indent=1))
         fitted = {"pattern_blur_px": trainer.renderer.pattern_blur, "pattern_blur_fit_mse": trainer.blur_fit,
                   "depth_search": {k: v for k, v in (trainer.search_info or {}).items() if k != "pattern_blur_fit"}}
-        (out / "config.json").write_text(json.dumps({**config.to_dict(), "fitted": fitted}, indent=1, default=float))
+        save_config(out / "config.yaml", config, fitted)
     return Reconstruction(depth, mesh, points, metrics, timings, trainer)
