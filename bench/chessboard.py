@@ -11,14 +11,12 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 DEFAULT_DATA = REPO.parent / "shared" / "data" / "procam_chessboard"
 DEPTH_RANGE = (1050.0, 1750.0)  # the full decode spans 1117 to 1649 mm (0.5 and 99.5 percentiles)
 SEVEN = ",".join(f"gc_col_b{k}" for k in range(7))

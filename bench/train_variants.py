@@ -17,7 +17,6 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 SCAN_KEYS = {"scene": str, "rig": str, "patterns": str, "frames": str, "noise_seed": int}
 

@@ -93,6 +93,27 @@ def test_incremental_mode_adds_frames_and_keeps_improving(small_scan):
     assert tr.iteration == 250 and np.isfinite(tr.history.loss[-1])
 
 
+def test_trainer_builds_the_renderer_around_its_field(small_scan):
+    from slwarp.neural.field import Volume
+
+    tr = Trainer(small_scan.select("0:6"), tiny(init="sphere"), progress=False)
+    r = tr.renderer
+    assert r.sdf is tr.field and r.volume is tr.volume
+    # the volume the trainer sized the field with is the renderer's own default: the frustum of its valid pixels
+    assert tr.volume == Volume.from_frustum(small_scan.camera, r.valid_map.cpu().numpy(), tr.depth_range)
+    # drawing and gathering apart (what a captured step does) equals sample_pixels on the same draws
+    g1, g2 = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
+    a, b = r.sample_pixels(64, g1), r.valid_batch(r.draw_valid(64, g2))
+    assert all(torch.equal(x, y) for x, y in zip(a, b)) and bool(a.valid.all())
+    version = r.frames_version
+    r.set_pattern_blur(0.5)
+    assert r.frames_version != version  # a captured step would be stale: it recaptures
+    assert not tr.graph_captured  # plain launches on the CPU
+    tr.reset_graph()
+    tr.step()
+    assert tr.iteration == 1
+
+
 def test_non_finite_loss_stops_with_a_clear_message(small_scan, tmp_path):
     from slwarp.neural.train import TrainingDiverged
 
@@ -143,6 +164,6 @@ def test_cuda_graph_step_matches_plain_launches(small_scan, backend):
                 tr.add_frames(count=1)
             losses.append(float(tr.step()["loss"]))
         runs[graph] = (np.array(losses), params_vector(tr).cpu(), tr)
-    assert runs[True][2]._graph is not None, "the step was not captured"
+    assert runs[True][2].graph_captured, "the step was not captured"
     np.testing.assert_allclose(runs[True][0], runs[False][0], rtol=2e-4, atol=1e-6)
     torch.testing.assert_close(runs[True][1], runs[False][1], rtol=1e-3, atol=1e-5)

@@ -88,7 +88,8 @@ class StructuredLightRenderer(nn.Module):
         self.backend = backend
         self.compile_field = compile_field
         self._compiled = {}
-        self.phase_hook = None  # callable(name) told when each phase of a render starts (benchmarks)
+        self.phase_hook = None  # callable(name) told when each phase of a step starts (see mark_phase)
+        self._frames_version = 0
         device = torch.device(device) if device is not None else next(sdf.parameters(), torch.empty(0)).device
         self._projector_packed = ops.pack_projector(projector)
         self.set_frames(images, patterns, device=device)
@@ -123,12 +124,12 @@ class StructuredLightRenderer(nn.Module):
             raise ValueError(f"images are {tuple(images.shape[1:])}, camera is {self.camera.height}x{self.camera.width}")
         if tuple(patterns.shape[1:]) != (self.projector.height, self.projector.width):
             raise ValueError(f"patterns are {tuple(patterns.shape[1:])}, projector is {self.projector.height}x{self.projector.width}")
-        self.frames_version = getattr(self, "frames_version", 0) + 1  # tells captured steps the inputs changed
+        self._frames_version += 1
         a, b = offset_and_modulation(images)
         self.images_flat = images.reshape(images.shape[0], -1).t().contiguous()  # [H*W, N]: one gather per batch
         self.a_flat, self.b_flat = a.reshape(-1), b.reshape(-1)
         self.valid_map = lit_with_contrast(b, self.contrast_threshold)
-        self.valid_index = torch.nonzero(self.valid_map.reshape(-1)).squeeze(1)
+        self._valid_index = torch.nonzero(self.valid_map.reshape(-1)).squeeze(1)  # flat indices of the valid pixels
         self.patterns = patterns
         self.patterns_hwn = ops.pack_patterns(blur_patterns(patterns, self.pattern_blur))
 
@@ -137,8 +138,14 @@ class StructuredLightRenderer(nn.Module):
         if not sigma >= 0:
             raise ValueError(f"pattern_blur must be >= 0 projector px, got {sigma}")
         self.pattern_blur = float(sigma)
-        self.frames_version += 1
+        self._frames_version += 1
         self.patterns_hwn = ops.pack_patterns(blur_patterns(self.patterns, self.pattern_blur))
+
+    @property
+    def frames_version(self) -> int:
+        """A number that changes whenever the frames or the pattern blur change, i.e. whenever the tensors a
+        render reads are replaced: a captured CUDA graph of a step is stale once it differs."""
+        return self._frames_version
 
     @property
     def rendered_patterns(self) -> torch.Tensor:
@@ -158,14 +165,25 @@ class StructuredLightRenderer(nn.Module):
 
     def sample_pixels(self, n: int, generator: torch.Generator | None = None) -> PixelBatch:
         """n random valid pixels (uniform, with replacement)."""
-        if self.valid_index.numel() == 0:
-            raise ValueError("no valid pixel (lit with enough contrast) in the frames")
-        return self.batch(self.valid_index[self.draw_pick(n, generator).to(self.valid_index.device)])
+        return self.valid_batch(self.draw_valid(n, generator))
 
-    def draw_pick(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
-        """n random positions [n] (long) in valid_index, on the generator's device."""
+    @property
+    def n_valid(self) -> int:
+        """The number of valid pixels (lit with contrast)."""
+        return int(self._valid_index.numel())
+
+    def draw_valid(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
+        """n random positions [n] (long) in the list of valid pixels (uniform, with replacement), on the
+        generator's device: what `valid_batch` takes. Drawing and gathering apart lets a captured step gather
+        on the device what was drawn on the host."""
+        if self.n_valid == 0:
+            raise ValueError("no valid pixel (lit with enough contrast) in the frames")
         dev = generator.device if generator is not None else "cpu"
-        return torch.randint(0, self.valid_index.numel(), (n,), generator=generator, device=dev)
+        return torch.randint(0, self.n_valid, (n,), generator=generator, device=dev)
+
+    def valid_batch(self, positions: torch.Tensor) -> PixelBatch:
+        """The batch of the valid pixels at `positions` [R] (long, from `draw_valid`; any device)."""
+        return self.batch(self._valid_index[positions.to(self._valid_index.device)])
 
     # --- sampling -----------------------------------------------------------------------------
     def inv_s(self) -> torch.Tensor:
@@ -181,8 +199,9 @@ class StructuredLightRenderer(nn.Module):
             self._compiled[kind] = fn
         return fn
 
-    def _phase(self, name: str) -> None:
-        """Report the start of a phase of the step to `phase_hook` (benchmarks time the phases with it)."""
+    def mark_phase(self, name: str) -> None:
+        """Tell `phase_hook` (when set) that a phase of a training step starts: the renderer marks "rays",
+        "field" and "render"; the trainer its own phases around them. Benchmarks time the phases with it."""
         if self.phase_hook is not None:
             self.phase_hook(name)
 
@@ -196,7 +215,7 @@ class StructuredLightRenderer(nn.Module):
                     jitter: torch.Tensor | None = None):
         """(rays_o, rays_d, z_vals [R, n_samples + n_importance]) with NeuS up-sampling. jitter [R]: the
         stratification offsets to use (default: drawn from `generator` when perturb, else 0)."""
-        self._phase("rays")
+        self.mark_phase("rays")
         be = self.backend
         o, d, near, far = ops.camera_rays(batch.uv, self.camera, self.depth_range, backend=be)
         R = batch.uv.shape[0]
@@ -220,13 +239,13 @@ class StructuredLightRenderer(nn.Module):
                generator: torch.Generator | None = None, jitter: torch.Tensor | None = None) -> tuple[ops.RenderOutput, torch.Tensor]:
         """(RenderOutput, z_vals) for a batch: gradients reach the SDF module and the variance."""
         o, d, z = self.sample_rays(batch, perturb, generator, jitter)
-        self._phase("field")
+        self.mark_phase("field")
         # sample-major memory ([S, R] viewed as [R, S]): consecutive rays are adjacent, so the kernels'
         # one-thread-per-ray loads coalesce; the field does not care about the order of its points
         z_sr = z.t().contiguous()
         x = o[None, :, :] + z_sr[..., None] * d[None, :, :]
         sdf, grad = self._field_fn("grad")(x)
-        self._phase("render")
+        self.mark_phase("render")
         out = ops.render_structured_light(
             sdf.t(), grad.transpose(0, 1), z_sr.t(), o, d, batch.a, batch.b, self.patterns_hwn, self._projector_packed, self.inv_s(),
             cos_anneal_ratio=cos_anneal_ratio, backend=self.backend, bounds=self.volume.as_bounds(),

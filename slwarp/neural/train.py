@@ -31,10 +31,12 @@ import numpy as np
 import torch
 
 from ..devices import torch_device
+from ..scans.scan import ScanError
 from .config import TrainConfig
 from .field import NeuSField, Volume
-from .pattern_model import blur_patterns, estimate_pattern_blur
+from .pattern_model import blur_patterns, estimate_pattern_blur, lit_with_contrast, offset_and_modulation
 from .render import StructuredLightRenderer
+from .search import search_depth
 
 __all__ = ["Trainer", "TrainingDiverged", "History"]
 
@@ -71,8 +73,8 @@ class Trainer:
         self.progress = progress
         depth_range = depth_range or scan.depth_range
         if depth_range is None:
-            raise ValueError(f"{scan.source or 'scan'}: no depth range in the scan: give one (near, far) in mm "
-                             "(CLI: --depth-range NEAR,FAR)")
+            raise ScanError(f"{scan.source or 'scan'}: no depth range in the scan: give one (near, far) in mm "
+                            "(CLI: --depth-range NEAR,FAR)")
         self.depth_range = tuple(float(x) for x in depth_range)
         if self.device.type == "cpu":
             # transmittance products and sigmoids of a sharpening SDF underflow into denormal floats, which
@@ -85,21 +87,25 @@ class Trainer:
         self.generator = torch.Generator(device="cpu").manual_seed(config.runtime.seed)
         n_all = len(scan)
         self.n_frames = min(config.schedule.start_frames, n_all) if config.schedule.incremental else n_all
-        placeholder = torch.nn.Identity()  # the renderer picks the volume before the field exists
-        self.renderer = StructuredLightRenderer(
-            placeholder, scan.camera, scan.projector, scan.patterns[: self.n_frames], scan.images[: self.n_frames],
-            depth_range=self.depth_range, n_samples=config.sampling.n_samples, n_importance=config.sampling.n_importance,
-            up_sample_steps=config.sampling.up_sample_steps, contrast_threshold=config.sampling.contrast_threshold,
-            backend=config.runtime.backend, device=self.device, compile_field=config.runtime.compile and self.device.type == "cuda",
-            pattern_blur=0.0 if config.sampling.pattern_blur == "auto" else float(config.sampling.pattern_blur),
-        )
-        self.volume: Volume = self.renderer.volume
+        # the working volume (the frustum box of the pixels lit with contrast) sizes the field, which the
+        # renderer then samples
+        images = scan.images[: self.n_frames]
+        lit = lit_with_contrast(offset_and_modulation(images)[1], config.sampling.contrast_threshold)
+        if not lit.any():
+            raise ScanError(f"{scan.source or 'scan'}: no pixel is lit with contrast (modulation above "
+                            f"{config.sampling.contrast_threshold}) in the frames used")
+        self.volume = Volume.from_frustum(scan.camera, lit, self.depth_range)
         self.field = sdf if sdf is not None else NeuSField(self.volume, hidden=config.field.hidden, layers=config.field.layers,
                                                             skip=config.field.skip, n_freqs=config.field.n_freqs,
                                                             init="camera" if config.init.method == "camera" else "sphere",
                                                             far=self.depth_range[1])
-        self.renderer.sdf = self.field.to(self.device)
-        self.renderer.to(self.device)
+        self.renderer = StructuredLightRenderer(
+            self.field, scan.camera, scan.projector, scan.patterns[: self.n_frames], images, depth_range=self.depth_range,
+            volume=self.volume, n_samples=config.sampling.n_samples, n_importance=config.sampling.n_importance,
+            up_sample_steps=config.sampling.up_sample_steps, contrast_threshold=config.sampling.contrast_threshold,
+            backend=config.runtime.backend, device=self.device, compile_field=config.runtime.compile and self.device.type == "cuda",
+            pattern_blur=0.0 if config.sampling.pattern_blur == "auto" else float(config.sampling.pattern_blur),
+        )
         # a captured step reads the learning rate from a device tensor and keeps Adam's step count on the GPU
         self.use_graph = bool(config.runtime.cuda_graph) and self.device.type == "cuda"
         self.optimizer = torch.optim.Adam(list(self.field.parameters()) + list(self.renderer.variance.parameters()),
@@ -112,14 +118,11 @@ class Trainer:
         self.search_info = None
         self.blur_fit = None
         if init_depth is None and config.init.method == "search" and config.init.iters > 0 and not resume:
-            from .search import search_depth
-
             search_blur = 1.0 if config.sampling.pattern_blur == "auto" else float(config.sampling.pattern_blur)
             init_depth, self.search_info = search_depth(
-                scan.camera, scan.projector, scan.images[: self.n_frames],
+                scan.camera, scan.projector, images,
                 blur_patterns(torch.as_tensor(scan.patterns[: self.n_frames]), search_blur).numpy(), self.depth_range,
-                valid=self.renderer.valid_map.cpu().numpy(), step_mm=config.init.search_step_mm, stride=config.init.search_stride,
-                device=self.device)
+                valid=lit, step_mm=config.init.search_step_mm, stride=config.init.search_stride, device=self.device)
         if config.sampling.pattern_blur == "auto" and not resume:
             sigma, fit = 1.0, None
             if init_depth is not None:
@@ -254,7 +257,7 @@ class Trainer:
         it = self.iteration
         # the random draws come from the CPU generator in the same order with or without a CUDA graph, so
         # both give the same run and a resumed run continues an interrupted one exactly
-        pick = self.renderer.draw_pick(self.cfg.sampling.rays, self.generator)
+        pick = self.renderer.draw_valid(self.cfg.sampling.rays, self.generator)
         jitter = self.renderer.draw_jitter(self.cfg.sampling.rays, self.generator)
         weights = {"warmup": 1.0 if self.in_warmup(it) else 0.0,
                    "lambda_sc": 0.0 if self.in_warmup(it) else self.lambda_sc(it - self.warmup_iters)}
@@ -279,8 +282,8 @@ class Trainer:
         jitter [R] on the device; weights "warmup" (1 in the depth-search warm-up, else 0) and "lambda_sc":
         floats, or 0-d device tensors inside a captured graph (then every term is computed, weighted)."""
         r = self.renderer
-        r._phase("batch")
-        batch = r.batch(r.valid_index[pick])
+        r.mark_phase("batch")
+        batch = r.valid_batch(pick)
         losses = r(batch, cos_anneal_ratio=cos_anneal_ratio, jitter=jitter)
         warm, w_sc = weights["warmup"], weights["lambda_sc"]
         captured = torch.is_tensor(warm)
@@ -298,12 +301,12 @@ class Trainer:
             if captured or w_sc != 0.0:
                 photometric = photometric + w_sc * losses.surface
             loss = loss + (1.0 - warm) * photometric
-        r._phase("backward")
+        r.mark_phase("backward")
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        r._phase("optimizer")
+        r.mark_phase("optimizer")
         self.optimizer.step()
-        r._phase("end")
+        r.mark_phase("end")
         return {"loss": loss.detach(), "color": losses.color.detach(), "surface": losses.surface.detach(),
                 "eikonal": losses.eikonal.detach()}
 
@@ -314,7 +317,7 @@ class Trainer:
         r = self.renderer
         key = (r.frames_version, self.init_depth is not None)
         g = self._graph
-        if g is not None and g["key"] != key:
+        if g is not None and g["key"] != key:  # new frames or blur: recapture after plain steps warm them up
             self._graph = g = None
             self._eager_since_change = 0
         if g is None:
@@ -333,6 +336,16 @@ class Trainer:
             vals = {k: v.clone() for k, v in g["out"].items()}  # the graph's outputs change with the next replay
         torch.cuda.current_stream(self.device).wait_stream(self._stream)
         return vals
+
+    @property
+    def graph_captured(self) -> bool:
+        """Whether the step is held as a captured CUDA graph now (see TrainConfig.runtime.cuda_graph)."""
+        return self._graph is not None
+
+    def reset_graph(self) -> None:
+        """Drop the captured step; the next step captures it again (e.g. after setting the renderer's
+        phase_hook, so that the hook's work is part of the graph)."""
+        self._graph = None
 
     def _capture(self, key) -> dict | None:
         import warnings
