@@ -1,4 +1,4 @@
-"""Warp runtime helpers: lazy init, the kernel cache location, and device/stream mapping from torch.
+"""Warp runtime helpers: lazy init, the kernel cache location, array descriptors and cached launches.
 
 Warp is initialised on first use, never at import. The kernel cache goes to $SLWARP_KERNEL_CACHE, else
 $WARP_CACHE_PATH, else Warp's default (per user). Kernels are pure functions of their source, so a warm
@@ -30,28 +30,6 @@ def init():
             wp.init()
             _ready = True
     return wp
-
-
-class on_torch_stream:
-    """Context: launch Warp work on torch's current stream of `device` (no-op on the CPU)."""
-
-    def __init__(self, device):
-        import torch
-
-        self.dev = torch.device(device)
-        self._ctx = None
-
-    def __enter__(self):
-        wp = init()
-        if self.dev.type == "cuda":
-            self._ctx = wp.ScopedStream(wp.stream_from_torch(self.dev))
-            self._ctx.__enter__()
-        return self
-
-    def __exit__(self, *exc):
-        if self._ctx is not None:
-            self._ctx.__exit__(*exc)
-        return False
 
 
 def array_desc(t, vec: int = 0):

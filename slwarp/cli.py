@@ -37,8 +37,8 @@ def _user_errors() -> tuple:
     from .scans.scan import ScanError
     from .scans.scanner import CalibrationError
 
-    return (UserError, ScanError, CalibrationError, ConfigError, DeviceError, MissingFrames, FileNotFoundError,
-            TrainingDiverged)
+    # OSError: a file that cannot be found, read or written (a missing folder, no permission, a full disk)
+    return (UserError, ScanError, CalibrationError, ConfigError, DeviceError, MissingFrames, OSError, TrainingDiverged)
 
 
 # Commands whose library code reports input that does not fit (a method the scan has no codes for, a
@@ -160,10 +160,12 @@ def cmd_decode(args) -> int:
 
     import numpy as np
 
-    from .decode import METHODS, reconstruct_depth, write_ply
+    from .decode import METHODS, reconstruct_depth
     from .evaluation.metrics import format_table
-    from .scans.scan import load_scan, write_depth_png
+    from .evaluation.outputs import write_depth_png
+    from .evaluation.outputs import write_points_ply as write_ply
     from .evaluation.viz import ensure_dir, save_depth_color
+    from .scans.scan import load_scan
 
     scan = load_scan(args.scan)
     params = {"min_amplitude": args.min_amplitude}
@@ -466,14 +468,14 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
+    except BrokenPipeError:  # output piped into `head` and the like
+        return 0
     except _user_errors() as e:
         return _report(args, e)
     except ValueError as e:
         if args.command not in _VALUE_ERRORS_ARE_USER_ERRORS:
             raise
         return _report(args, e)
-    except BrokenPipeError:  # output piped into `head` and the like
-        return 0
     except KeyboardInterrupt:
         print(f"slwarp {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -62,11 +62,11 @@ def run_demo(out_dir="slwarp-demo", scene: str = DEMO_SCENE, config=None, preset
     from .decode import reconstruct_depth
     from .devices import torch_device, warp_device
     from .evaluation.metrics import depth_metrics, format_table
+    from .evaluation.outputs import write_depth
     from .evaluation.viz import save_depth_color, save_error_map, save_point_cloud_render
     from .neural.config import default_preset_name, preset
     from .neural.extract import depth_to_points
     from .neural.reconstruct import reconstruct
-    from .scans.scan import write_depth_png
     from .sim.simulate import simulate_scene
 
     t0 = time.perf_counter()
@@ -99,8 +99,7 @@ def run_demo(out_dir="slwarp-demo", scene: str = DEMO_SCENE, config=None, preset
         depth, _, _ = reconstruct_depth(scan, "gc-interp", frames=frames)
         folder = out / f"gc{bits}-interp"
         folder.mkdir(exist_ok=True)
-        np.save(folder / "depth.npy", depth.astype(np.float32))
-        write_depth_png(folder / "depth.png", depth)
+        write_depth(folder, depth)
         m = depth_metrics(depth, scan.gt_depth, scan.mask)
         (folder / "metrics.json").write_text(json.dumps({"method": "gc-interp", "frames": frames.split(","), "metrics": m}, indent=1))
         results[f"GC({bits}) interp"] = {"depth": depth, "metrics": m, "patterns": bits}

@@ -6,11 +6,12 @@
 
 Modules: frames (which frame is what, from its name), gray (Gray code tables, binarisation, stripe
 interpolation), phase (wrapped phase, unwrapping), cgc (Gray code + phase: CGC and the GT pipeline),
-triangulate (plane and ray-ray midpoint triangulation, PLY output), methods (the registry).
+triangulate (plane and ray-ray midpoint triangulation), methods (the registry). Point clouds are written by
+slwarp.evaluation.outputs.
 """
 from .frames import MissingFrames
 from .methods import METHODS, Decoding, decode, finalize_positions, reconstruct_depth
-from .triangulate import choose_plane_axis, triangulate, triangulate_midpoint, triangulate_plane, write_ply
+from .triangulate import choose_plane_axis, triangulate, triangulate_midpoint, triangulate_plane
 
 __all__ = [
     "METHODS",
@@ -23,5 +24,4 @@ __all__ = [
     "triangulate_plane",
     "triangulate_midpoint",
     "choose_plane_axis",
-    "write_ply",
 ]

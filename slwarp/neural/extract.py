@@ -162,13 +162,3 @@ def depth_to_points(depth: np.ndarray, camera) -> np.ndarray:
     d = camera_ray_grid(camera)
     ok = np.isfinite(depth)
     return (d[ok] / d[ok][:, 2:3] * depth[ok][:, None]).astype(np.float32)
-
-
-def save_points_ply(path, points: np.ndarray, intensity: np.ndarray | None = None) -> None:
-    import trimesh
-
-    colors = None
-    if intensity is not None:
-        g = (np.clip(intensity, 0, 1) * 255).astype(np.uint8)
-        colors = np.stack([g, g, g, np.full_like(g, 255)], -1)
-    trimesh.PointCloud(points, colors=colors).export(path)

@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .extract import depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, save_points_ply, sphere_trace_depth
+from ..evaluation.outputs import write_depth, write_mesh_ply, write_points_ply
+from .extract import depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, sphere_trace_depth
 from .pattern_model import photometric_filter
-from ..scans.scan import write_depth_png
 from .config import TrainConfig, save_config
 from .train import Trainer
 
@@ -109,14 +109,12 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
     timings = {"setup_s": t1 - t0, "train_s": t2 - t1, "train_wall_s_total": trainer.elapsed,
                "iterations": trainer.iteration, **ext_t, "total_s": time.perf_counter() - t0}
     if out is not None:
-        np.save(out / "depth.npy", depth.astype(np.float32))
-        write_depth_png(out / "depth.png", depth)
+        write_depth(out, depth)
         rng = (np.nanpercentile(scan.gt_depth, 1), np.nanpercentile(scan.gt_depth, 99)) if scan.gt_depth is not None and np.isfinite(scan.gt_depth).any() else None
         save_depth_color(out / "depth_color.png", depth, rng)
         if mesh is not None:
-            mesh.export(out / "mesh.ply")
-        inten = scan.images.max(0)[np.isfinite(depth)]
-        save_points_ply(out / "points.ply", points, inten)
+            write_mesh_ply(out / "mesh.ply", mesh)
+        write_points_ply(out / "points.ply", points, scan.images.max(0)[np.isfinite(depth)])
         trainer.save_history(out)
         if metrics is not None:
             doc = {"method": "neural-sdf", "frames": list(scan.names), "mask": "scan mask", "metrics": metrics}

@@ -48,10 +48,6 @@ class SimOptions:
     texture: bool = True  # per-object albedo textures where the scene defines them
     seed: int = 0
 
-    def ideal(self) -> "SimOptions":
-        """The same settings with noise, defocus, gamma and quantisation off."""
-        return SimOptions(**{**asdict(self), "noise": False, "defocus": False, "gamma": 1.0, "bits": 0})
-
 
 @dataclass
 class RenderedGeometry:
