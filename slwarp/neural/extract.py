@@ -17,6 +17,7 @@ import torch
 
 from ..devices import warp_device
 from .field import Volume
+from .progress import Progress
 from slwarp.kernels import runtime
 from slwarp.kernels.simulate import first_hit_depth, mesh_hits
 
@@ -25,8 +26,6 @@ from slwarp.kernels.simulate import first_hit_depth, mesh_hits
 def sdf_grid(field, volume: Volume, resolution: int, device, chunk: int = 1 << 18, progress: bool = False):
     """SDF values [nx, ny, nz] (float32 numpy, mm) on a grid with `resolution` cells along the volume's
     largest side; returns (values, origin [3] mm, spacing mm)."""
-    from tqdm import tqdm
-
     lo, hi = np.asarray(volume.lo), np.asarray(volume.hi)
     h = float((hi - lo).max() / resolution)
     n = np.maximum(np.ceil((hi - lo) / h).astype(int) + 1, 2)
@@ -35,10 +34,12 @@ def sdf_grid(field, volume: Volume, resolution: int, device, chunk: int = 1 << 1
     plane = n[1] * n[2]
     yz = torch.stack(torch.meshgrid(axes[1], axes[2], indexing="ij"), -1).reshape(-1, 2)
     step = max(1, chunk // plane)
-    for i0 in tqdm(range(0, n[0], step), desc="SDF grid", unit="slab", disable=not progress, leave=False):
-        xs = axes[0][i0 : i0 + step]
-        pts = torch.cat([xs[:, None, None].expand(-1, plane, 1), yz[None].expand(len(xs), -1, -1)], -1)
-        out[i0 : i0 + len(xs)] = field(pts.reshape(-1, 3)).reshape(len(xs), n[1], n[2]).float().cpu().numpy()
+    with Progress(len(range(0, n[0], step)), "SDF grid", unit="slab", enabled=progress, leave=False) as bar:
+        for i0 in range(0, n[0], step):
+            xs = axes[0][i0 : i0 + step]
+            pts = torch.cat([xs[:, None, None].expand(-1, plane, 1), yz[None].expand(len(xs), -1, -1)], -1)
+            out[i0 : i0 + len(xs)] = field(pts.reshape(-1, 3)).reshape(len(xs), n[1], n[2]).float().cpu().numpy()
+            bar.update()
     return out, lo, h
 
 

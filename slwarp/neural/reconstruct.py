@@ -72,7 +72,8 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
     """Train the neural SDF on `scan` and extract its depth map (see module docstring).
 
     use_mask: also restrict the depth map to the scan's mask (by default only to the pixels lit with
-    enough contrast in the images, the same information the classical decoders use).
+    enough contrast in the images, the same information the classical decoders use). progress: a bar on a
+    terminal, else a line every few seconds; log_every_s: progress lines every this many seconds in any case.
     """
     from ..evaluation.metrics import depth_metrics, error_map
     from ..evaluation.viz import save_depth_color, save_map_with_colorbar
@@ -82,19 +83,9 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
         out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     trainer = Trainer(scan, config, out_dir=out / "train" if out is not None else None, resume=resume,
-                      depth_range=depth_range, progress=progress)
+                      depth_range=depth_range, progress=progress or bool(log_every_s), progress_interval_s=log_every_s)
     t1 = time.perf_counter()
-    callback = None
-    if log_every_s:  # plain log lines (no progress bar) for logs and batch runs
-        last = [time.perf_counter()]
-
-        def callback(tr):
-            if time.perf_counter() - last[0] >= log_every_s:
-                last[0] = time.perf_counter()
-                h = tr.history
-                print(f"  it {tr.iteration}: loss {h.loss[-1]:.4f} rc {h.color[-1]:.4f} sc {h.surface[-1]:.4f} "
-                      f"eik {h.eikonal[-1]:.3f} inv_s {h.inv_s[-1]:.3g} ({time.perf_counter() - t1:.0f} s)", flush=True)
-    trainer.train(callback=callback)
+    trainer.train()
     if trainer.device.type == "cuda":
         torch.cuda.synchronize(trainer.device)
     t2 = time.perf_counter()

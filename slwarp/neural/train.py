@@ -34,6 +34,7 @@ from ..devices import torch_device
 from ..scans.scan import ScanError
 from .config import TrainConfig
 from .field import NeuSField, Volume
+from .progress import Progress
 from .pattern_model import blur_patterns, estimate_pattern_blur, lit_with_contrast, offset_and_modulation
 from .render import StructuredLightRenderer
 from .search import search_depth
@@ -65,12 +66,14 @@ class Trainer:
     """
 
     def __init__(self, scan, config: TrainConfig, out_dir: str | os.PathLike | None = None, resume: bool = False,
-                 sdf: torch.nn.Module | None = None, depth_range=None, progress: bool = True, init_depth=None):
+                 sdf: torch.nn.Module | None = None, depth_range=None, progress: bool = True, init_depth=None,
+                 progress_interval_s: float | None = None):
         self.scan = scan
         self.cfg = config.validate()
         self.device = torch_device(config.runtime.device)
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self.progress = progress
+        self.progress_interval_s = progress_interval_s
         depth_range = depth_range or scan.depth_range
         if depth_range is None:
             raise ScanError(f"{scan.source or 'scan'}: no depth range in the scan: give one (near, far) in mm "
@@ -372,11 +375,9 @@ class Trainer:
         """Run to `iters` (default: the config's) iterations, checkpointing as configured.
 
         Raises TrainingDiverged on a non-finite loss, keeping the last good checkpoint."""
-        from tqdm import tqdm
-
         total = iters if iters is not None else self.cfg.schedule.iters + self.warmup_iters
-        bar = tqdm(total=total, initial=self.iteration, desc="training", unit="it", disable=not self.progress,
-                   dynamic_ncols=True, leave=True)
+        bar = Progress(total, "training", initial=self.iteration, enabled=self.progress,
+                       interval_s=self.progress_interval_s)
         t_start = time.perf_counter() - self.elapsed
         try:
             while self.iteration < total:
@@ -402,10 +403,10 @@ class Trainer:
                     h.inv_s.append(float(self.renderer.inv_s().detach()))
                     h.frames.append(self.n_frames)
                     bar.set_postfix(loss=f"{v['loss']:.4f}", rc=f"{v['color']:.4f}", sc=f"{v['surface']:.4f}",
-                                    eik=f"{v['eikonal']:.3f}", inv_s=f"{h.inv_s[-1]:.3g}", frames=self.n_frames, refresh=False)
+                                    eik=f"{v['eikonal']:.3f}", inv_s=f"{h.inv_s[-1]:.3g}", frames=self.n_frames)
                     if callback is not None:
                         callback(self)
-                bar.update(1)
+                bar.update()
                 if self.out_dir is not None and self.iteration % self.cfg.runtime.checkpoint_every == 0:
                     self.elapsed = time.perf_counter() - t_start
                     self.save_checkpoint()
