@@ -33,7 +33,7 @@ import torch
 from ..devices import torch_device
 from ..scans.scan import ScanError
 from .config import TrainConfig
-from .field import NeuSField, Volume
+from .field import Volume, make_field
 from .progress import Progress
 from .pattern_model import blur_patterns, estimate_pattern_blur, lit_with_contrast, offset_and_modulation
 from .render import StructuredLightRenderer
@@ -98,10 +98,8 @@ class Trainer:
             raise ScanError(f"{scan.source or 'scan'}: no pixel is lit with contrast (modulation above "
                             f"{config.sampling.contrast_threshold}) in the frames used")
         self.volume = Volume.from_frustum(scan.camera, lit, self.depth_range)
-        self.field = sdf if sdf is not None else NeuSField(self.volume, hidden=config.field.hidden, layers=config.field.layers,
-                                                            skip=config.field.skip, n_freqs=config.field.n_freqs,
-                                                            init="camera" if config.init.method == "camera" else "sphere",
-                                                            far=self.depth_range[1])
+        self.field = sdf if sdf is not None else make_field(
+            config.field, self.volume, init="camera" if config.init.method == "camera" else "sphere", far=self.depth_range[1])
         self.renderer = StructuredLightRenderer(
             self.field, scan.camera, scan.projector, scan.patterns[: self.n_frames], images, depth_range=self.depth_range,
             volume=self.volume, n_samples=config.sampling.n_samples, n_importance=config.sampling.n_importance,
