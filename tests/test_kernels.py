@@ -6,6 +6,7 @@ import pytest
 import torch
 import warp as wp
 
+from slwarp.devices import warp_device
 from slwarp.kernels import runtime
 from slwarp.kernels.geometry import bilinear_channel, pattern_sampler
 
@@ -107,8 +108,8 @@ def test_array_descriptors_carry_strides_and_vector_elements(device, layout):
     x = x.to(device)
     out = torch.empty(5, device=device)
     wp_ = runtime.init()
-    from slwarp.devices import warp_device
-
+    if x.device.type == "cuda":
+        torch.cuda.synchronize()  # Warp launches on its own stream here: torch's copy must be done
     wp_.launch(_sum_vec3, dim=5, inputs=[runtime.array_desc(x, 3), runtime.array_desc(out)], device=warp_device(x.device))
     if x.device.type == "cuda":
         wp_.synchronize_device(warp_device(x.device))

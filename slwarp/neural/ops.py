@@ -216,9 +216,8 @@ class _KernelOutputs(NamedTuple):
     trans: torch.Tensor
 
 
-# the inputs autograd saves as tensors (the others are constants); the ones that get gradients
+# the inputs autograd saves as tensors (the others are constants)
 _SAVED_INPUTS = ("sdf", "sdf_grad", "z_vals", "rays_o", "rays_d", "a", "b", "patterns_hwn", "inv_s")
-_DIFFERENTIABLE = ("sdf", "sdf_grad", "inv_s")
 
 
 def _kernel_inputs(inp: RenderInputs) -> list:
@@ -310,7 +309,7 @@ def _backward(ctx, *grads):
         d_sdf, d_grad, d_inv_s = _render_backward(*inp, trans, surface, weight_sum, *cots)
     else:
         d_sdf, d_grad, d_inv_s = _render_backward_impl(inp, trans, surface, weight_sum, *cots)
-    grads_in = dict(sdf=d_sdf, sdf_grad=d_grad, inv_s=d_inv_s)
+    grads_in = dict(sdf=d_sdf, sdf_grad=d_grad, inv_s=d_inv_s)  # the differentiable inputs
     return tuple(grads_in.get(k) for k in RenderInputs._fields)
 
 

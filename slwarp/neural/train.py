@@ -34,8 +34,8 @@ from ..devices import torch_device
 from ..scans.scan import ScanError
 from .config import TrainConfig
 from .field import Volume, make_field
-from .progress import Progress
 from .pattern_model import blur_patterns, estimate_pattern_blur, lit_with_contrast, offset_and_modulation
+from .progress import Progress
 from .render import StructuredLightRenderer
 from .search import search_depth
 
@@ -60,9 +60,11 @@ class History:
 class Trainer:
     """Trains a NeuSField (or a given SDF module) on a scan with the structured-light renderer.
 
-    scan: a slwarp.Scan (its depth_range is required). out_dir: where checkpoints and logs go (None: no
-    checkpoints). resume: continue from out_dir/checkpoint.pt when it exists. sdf: an optional SDF module
-    to train instead of a fresh NeuSField.
+    scan: a slwarp.Scan (its depth_range is required unless depth_range (near, far) mm is given); config: a
+    TrainConfig (validated here). out_dir: where checkpoints go (None: no checkpoints). resume: continue from
+    out_dir/checkpoint.pt. sdf: an SDF module to train instead of the config's field. init_depth [H, W] (mm):
+    a starting depth map for the warm-up instead of the depth search. progress: a bar on a terminal, else a
+    line every progress_interval_s seconds (default 10; given: lines in any case).
     """
 
     def __init__(self, scan, config: TrainConfig, out_dir: str | os.PathLike | None = None, resume: bool = False,
