@@ -114,6 +114,14 @@ def test_trainer_builds_the_renderer_around_its_field(small_scan):
     assert tr.iteration == 1
 
 
+def test_unfittable_pattern_blur_is_a_scan_error(small_scan):
+    from slwarp.scans.scan import ScanError
+
+    no_depth = np.full((small_scan.camera.height, small_scan.camera.width), np.nan, np.float32)
+    with pytest.raises(ScanError, match="cannot fit the pattern blur .*only 0 pixels"):
+        Trainer(small_scan.select("0:6"), tiny(), init_depth=no_depth, progress=False)
+
+
 def test_non_finite_loss_stops_with_a_clear_message(small_scan, tmp_path):
     from slwarp.neural.train import TrainingDiverged
 

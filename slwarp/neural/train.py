@@ -129,9 +129,13 @@ class Trainer:
         if config.sampling.pattern_blur == "auto" and not resume:
             sigma, fit = 1.0, None
             if init_depth is not None:
-                sigma, fit = estimate_pattern_blur(scan.camera, scan.projector, scan.images[: self.n_frames],
-                                                   scan.patterns[: self.n_frames], np.asarray(init_depth, np.float32).reshape(
-                                                       scan.camera.height, scan.camera.width))
+                try:
+                    sigma, fit = estimate_pattern_blur(scan.camera, scan.projector, images, scan.patterns[: self.n_frames],
+                                                       np.asarray(init_depth, np.float32).reshape(scan.camera.height,
+                                                                                                  scan.camera.width))
+                except ValueError as e:  # too few pixels with a starting depth: the scan does not fit its model
+                    raise ScanError(f"{scan.source or 'scan'}: cannot fit the pattern blur ({e}); check the depth range "
+                                    "and the patterns, or give a fixed pattern_blur (--pattern-blur)") from None
             self.renderer.set_pattern_blur(sigma)
             self.blur_fit = fit
         if init_depth is not None:
