@@ -16,14 +16,12 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 DEFAULT_DATA = REPO.parent / "shared" / "data" / "procam_chessboard"
 DEPTH_RANGE = (1050.0, 1750.0)  # the full decode spans 1117 to 1649 mm (0.5 and 99.5 percentiles)
 SEVEN_ROWS = "gray:row:bit=0-6:noinv"  # the 7 most significant row bits, no inverses (role selector)
@@ -37,7 +35,8 @@ def main(argv=None):
     from slwarp.evaluation.metrics import chessboard_region, plane_rms
     from slwarp.neural.extract import depth_to_points
     from slwarp.neural.reconstruct import reconstruct
-    from slwarp.neural.train import preset
+    from slwarp.devices import torch_device
+    from slwarp.neural.config import default_preset_name, preset
     from slwarp.scans.scan import load_scan
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -68,9 +67,8 @@ def main(argv=None):
         d, _, dec = reconstruct_depth(scan, method, frames=frames, depth_range=DEPTH_RANGE)
         record(name, d, time.perf_counter() - t, len(dec.frames), dec.extra["triangulation"])
     if not args.skip_neural:
-        dev = "cuda" if torch.cuda.is_available() else "cpu"
-        name = args.preset or ("paper" if dev == "cuda" else "cpu")
-        cfg = preset(name, iters=args.iters)
+        name = args.preset or default_preset_name(torch_device("auto"))
+        cfg = preset(name, **({"iters": args.iters} if args.iters is not None else {}))
         seven = scan.select(SEVEN_ROWS)
         t = time.perf_counter()
         res = reconstruct(seven, cfg, out_dir=None, depth_range=DEPTH_RANGE, progress=False, log_every_s=30)

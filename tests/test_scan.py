@@ -10,7 +10,8 @@ import yaml
 
 from slwarp.cli import main as cli_main
 from slwarp.scans.patterns import gray_code
-from slwarp.scans.scan import Scan, ScanError, load_scan, read_depth, write_depth_png
+from slwarp.evaluation.outputs import write_depth_png
+from slwarp.scans.scan import Scan, ScanError, load_scan, read_depth
 from slwarp.scans.scanner import Camera, Projector, look_at_rotation
 
 

@@ -7,12 +7,12 @@
 Modules: frames (which frames a method uses, from the scan's frame roles), gray (Gray code tables,
 binarisation, stripe interpolation along the code gradient), phase (wrapped phase, unwrapping), cgc (Gray
 code + phase: CGC and the GT pipeline), triangulate (plane, both-coordinate and ray-ray midpoint
-triangulation chosen from the rig, PLY output), methods (the registry).
+triangulation chosen from the rig), methods (the registry). Point clouds are written by slwarp.evaluation.outputs.
 """
 from .frames import MissingFrames
 from .methods import METHODS, Decoding, decode, finalize_positions, reconstruct_depth
 from .triangulate import (baseline_alignment, choose_plane_axis, choose_triangulation, triangulate, triangulate_midpoint,
-                          triangulate_plane, triangulate_rays, write_ply)
+                          triangulate_plane, triangulate_rays)
 
 __all__ = [
     "METHODS",
@@ -28,5 +28,4 @@ __all__ = [
     "baseline_alignment",
     "choose_plane_axis",
     "choose_triangulation",
-    "write_ply",
 ]

@@ -24,14 +24,12 @@ Conventions: mm, camera frame (OpenCV axes), X_p = R X_c + T; outputs NaN where 
 """
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from ..scans.scanner import Camera, Projector
 
 __all__ = ["baseline_alignment", "choose_plane_axis", "choose_triangulation", "camera_rays", "triangulate_plane",
-           "triangulate_rays", "triangulate_midpoint", "triangulate", "write_ply"]
+           "triangulate_rays", "triangulate_midpoint", "triangulate"]
 
 TRIANGULATION_MODES = ("auto", "col", "row", "both", "midpoint")
 # on a baseline this far (deg) from both projector axes, both coordinates carry depth and 'auto' uses both
@@ -286,37 +284,3 @@ def triangulate(camera: Camera, projector: Projector, col: np.ndarray | None = N
         depth[out] = np.nan
         pts[out] = np.nan
     return depth, pts, info
-
-
-def write_ply(path, points: np.ndarray, colors: np.ndarray | None = None) -> int:
-    """Write the finite points of points [..., 3] (mm) as a binary little-endian PLY; colors [...] gray
-    or [..., 3] RGB, in [0, 1] or uint8, optional. Returns the number of points written."""
-    pts = np.asarray(points, np.float64).reshape(-1, 3)
-    keep = np.isfinite(pts).all(1)
-    pts = pts[keep].astype("<f4")
-    rgb = None
-    if colors is not None:
-        c = np.asarray(colors)
-        c = c.reshape(-1, 3) if c.ndim >= 2 and c.shape[-1] == 3 and c.size == 3 * keep.size else c.reshape(-1, 1)
-        if c.shape[0] != keep.size:
-            raise ValueError(f"colors hold {c.shape[0]} entries for {keep.size} points")
-        if c.dtype != np.uint8:
-            c = np.clip(np.rint(np.asarray(c, np.float64) * 255), 0, 255).astype(np.uint8)
-        rgb = np.repeat(c, 3, axis=1) if c.shape[1] == 1 else c
-        rgb = rgb[keep]
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(pts)}",
-              "property float x", "property float y", "property float z"]
-    if rgb is not None:
-        header += ["property uchar red", "property uchar green", "property uchar blue"]
-    header.append("end_header")
-    if rgb is None:
-        body = pts.tobytes()
-    else:
-        rec = np.empty(len(pts), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
-        rec["x"], rec["y"], rec["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
-        rec["r"], rec["g"], rec["b"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
-        body = rec.tobytes()
-    with open(Path(path), "wb") as f:
-        f.write(("\n".join(header) + "\n").encode("ascii"))
-        f.write(body)
-    return len(pts)

@@ -22,10 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ..evaluation.outputs import write_depth_png
 from .roles import FrameRole, RoleError, parse_role, parse_selector, resolve_roles, role_groups
 from .scanner import CalibrationError, Camera, Projector, check_rotation
 
-__all__ = ["Scan", "ScanError", "load_scan", "read_image", "read_depth", "write_depth_png"]
+__all__ = ["Scan", "ScanError", "load_scan", "read_image", "read_depth"]
 
 SCAN_FILE = "scan.yaml"
 
@@ -104,16 +105,6 @@ def read_depth(path: str | os.PathLike, what: str = "depth") -> np.ndarray:
     d = img.astype(np.float32) / 10.0
     d[img == 0] = np.nan
     return d
-
-
-def write_depth_png(path: str | os.PathLike, depth: np.ndarray) -> None:
-    """Write depth (mm, NaN invalid) as a 16-bit PNG in 0.1 mm units, 0 = invalid."""
-    import cv2
-
-    d = np.asarray(depth, np.float64)
-    q = np.where(np.isfinite(d) & (d > 0), np.clip(np.rint(d * 10.0), 1, 65535), 0).astype(np.uint16)
-    if not cv2.imwrite(str(path), q):
-        raise ScanError(f"could not write depth PNG: {path}")
 
 
 def _read_mask(path: Path) -> np.ndarray:

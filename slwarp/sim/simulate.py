@@ -18,6 +18,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from ..devices import warp_device
 from ..scans.patterns import PatternSet, named_set
 from .rigs import DEPTH_RANGE_MM, make_rig
 from ..scans.scan import Scan
@@ -46,10 +47,6 @@ class SimOptions:
     ref_dist: float = 750.0  # mm
     texture: bool = True  # per-object albedo textures where the scene defines them
     seed: int = 0
-
-    def ideal(self) -> "SimOptions":
-        """The same settings with noise, defocus, gamma and quantisation off."""
-        return SimOptions(**{**asdict(self), "noise": False, "defocus": False, "gamma": 1.0, "bits": 0})
 
 
 @dataclass
@@ -80,12 +77,6 @@ def _merge_objects(objects: list[SceneObject]):
     return np.concatenate(verts), np.concatenate(faces), np.concatenate(face_obj), np.concatenate(normals)
 
 
-def _default_device() -> str:
-    import torch
-
-    return "cuda:0" if torch.cuda.is_available() else "cpu"
-
-
 def render_geometry(objects: list[SceneObject], camera: Camera, projector: Projector, options: SimOptions,
                     device: str | None = None) -> RenderedGeometry:
     """Ray-cast the scene for every camera pixel (see module docstring)."""
@@ -94,7 +85,7 @@ def render_geometry(objects: list[SceneObject], camera: Camera, projector: Proje
     from slwarp.kernels.simulate import cast_camera_rays
 
     wp = runtime.init()
-    device = device or _default_device()
+    device = warp_device(device)
     t0 = time.perf_counter()
     verts, faces, face_obj, vnormals = _merge_objects(objects)
     with wp.ScopedDevice(device):
@@ -149,7 +140,7 @@ def sample_projected_patterns(geom: RenderedGeometry, patterns: np.ndarray, opti
     from slwarp.kernels.simulate import sample_patterns
 
     wp = runtime.init()
-    device = device or _default_device()
+    device = warp_device(device)
     if options.defocus:
         zl = geom.z_proj[geom.lit]
         rel = np.abs(zl - options.focus_dist).max() / options.focus_dist if zl.size else 0.0
