@@ -127,8 +127,9 @@ def _check_backend(backend: str):
 
 
 def _twin_geometry(x: torch.Tensor, meta: torch.Tensor, active: torch.Tensor):
-    """Per point, level and corner: table rows [P, L, 8] (long), weights [P, L, 8], weight gradients
-    [P, L, 8, 3] (d w / dx in unit-cube units) and the level switch [L] (1 active, 0 off), in x's dtype."""
+    """Per point and level: the table rows of the 8 corners [P, L, 8] (long; corner c = x bit + 2 y bit +
+    4 z bit), per-axis weight factors wf [P, L, 3, 2] (lower, upper corner), their derivatives in x
+    dwf [P, L, 3, 2] (unit-cube units, 0 where clamped) and the level switch [L] (1 on, 0 off)."""
     dt, dev = x.dtype, x.device
     meta = meta.to(device=dev, dtype=torch.long)
     res_i, offset, size, hashed = meta.unbind(1)  # [L] each
@@ -139,41 +140,46 @@ def _twin_geometry(x: torch.Tensor, meta: torch.Tensor, active: torch.Tensor):
     uc = torch.where(inside, u, torch.where(u > res, res.expand_as(u), zero))  # NaN -> 0, as the kernel
     cell = torch.minimum(torch.floor(uc.detach()), res - 1)
     t = uc - cell  # [P, L, 3]; d t / d u = 1 inside, 0 where clamped (torch.where routes no gradient)
-    bits = (torch.arange(8, device=dev)[:, None] >> torch.arange(3, device=dev)) & 1  # [8, 3]: corner c's (x, y, z) bits
-    v = cell.long()[:, :, None, :] + bits  # [P, L, 8, 3] vertex indices
-    vx, vy, vz = v.unbind(-1)
+    v = cell.long()[..., None] + torch.arange(2, device=dev)  # [P, L, 3, 2] vertex index per axis and corner bit
+    vx, vy, vz = v.unbind(2)  # [P, L, 2] each; corners broadcast as [P, L, z, y, x]
     n = (res_i + 1)[None, :, None]
-    dense = vx + n * (vy + n * vz)
-    hashed_row = ((vx * PRIMES[0]) ^ (vy * PRIMES[1]) ^ (vz * PRIMES[2])) & (size[None, :, None] - 1)
-    rows = offset[None, :, None] + torch.where(hashed.bool()[None, :, None], hashed_row, dense)
-    tc = t[:, :, None, :]  # [P, L, 1, 3]
-    wf = torch.where(bits.bool(), tc, 1 - tc)  # [P, L, 8, 3] per-axis factors
-    wx, wy, wz = wf.unbind(-1)
-    w = wx * wy * wz
-    sign = (2 * bits - 1).to(dt)  # +1 upper corner, -1 lower
-    chain = (res * inside.to(dt))[:, :, None, :]  # d u / dx per axis (0 where clamped)
-    dw = torch.stack([wy * wz, wx * wz, wx * wy], -1) * sign * chain
+    dense = vx[:, :, None, None, :] + n[..., None, None] * (vy[:, :, None, :, None] + n[..., None, None] * vz[:, :, :, None, None])
+    h = (vx * PRIMES[0])[:, :, None, None, :] ^ (vy * PRIMES[1])[:, :, None, :, None] ^ (vz * PRIMES[2])[:, :, :, None, None]
+    h = h & (size - 1)[None, :, None, None, None]
+    rows = torch.where(hashed.bool()[None, :, None, None, None], h, dense) + offset[None, :, None, None, None]
+    wf = torch.stack([1 - t, t], -1)  # [P, L, 3, 2]
+    chain = res * inside.to(dt)  # d u / dx per axis
+    dwf = torch.stack([-chain, chain], -1)
     on = (torch.arange(meta.shape[0], device=dev) < active.to(dev).reshape(-1)[0]).to(dt)  # [L]
-    return rows, w, dw, on
+    return rows.flatten(2), wf, dwf, on
+
+
+def _corners(fx: torch.Tensor, fy: torch.Tensor, fz: torch.Tensor) -> torch.Tensor:
+    """Products fx[c_x] fy[c_y] fz[c_z] of per-axis factors [P, L, 2] over the 8 corners -> [P, L, 8]."""
+    return (fz[:, :, :, None, None] * fy[:, :, None, :, None] * fx[:, :, None, None, :]).flatten(2)
 
 
 def twin_encode(x: torch.Tensor, table: torch.Tensor, meta: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
     """Torch twin of the Warp encoding: features [P, L F] of unit-cube points x [P, 3] (see kernels/hashgrid.py)."""
-    rows, w, _, on = _twin_geometry(x, meta, active)
+    rows, wf, _, on = _twin_geometry(x, meta, active)
     P, L = rows.shape[:2]
-    vals = table[rows]  # [P, L, 8, F]
-    feat = (w.to(table.dtype)[..., None] * vals).sum(2) * on.to(table.dtype)[None, :, None]
+    w = _corners(*wf.to(table.dtype).unbind(2))  # [P, L, 8]
+    feat = torch.einsum("plc,plcf->plf", w, table[rows]) * on.to(table.dtype)[None, :, None]
     return feat.reshape(P, L * table.shape[1])
 
 
 def twin_gradient(x: torch.Tensor, table: torch.Tensor, g: torch.Tensor, meta: torch.Tensor,
                   active: torch.Tensor) -> torch.Tensor:
     """Torch twin of the Warp spatial-gradient op: sum_j g[:, j] d feat_j / dx -> [P, 3] (unit-cube units)."""
-    rows, _, dw, on = _twin_geometry(x, meta, active)
+    rows, wf, dwf, on = _twin_geometry(x, meta, active)
     P, L = rows.shape[:2]
-    vals = table[rows]  # [P, L, 8, F]
-    a = (vals * g.reshape(P, L, 1, -1)).sum(-1)  # [P, L, 8]
-    return ((a[..., None] * dw.to(a.dtype)).sum(2) * on.to(a.dtype)[None, :, None]).sum(1)
+    dt = torch.promote_types(table.dtype, g.dtype)
+    wf, dwf = wf.to(dt), dwf.to(dt)
+    a = torch.einsum("plcf,plf->plc", table[rows].to(dt), g.reshape(P, L, -1).to(dt))  # [P, L, 8]
+    wx, wy, wz = wf.unbind(2)
+    dx, dy, dz = dwf.unbind(2)
+    dw = torch.stack([_corners(dx, wy, wz), _corners(wx, dy, wz), _corners(wx, wy, dz)], -1)  # [P, L, 8, 3]
+    return torch.einsum("plc,plcd,l->pd", a, dw, on.to(dt))
 
 
 # ----------------------------------------------------------------------------------------------
