@@ -18,10 +18,10 @@ modes: eager; graph (the whole fwd+bwd captured once as a CUDA graph and replaye
 torch.compile'd (and compiled + graph). Peak memory: torch.cuda.max_memory_allocated during one fwd+bwd,
 minus what was allocated before it (parameters and inputs), on CUDA.
 
-Fields: neus-mlp (NeuSField 8 x 256, skip 4, 6 frequencies, weight norm: today's default field),
-hashgrid-warp (HashGridSDF defaults: 16 levels x 2 features, 2^19 entries, 16..2048 cells, 1 x 64 Softplus,
-analytic gradient, Warp encoding), hashgrid-torch (the same with the torch-twin encoding), hashgrid-warp-fd
-(the tetrahedral finite-difference gradient), hashgrid-warp-2x64 and hashgrid-warp-relu (MLP variants).
+Fields: neus-mlp (NeuSField 8 x 256, skip 4, 6 frequencies, weight norm: today's default field);
+hashgrid-{warp,torch}-{analytic,fd}: HashGridSDF's defaults (16 levels x 2 features, 2^19 entries, 16..2048
+cells, 1 x 64 Softplus) with the Warp or the torch-twin encoding and the analytic or the tetrahedral
+finite-difference gradient; hashgrid-warp-fd-2x64 and hashgrid-warp-fd-relu (MLP variants, on request).
 Points: uniform in the default rig's working volume (~790 mm wide; cells of 0.39 mm at the finest level).
 Writes bench/results/field-<device>.json and .md.
 """
@@ -49,13 +49,14 @@ DEFAULT_VOLUME = Volume((-410.3, -312.0, 434.8), (380.8, 311.1, 1115.2))
 
 FIELDS = {
     "neus-mlp": lambda vol: NeuSField(vol),
-    "hashgrid-warp": lambda vol: HashGridSDF(vol, backend="warp"),
-    "hashgrid-torch": lambda vol: HashGridSDF(vol, backend="torch"),
+    "hashgrid-warp-analytic": lambda vol: HashGridSDF(vol, backend="warp", gradient="analytic"),
+    "hashgrid-torch-analytic": lambda vol: HashGridSDF(vol, backend="torch", gradient="analytic"),
     "hashgrid-warp-fd": lambda vol: HashGridSDF(vol, backend="warp", gradient="finite_difference"),
-    "hashgrid-warp-2x64": lambda vol: HashGridSDF(vol, backend="warp", layers=2),
-    "hashgrid-warp-relu": lambda vol: HashGridSDF(vol, backend="warp", activation="relu"),
+    "hashgrid-torch-fd": lambda vol: HashGridSDF(vol, backend="torch", gradient="finite_difference"),
+    "hashgrid-warp-fd-2x64": lambda vol: HashGridSDF(vol, backend="warp", gradient="finite_difference", layers=2),
+    "hashgrid-warp-fd-relu": lambda vol: HashGridSDF(vol, backend="warp", gradient="finite_difference", activation="relu"),
 }
-DEFAULT_FIELDS = ["neus-mlp", "hashgrid-warp", "hashgrid-torch", "hashgrid-warp-fd"]
+DEFAULT_FIELDS = ["neus-mlp", "hashgrid-warp-analytic", "hashgrid-torch-analytic", "hashgrid-warp-fd", "hashgrid-torch-fd"]
 
 
 def sync(device):
@@ -94,20 +95,22 @@ def check_correctness(device, n: int) -> dict:
     """The Warp hash-grid field against the torch-twin field (same parameters), and NeuS's explicit
     gradient against autograd. Raises AssertionError with the numbers when they disagree."""
     out = {}
-    torch.manual_seed(0)
-    warp_field = roughen(HashGridSDF(DEFAULT_VOLUME, backend="warp")).to(device)
-    twin_field = HashGridSDF(DEFAULT_VOLUME, backend="torch").to(device)
-    twin_field.load_state_dict(warp_field.state_dict())
     x = points(n, device, seed=1)
-    res = {}
-    for name, field in (("warp", warp_field), ("torch", twin_field)):
-        f, g = field.value_and_gradient(x)
-        loss = ((g.norm(dim=-1) - 1.0) ** 2).mean() + f.abs().mean() / field.scale
-        res[name] = [f.detach(), g.detach(), *torch.autograd.grad(loss, list(field.parameters()))]
-    names = ["f", "grad"] + ["d_" + k for k, _ in warp_field.named_parameters()]
-    out["hashgrid_warp_vs_twin"] = {k: rel_err(a, b) for k, a, b in zip(names, res["warp"], res["torch"])}
-    bad = {k: v for k, v in out["hashgrid_warp_vs_twin"].items() if not v < 1e-4}
-    assert not bad, f"Warp hash grid disagrees with its torch twin: {bad}"
+    for gradient in ("analytic", "finite_difference"):
+        torch.manual_seed(0)
+        warp_field = roughen(HashGridSDF(DEFAULT_VOLUME, backend="warp", gradient=gradient)).to(device)
+        twin_field = HashGridSDF(DEFAULT_VOLUME, backend="torch", gradient=gradient).to(device)
+        twin_field.load_state_dict(warp_field.state_dict())
+        res = {}
+        for name, field in (("warp", warp_field), ("torch", twin_field)):
+            f, g = field.value_and_gradient(x)
+            loss = ((g.norm(dim=-1) - 1.0) ** 2).mean() + f.abs().mean() / field.scale
+            res[name] = [f.detach(), g.detach(), *torch.autograd.grad(loss, list(field.parameters()))]
+        names = ["f", "grad"] + ["d_" + k for k, _ in warp_field.named_parameters()]
+        key = f"hashgrid_{gradient}_warp_vs_twin"
+        out[key] = {k: rel_err(a, b) for k, a, b in zip(names, res["warp"], res["torch"])}
+        bad = {k: v for k, v in out[key].items() if not v < 1e-3}
+        assert not bad, f"Warp hash grid ({gradient} gradient) disagrees with its torch twin: {bad}"
     neus = NeuSField(DEFAULT_VOLUME).to(device)
     xs = points(min(n, 4096), device, seed=2).requires_grad_()
     f = neus(xs)
@@ -139,7 +142,7 @@ def fitted_field(steps: int) -> HashGridSDF:
     value + 0.1 Eikonal, Adam 1e-2 on the tables and 1e-3 on the MLP as in Instant-NGP/NeuS2): a field with
     mm-scale detail at the finest levels, like a trained one."""
     torch.manual_seed(0)
-    field = HashGridSDF(DEFAULT_VOLUME, backend="warp")
+    field = HashGridSDF(DEFAULT_VOLUME, backend="warp", gradient="analytic")
     opt = torch.optim.Adam([{"params": [field.table], "lr": 1e-2},
                             {"params": [p for n, p in field.named_parameters() if n != "table"], "lr": 1e-3}])
     for i in range(steps):
@@ -158,7 +161,7 @@ def gradient_accuracy(n: int, fit_steps: int) -> dict:
     5 mm of its surface. Errors of the gradient vector relative to |grad| per point; vs_shape: against the
     bumpy sphere's own gradient (how well each method's gradient describes the shape the field learnt)."""
     fitted = fitted_field(fit_steps)
-    ref = HashGridSDF(DEFAULT_VOLUME, backend="torch").double()
+    ref = HashGridSDF(DEFAULT_VOLUME, backend="torch", gradient="analytic").double()
     ref.load_state_dict(fitted.state_dict())
     x64 = near_surface(n, seed=3)
     f_ref, g_ref = ref.value_and_gradient(x64)
@@ -278,7 +281,7 @@ def markdown(doc: dict) -> str:
                      f"{r['first_call_s']:.1f} |")
     ratio = doc.get("warp_over_twin")
     if ratio:
-        lines += ["", "Torch-twin encoding time / Warp encoding time (fwd+bwd): "
+        lines += ["", "Time with the torch-twin encoding / with the Warp encoding (fwd+bwd): "
                   + ", ".join(f"{m}: {v:.2f}x" for m, v in ratio.items())]
     acc = doc.get("accuracy")
     if acc:
@@ -333,8 +336,9 @@ def main(argv=None):
     for f in args.fields:
         rows += time_field(f, device, P, reps, modes)
     by = {(r["field"], r["mode"]): r for r in rows}
-    ratio = {m: by[("hashgrid-torch", m)]["fwd_bwd_ms"] / by[("hashgrid-warp", m)]["fwd_bwd_ms"]
-             for m in modes if ("hashgrid-torch", m) in by and ("hashgrid-warp", m) in by}
+    ratio = {f"{grad} {m}": by[(f"hashgrid-torch-{grad}", m)]["fwd_bwd_ms"] / by[(f"hashgrid-warp-{grad}", m)]["fwd_bwd_ms"]
+             for grad in ("analytic", "fd") for m in modes
+             if (f"hashgrid-torch-{grad}", m) in by and (f"hashgrid-warp-{grad}", m) in by}
     doc = {"command": "python bench/bench_field.py " + " ".join(argv if argv is not None else sys.argv[1:]),
            "date": datetime.date.today().isoformat(), "device": device.type, "device_name": name, "points": P,
            "repeats": reps, "torch": torch.__version__, "warp": warp.__version__, "checks": checks,

@@ -185,7 +185,7 @@ def test_hash_collision_gradients_add_up(device, backend):
 
 def random_field(backend="warp", seed=0, amplitude=0.02, **kw):
     torch.manual_seed(seed)
-    kw = {**dict(levels=6, log2_table_size=12, base_resolution=4, finest_resolution=64, layers=2), **kw}
+    kw = {**dict(levels=6, log2_table_size=12, base_resolution=4, finest_resolution=64, layers=2, gradient="analytic"), **kw}
     f = HashGridSDF(VOL, backend=backend, **kw)
     with torch.no_grad():  # away from the initialisation, so that the grid and every layer matter
         f.table.uniform_(-amplitude, amplitude)
@@ -200,12 +200,13 @@ def volume_points(n, dtype=torch.float32, seed=0, device="cpu"):
     return (torch.rand(n, 3, generator=g, dtype=torch.float64) * (hi - lo) + lo).to(device=device, dtype=dtype)
 
 
-@pytest.mark.parametrize("activation", ["softplus", "relu"])
-def test_field_warp_matches_float64_twin(device, activation):
-    """Value, analytic gradient and the parameter gradients of an Eikonal + value loss: the float32 Warp
-    field against the same field in float64 with the torch-twin encoding (the reference)."""
-    warp_field = random_field("warp", activation=activation).to(device)
-    ref = random_field("torch", activation=activation).double()
+@pytest.mark.parametrize("activation,gradient", [("softplus", "analytic"), ("relu", "analytic"),
+                                                 ("softplus", "finite_difference")])
+def test_field_warp_matches_float64_twin(device, activation, gradient):
+    """Value, gradient and the parameter gradients of an Eikonal + value loss: the float32 Warp field
+    against the same field in float64 with the torch-twin encoding (the reference)."""
+    warp_field = random_field("warp", activation=activation, gradient=gradient).to(device)
+    ref = random_field("torch", activation=activation, gradient=gradient).double()
     ref.load_state_dict(warp_field.state_dict())
     x = volume_points(64, device=device)
     out = {}
@@ -234,6 +235,7 @@ def test_analytic_gradient_matches_autograd_and_finite_differences(backend):
 
 
 def test_finite_difference_gradient():
+    assert HashGridSDF(VOL, levels=2, log2_table_size=8).gradient == "finite_difference"  # the default
     analytic = random_field("torch").double()
     fd = random_field("torch", gradient="finite_difference").double()
     fd.load_state_dict(analytic.state_dict())
@@ -335,8 +337,9 @@ def test_nan_points_stay_in_bounds(device):
     close(w, t, what="features at NaN")  # NaN reads as a clamped coordinate: no out-of-bounds index
 
 
-def test_field_under_torch_compile_has_no_graph_break():
-    f = random_field("warp")
+@pytest.mark.parametrize("gradient", ["analytic", "finite_difference"])
+def test_field_under_torch_compile_has_no_graph_break(gradient):
+    f = random_field("warp", gradient=gradient)
     x = volume_points(32)
 
     def loss_fn(x):
@@ -383,8 +386,9 @@ def test_field_in_the_renderer_trains():
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-def test_cuda_graph_capture_of_forward_and_backward():
-    f = random_field("warp").cuda()
+@pytest.mark.parametrize("gradient", ["analytic", "finite_difference"])
+def test_cuda_graph_capture_of_forward_and_backward(gradient):
+    f = random_field("warp", gradient=gradient).cuda()
     x = volume_points(512, device="cuda")
 
     def step():

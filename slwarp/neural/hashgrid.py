@@ -12,18 +12,24 @@ ones are hashed (Instant-NGP's xor-of-primes hash, 2^log2_table_size entries). F
 MLP (width 64, `layers` hidden layers, Softplus(beta=100) or ReLU) reads [x_n, features] and
 f = scale mlp(...) (mm).
 
-Spatial gradient (the Eikonal term and NeuS's cosine need it, differentiably):
-- gradient="analytic" (default): the MLP's input gradient written out as tensor operations (as
+Spatial gradient (the Eikonal term and NeuS's cosine need it, differentiably; first-order autograd only):
+- gradient="finite_difference" (the default): Neuralangelo's tetrahedral 4 taps,
+  grad ~ sum_i e_i f(x + h e_i) / (4 h), e_i in {(1,-1,-1), (-1,-1,1), (-1,1,-1), (1,1,1)}, h = the finest
+  active level's cell (mm, shrinking as levels switch on); 5 field evaluations per point (the centre gives f).
+- gradient="analytic": the MLP's input gradient written out as tensor operations (as
   NeuSField.value_and_gradient) and the encoding's part by a fused op, grad_x = sum_j g_j d feat_j / dx,
-  contracting the MLP cotangent g with the trilinear weights' spatial derivatives (kernels/hashgrid.py) with
-  a hand-written backward into the tables, g and x. Exact: the gradient of the field that is rendered.
-- gradient="finite_difference": Neuralangelo's tetrahedral 4 taps, grad ~ sum_i e_i f(x + h e_i) / (4 h),
-  e_i in {(1,-1,-1), (-1,-1,1), (-1,1,-1), (1,1,1)}, h = the finest active level's cell (mm); 5 field
-  evaluations per point (the centre gives f) and plain first-order autograd through them. It smooths
-  the gradient over one cell (Neuralangelo's argument for it) and shrinks as levels switch on.
-Cost and accuracy (measured on this project's CPU, bench/bench_field.py and notes/hashgrid.md): see
-notes/hashgrid.md; the analytic gradient matches a float64 reference to float32 rounding, the
-finite difference is off by the field's curvature over one cell.
+  contracting the MLP cotangent g with the trilinear weights' spatial derivatives (kernels/hashgrid.py),
+  with a hand-written backward into the tables, g and x.
+Accuracy (bench/bench_field.py, CPU, a default field fitted to a bumpy sphere, points near its surface,
+against the float64 analytic gradient): analytic float32 median relative error 1e-5 (exact up to
+rounding); finite difference 15% (p99 51%): it is the gradient averaged over one cell, not the field's own.
+Why it is the default anyway (notes/hashgrid.md, small rig, 3 scenes, CPU): trilinear features kink on
+every cell face, and a V-shaped SDF across a face has |grad f| = 1 on both sides, so with the exact
+gradient thin spurious sheets survive the Eikonal term (boxes: MAE 5.49 mm, 18% of pixels > 5 mm off);
+the taps straddle the face and penalise them (boxes 0.64 mm; mean of bunny, vase, boxes 0.575 mm against
+2.17 mm analytic and 0.749 mm for the `cpu` preset's MLP). Cost: a training step of the `cpu` preset
+with an 8-level grid took 178 ms with finite differences, 97 ms analytic, 188 ms with the MLP (CPU, one
+thread); the GPU figures come from bench/bench_field.py.
 
 Encoding ops (`hashgrid_encode`, `hashgrid_gradient`) take unit-cube points and have a Warp backend
 (torch custom ops: eager, torch.compile without graph breaks, CUDA-graph capture; float32) and a
@@ -373,7 +379,7 @@ class HashGridSDF(nn.Module):
     def __init__(self, volume: Volume, *, levels: int = 16, features: int = 2, log2_table_size: int = 19,
                  base_resolution: int = 16, finest_resolution: int = 2048, hidden: int = 64, layers: int = 1,
                  activation: str = "softplus", beta: float = 100.0, init: str = "sphere", init_radius: float = 0.5,
-                 far: float | None = None, table_init: float = 1e-4, gradient: str = "analytic",
+                 far: float | None = None, table_init: float = 1e-4, gradient: str = "finite_difference",
                  backend: str = "warp", active_levels: int | None = None):
         super().__init__()
         if init not in ("sphere", "camera"):
