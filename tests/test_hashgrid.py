@@ -328,6 +328,16 @@ def test_bad_input_is_named():
         HashGridSDF(VOL, gradient="numerical")
 
 
+@pytest.mark.parametrize("gradient", ["analytic", "finite_difference"])
+@pytest.mark.parametrize("backend", ["warp", "torch"])
+def test_no_points(backend, gradient):
+    f = random_field(backend, gradient=gradient)
+    v, g = f.value_and_gradient(torch.zeros(0, 3))
+    assert v.shape == (0,) and g.shape == (0, 3)
+    (v.sum() + g.sum()).backward()
+    assert (f.table.grad == 0).all()
+
+
 def test_nan_points_stay_in_bounds(device):
     x, table, cot, meta = grid_inputs(P=4, device=device)
     x[1, 0] = float("nan")

@@ -181,7 +181,7 @@ def twin_gradient(x: torch.Tensor, table: torch.Tensor, g: torch.Tensor, meta: t
     P, L = rows.shape[:2]
     dt = torch.promote_types(table.dtype, g.dtype)
     wf, dwf = wf.to(dt), dwf.to(dt)
-    a = torch.einsum("plcf,plf->plc", table[rows].to(dt), g.reshape(P, L, -1).to(dt))  # [P, L, 8]
+    a = torch.einsum("plcf,plf->plc", table[rows].to(dt), g.reshape(P, L, table.shape[1]).to(dt))  # [P, L, 8]
     wx, wy, wz = wf.unbind(2)
     dx, dy, dz = dwf.unbind(2)
     dw = torch.stack([_corners(dx, wy, wz), _corners(wx, dy, wz), _corners(wx, wy, dz)], -1)  # [P, L, 8, 3]
