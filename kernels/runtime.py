@@ -35,12 +35,16 @@ def init():
 def array_desc(t, vec: int = 0):
     """A Warp array descriptor (wp.from_torch(..., return_ctype=True)) of a torch tensor, without building
     a wp.array: any strides; vec = 0: the tensor's own shape and element type; vec = 2 or 3: the last axis
-    (contiguous) becomes a vec2/vec3 element, e.g. [R, S, 3] -> array2d of vec3. A 0-d tensor is passed as a
-    1-element array. Kernels accept descriptors verbatim."""
+    (contiguous) becomes a vec2/vec3 element, e.g. [R, S, 3] -> array2d of vec3; any other vec = n: a float32 vector
+    of length n (the hash grid's feature vectors). A 0-d tensor is passed as a 1-element array. Kernels accept
+    descriptors verbatim."""
     wp = init()
     if t.dim() == 0:
         t = t.reshape(1)
-    dtype = {0: None, 2: wp.vec2, 3: wp.vec3}[vec]
+    if vec == 0:
+        dtype = None
+    else:
+        dtype = {2: wp.vec2, 3: wp.vec3}.get(vec) or wp.types.vector(length=vec, dtype=wp.float32)
     return wp.from_torch(t, dtype=dtype, requires_grad=False, return_ctype=True)
 
 
