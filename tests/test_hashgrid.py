@@ -180,7 +180,7 @@ def test_hash_collision_gradients_add_up(device, backend):
     cot = torch.tensor([[1.5, -2.0], [0.25, 4.0]], device=device)
     (d_table,) = torch.autograd.grad((feat * cot).sum(), table)
     torch.testing.assert_close(d_table[shared], cot.sum(0))
-    assert d_table.abs().sum() == pytest.approx(cot.sum(0).abs().sum().item(), rel=1e-6)  # nothing elsewhere
+    assert d_table.abs().sum().item() == pytest.approx(cot.sum(0).abs().sum().item(), rel=1e-6)  # nothing elsewhere
 
 
 def random_field(backend="warp", seed=0, amplitude=0.02, **kw):
