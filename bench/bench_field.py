@@ -77,7 +77,7 @@ def roughen(field: HashGridSDF, amplitude: float = 1e-3, seed: int = 0) -> HashG
     with torch.no_grad():
         field.table.copy_((torch.rand(field.table.shape, generator=g) * 2 - 1) * amplitude)
         for lin in field.linears:
-            lin.weight.add_(torch.randn(lin.weight.shape, generator=g) * 0.05)
+            lin.weight.add_((torch.randn(lin.weight.shape, generator=g) * 0.05).to(lin.weight.device))
     return field
 
 

@@ -406,11 +406,13 @@ def test_cuda_graph_capture_of_forward_and_backward(gradient):
         loss = ((g.norm(dim=-1) - 1) ** 2).mean() + v.abs().mean()
         return torch.autograd.grad(loss, list(f.parameters()))
 
-    ref = step()
     stream = torch.cuda.Stream()
     stream.wait_stream(torch.cuda.current_stream())
     with torch.cuda.stream(stream):
-        step()  # warm-up on the side stream (kernels built, launches recorded)
+        # warm-up on the side stream (kernels built, launches recorded); autograd's per-parameter nodes made
+        # on the legacy stream would make the capture depend on it
+        ref = step()
+        step()
     torch.cuda.current_stream().wait_stream(stream)
     graph = torch.cuda.CUDAGraph()
     with torch.cuda.graph(graph):

@@ -409,6 +409,9 @@ class HashGridSDF(nn.Module):
         cells = [2.0 * self.scale / r for r in self.layout.resolutions]
         self.register_buffer("cell_mm", torch.tensor(cells, dtype=torch.float32), persistent=False)
         self.register_buffer("active", torch.tensor([levels], dtype=torch.int32))
+        # the finite-difference taps' directions live on the device: a host tensor copied inside a CUDA graph
+        # capture is an error
+        self.register_buffer("tetrahedron", torch.tensor(TETRAHEDRON, dtype=torch.float32), persistent=False)
         self.n_active = levels
         self.table = nn.Parameter(torch.empty(self.layout.n_entries, features).uniform_(-table_init, table_init))
         d_in = 3 + levels * features
@@ -535,7 +538,7 @@ class HashGridSDF(nn.Module):
         lead = x.shape[:-1]
         pts = x.reshape(-1, 3)
         h = self.finite_difference_step()
-        e = torch.tensor(TETRAHEDRON, dtype=pts.dtype, device=pts.device)  # [4, 3]
+        e = self.tetrahedron.to(pts.dtype)  # [4, 3]
         taps = torch.cat([pts[None], pts[None] + h * e[:, None, :]], 0)  # [5, P, 3]: centre, then the 4 taps
         vals = self.forward(taps)  # [5, P]
         grad = (vals[1:, :, None] * e[:, None, :]).sum(0) / (4.0 * h)
