@@ -28,6 +28,7 @@ Writes bench/results/field-<device>.json and .md.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import json
 import platform
@@ -334,8 +335,11 @@ def main(argv=None):
               f"vs shape {accuracy[k]['vs_shape_rel_err_median']:.2e}", flush=True)
     print("timings ...", flush=True)
     rows = []
-    for f in args.fields:
-        rows += time_field(f, device, P, reps, modes)
+    # everything on a side stream: autograd's per-parameter nodes made by eager calls on the legacy stream
+    # would make a later graph capture depend on it (the trainer steps on its own stream for the same reason)
+    with torch.cuda.stream(torch.cuda.Stream(device)) if device.type == "cuda" else contextlib.nullcontext():
+        for f in args.fields:
+            rows += time_field(f, device, P, reps, modes)
     by = {(r["field"], r["mode"]): r for r in rows}
     ratio = {f"{grad} {m}": by[(f"hashgrid-torch-{grad}", m)]["fwd_bwd_ms"] / by[(f"hashgrid-warp-{grad}", m)]["fwd_bwd_ms"]
              for grad in ("analytic", "fd") for m in modes
