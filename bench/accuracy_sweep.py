@@ -1,0 +1,302 @@
+"""Accuracy sweep: the neural SDF's presets against Gray code on every rig geometry and scene of the virtual
+scanner, with the paper's 6 random patterns.
+
+One simulated scan per rig and scene (noise on, `SimOptions(seed=SEED)`), holding the paper's 6 random
+patterns and the 7-bit Gray code along the projector axis that carries depth on that rig (columns on
+`default`, `oblique` and `rolled`, rows on `vertical`). The neural presets train on the 6 random patterns
+only (`--frames 'rand*'`); GC(7)-interp and GC(6)-interp decode 7 and 6 of the Gray code images (no
+inverses), triangulated as `slwarp decode` does by default. Metrics over the scan's GT mask: MAE, median,
+share above 5 mm, completeness; means over scenes per rig, as papers report, and the issue's targets
+(mean MAE <= 0.5x GC(7) and <= 0.3x GC(6), completeness within 1 point of GC(7), >5 mm share no higher).
+
+Runs are spread over every GPU, K processes per GPU (`--workers-per-gpu`), or K processes on the CPU. Each
+finished run is kept in --state (one JSON per run), so an interrupted sweep continues where it stopped.
+
+    python bench/accuracy_sweep.py --presets accurate,tuned               # GPU: every rig and scene
+    python bench/accuracy_sweep.py --small --presets tiny --scenes bunny,steps --rigs default,rolled \\
+        --workers 2 --out /tmp/sweep                                      # CPU smoke run
+
+Writes <out>/accuracy-<cpu|cuda>.json and .md (the tables) and prints the markdown.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import sys
+import time
+import traceback
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+CLASSICAL = (("GC(7) interp", "bit=0-6"), ("GC(6) interp", "bit=0-5"))
+KEYS = ("mae", "median", "over_5mm", "completeness")
+
+_DEVICE = None  # this worker process's device, set by _init_worker
+
+
+def _init_worker(devices, threads: int) -> None:
+    global _DEVICE
+    import torch
+
+    _DEVICE = devices.get()
+    torch.set_num_threads(threads)
+    if _DEVICE.startswith("cuda"):
+        torch.cuda.set_device(torch.device(_DEVICE))
+
+
+def _scan(rig: str, scene: str, seed: int, axis_hint: str | None = None):
+    from slwarp.decode import choose_plane_axis
+    from slwarp.sim.rigs import make_rig
+    from slwarp.sim.simulate import SimOptions, simulate_scene
+
+    _, projector = make_rig(rig)
+    axis = choose_plane_axis(projector)
+    gray = "gray7" if axis == "col" else "gray7_row"
+    sim_device = _DEVICE if _DEVICE and _DEVICE.startswith("cuda") else None
+    return simulate_scene(scene, f"random6+{gray}", rig, SimOptions(seed=seed), device=sim_device), axis
+
+
+def run_job(job: dict) -> dict:
+    """One run: {"kind": "classical" | "neural", rig, scene, seed, preset, overrides} -> metrics per method."""
+    t0 = time.perf_counter()
+    try:
+        scan, axis = _scan(job["rig"], job["scene"], job["seed"])
+        out = {"job": job, "device": _DEVICE, "axis": axis, "methods": {}}
+        if job["kind"] == "classical":
+            from slwarp.decode import reconstruct_depth
+            from slwarp.evaluation.metrics import depth_metrics
+
+            for label, bits in CLASSICAL:
+                depth, _, dec = reconstruct_depth(scan, "gc-interp", frames=f"gray:{axis}:{bits}:noinv")
+                m = depth_metrics(depth, scan.gt_depth, scan.mask)
+                m["frames"] = len(dec.frames)
+                out["methods"][label] = m
+        else:
+            from slwarp.neural.config import preset
+            from slwarp.neural.reconstruct import reconstruct
+
+            cfg = preset(job["preset"], device=_DEVICE, **job["overrides"])
+            rec = reconstruct(scan.select("rand*"), cfg, progress=False)
+            m = dict(rec.metrics)
+            m.update(train_s=rec.timings.get("train_s"), total_s=rec.timings.get("total_s"),
+                     iterations=rec.timings.get("iterations"))
+            out["methods"][job["label"]] = m
+        out["wall_s"] = time.perf_counter() - t0
+        return out
+    except Exception as e:  # noqa: BLE001 - one failed run is reported, the sweep goes on
+        return {"job": job, "device": _DEVICE, "error": f"{type(e).__name__}: {e}", "traceback": traceback.format_exc(),
+                "wall_s": time.perf_counter() - t0}
+
+
+def job_key(job: dict) -> str:
+    name = job["label"] if job["kind"] == "neural" else "classical"
+    return f"{name}__{job['rig']}__{job['scene']}__s{job['seed']}".replace("/", "_").replace(":", "_").replace("=", "-")
+
+
+def parse_overrides(text: str | None) -> dict:
+    """'iters=200,rays=512' -> {"iters": 200, "rays": 512} (numbers parsed, the rest kept as text)."""
+    out = {}
+    for item in filter(None, (text or "").split(",")):
+        k, _, v = item.partition("=")
+        for cast in (int, float):
+            try:
+                v = cast(v)
+                break
+            except ValueError:
+                pass
+        out[k.strip()] = v
+    return out
+
+
+def summarise(results: list[dict], rigs: list[str], scenes: list[str], labels: list[str]) -> dict:
+    """{rig: {label: {"per_scene": {scene: metrics}, "mean": {...}}}} and the targets per rig and preset."""
+    table: dict = {r: {} for r in rigs}
+    for res in results:
+        if "error" in res:
+            continue
+        r, s = res["job"]["rig"], res["job"]["scene"]
+        for label, m in res["methods"].items():
+            table[r].setdefault(label, {"per_scene": {}})["per_scene"][s] = m
+    for r in rigs:
+        for label, d in table[r].items():
+            done = [s for s in scenes if s in d["per_scene"]]
+            d["scenes"] = done
+            if len(done) == len(scenes):
+                d["mean"] = {k: float(np.mean([d["per_scene"][s][k] for s in scenes])) for k in KEYS}
+                for k in ("train_s", "total_s"):
+                    vals = [d["per_scene"][s].get(k) for s in scenes]
+                    if all(v is not None for v in vals):
+                        d["mean"][k] = float(np.mean(vals))
+        g7, g6 = (table[r].get(lab, {}).get("mean") for lab, _ in CLASSICAL)
+        for label in labels:
+            ours = table[r].get(label, {}).get("mean")
+            if ours and g7 and g6:
+                table[r][label]["targets"] = {
+                    "mae_over_gc7": ours["mae"] / g7["mae"], "mae_over_gc6": ours["mae"] / g6["mae"],
+                    "completeness_minus_gc7": ours["completeness"] - g7["completeness"],
+                    "over_5mm_minus_gc7": ours["over_5mm"] - g7["over_5mm"]}
+                t = table[r][label]["targets"]
+                t["met"] = bool(t["mae_over_gc7"] <= 0.5 and t["mae_over_gc6"] <= 0.3
+                                and t["completeness_minus_gc7"] >= -0.01 and t["over_5mm_minus_gc7"] <= 0)
+    return table
+
+
+def markdown(doc: dict) -> str:
+    from slwarp.evaluation.metrics import format_table
+
+    rigs, scenes, labels = doc["rigs"], doc["scenes"], doc["labels"]
+    methods = [lab for lab, _ in CLASSICAL] + labels
+    t = doc["table"]
+    md = [f"# Accuracy sweep: presets against Gray code on every rig ({doc['device_name']}, {doc['date']})", "",
+          f"`{doc['command']}`; {doc['workers']} runs at a time on {max(doc['gpus'], 1)} device(s); {doc['wall_s'] / 60:.1f} min. Scans: `random6+gray7` (rows on the vertical rig), "
+          f"SimOptions(seed={doc['seed']}); ours trains on the 6 random patterns; GC(k) interp decodes k Gray code "
+          "images without inverses. Metrics over the GT mask, means over the scenes "
+          f"({', '.join(scenes)}).", ""]
+    if doc["overrides"]:
+        md += [f"Preset overrides: `{doc['overrides']}`.", ""]
+
+    def mean(r, lab, k):
+        return t[r].get(lab, {}).get("mean", {}).get(k, float("nan"))
+
+    md += ["## Mean MAE (mm) per rig", ""]
+    md.append(format_table([(lab, {r: mean(r, lab, "mae") for r in rigs}) for lab in methods],
+                           [(r, r, "{:.3f}") for r in rigs], "method"))
+    md += ["", "## Targets per rig (ours / GC(7), ours / GC(6), completeness and >5 mm share against GC(7))", ""]
+    rows = []
+    for lab in labels:
+        for r in rigs:
+            tg = t[r].get(lab, {}).get("targets")
+            if tg:
+                rows.append((f"{lab} on {r}", {"a": tg["mae_over_gc7"], "b": tg["mae_over_gc6"],
+                                               "c": 100 * tg["completeness_minus_gc7"],
+                                               "d": 100 * tg["over_5mm_minus_gc7"], "e": "yes" if tg["met"] else "no"}))
+    md.append(format_table(rows, [("a", "MAE / GC(7) (<= 0.5)", "{:.2f}"), ("b", "MAE / GC(6) (<= 0.3)", "{:.2f}"),
+                                  ("c", "completeness - GC(7) (pt, >= -1)", "{:+.2f}"),
+                                  ("d", ">5 mm - GC(7) (pt, <= 0)", "{:+.2f}"), ("e", "all met", "{}")], "preset, rig"))
+    for r in rigs:
+        md += ["", f"## {r}", ""]
+        cols = [(s, s, "{:.3f}") for s in scenes] + [("mean", "mean", "{:.3f}")]
+        for k, title, fmt in (("mae", "MAE mm", "{:.3f}"), ("completeness", "completeness", "{:.1%}"),
+                              ("over_5mm", "share > 5 mm", "{:.2%}")):
+            md += [f"{title} per scene:", ""]
+            md.append(format_table([(lab, {**{s: t[r].get(lab, {}).get("per_scene", {}).get(s, {}).get(k, float("nan"))
+                                              for s in scenes}, "mean": mean(r, lab, k)}) for lab in methods],
+                                   [(c[0], c[1], fmt) for c in cols], "method"))
+            md.append("")
+        secs = [(lab, {"train": mean(r, lab, "train_s"), "total": mean(r, lab, "total_s")}) for lab in labels]
+        md += ["Time per scan (s, mean; runs shared the device, see the header):", "",
+               format_table(secs, [("train", "training", "{:.1f}"), ("total", "scan to depth map", "{:.1f}")], "preset")]
+    if doc["errors"]:
+        md += ["", "## Failed runs", ""] + [f"- {e['key']}: {e['error']}" for e in doc["errors"]]
+    return "\n".join(md) + "\n"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--presets", default=None, help="comma-separated presets (default: the device's default preset)")
+    ap.add_argument("--set", default=None, help="option overrides for every preset, e.g. 'iters=300,rays=512'")
+    ap.add_argument("--rigs", default=None, help="comma-separated rig geometries (default: all)")
+    ap.add_argument("--small", action="store_true", help="each geometry's small-resolution rig")
+    ap.add_argument("--scenes", default=None, help="comma-separated scenes (default: every built-in scene)")
+    ap.add_argument("--seed", type=int, default=0, help="simulator noise seed")
+    ap.add_argument("--workers-per-gpu", type=int, default=4, help="processes per GPU (CUDA)")
+    ap.add_argument("--workers", type=int, default=None, help="processes on the CPU (default 1)")
+    ap.add_argument("--state", default=None, help="folder of finished runs (default <out>/accuracy-state)")
+    ap.add_argument("--max-minutes", type=float, default=None,
+                    help="stop submitting runs after this many minutes (finished runs are kept; run again to go on)")
+    ap.add_argument("--out", default=str(REPO / "bench" / "results"))
+    args = ap.parse_args(argv)
+
+    import multiprocessing as mp
+
+    import torch
+
+    from slwarp.neural.config import default_preset_name
+    from slwarp.sim.rigs import GEOMETRIES, rig_name
+    from slwarp.sim.scenes import SCENE_NAMES
+
+    cuda = torch.cuda.is_available()
+    n_gpu = torch.cuda.device_count() if cuda else 0
+    devices = [f"cuda:{i}" for i in range(n_gpu) for _ in range(args.workers_per_gpu)] if cuda else \
+        ["cpu"] * (args.workers or 1)
+    presets = args.presets.split(",") if args.presets else [default_preset_name("cuda" if cuda else "cpu")]
+    overrides = parse_overrides(args.set)
+    rigs = [rig_name(g, args.small) for g in (args.rigs.split(",") if args.rigs else GEOMETRIES)]
+    scenes = args.scenes.split(",") if args.scenes else list(SCENE_NAMES)
+    labels = presets
+    out = Path(args.out)
+    state = Path(args.state) if args.state else out / "accuracy-state"
+    state.mkdir(parents=True, exist_ok=True)
+
+    jobs = []
+    for r in rigs:
+        for s in scenes:
+            for p in presets:  # neural runs first: they are the long ones
+                jobs.append({"kind": "neural", "label": p, "preset": p, "overrides": overrides, "rig": r, "scene": s,
+                             "seed": args.seed})
+            jobs.append({"kind": "classical", "rig": r, "scene": s, "seed": args.seed})
+    results, todo = [], []
+    for j in jobs:
+        f = state / (job_key(j) + ".json")
+        if f.is_file():
+            prev = json.loads(f.read_text())
+            if prev["job"] == j:
+                results.append(prev)
+                continue
+        todo.append(j)
+    name = torch.cuda.get_device_name(0) if cuda else "CPU"
+    print(f"{len(jobs)} runs ({len(jobs) - len(todo)} already done in {state}); {len(devices)} workers on "
+          f"{n_gpu or 'no'} GPU ({name})", flush=True)
+    t0 = time.perf_counter()
+    threads = 1 if not cuda else 2
+    ctx = mp.get_context("spawn")
+    queue = ctx.Manager().Queue()
+    for d in devices:
+        queue.put(d)
+    if todo:
+        with ProcessPoolExecutor(max_workers=len(devices), mp_context=ctx, initializer=_init_worker,
+                                 initargs=(queue, threads)) as pool:
+            futures = {pool.submit(run_job, j): j for j in todo}
+            for i, fut in enumerate(as_completed(futures), 1):
+                res = fut.result()
+                key = job_key(res["job"])
+                results.append(res)
+                if "error" in res:
+                    print(f"[{i}/{len(todo)}] {key}: FAILED {res['error']}", flush=True)
+                    continue
+                (state / (key + ".json")).write_text(json.dumps(res, default=float))
+                line = ", ".join(f"{lab} MAE {m['mae']:.3f} complete {m['completeness']:.3f}"
+                                 for lab, m in res["methods"].items())
+                print(f"[{i}/{len(todo)}] {key} ({res['wall_s']:.0f} s, {time.perf_counter() - t0:.0f} s so far): "
+                      f"{line}", flush=True)
+                if args.max_minutes and time.perf_counter() - t0 > 60 * args.max_minutes:
+                    print(f"--max-minutes {args.max_minutes} reached: cancelling the runs not started", flush=True)
+                    for f in futures:
+                        f.cancel()
+                    break
+    errors = [{"key": job_key(r["job"]), "error": r["error"]} for r in results if "error" in r]
+    command = " ".join(["python bench/accuracy_sweep.py"] + list(sys.argv[1:] if argv is None else argv))
+    doc = {"date": datetime.date.today().isoformat(), "device": "cuda" if cuda else "cpu", "device_name": name,
+           "gpus": n_gpu, "workers": len(devices), "command": command, "seed": args.seed, "rigs": rigs,
+           "scenes": scenes, "labels": labels, "overrides": overrides, "wall_s": time.perf_counter() - t0,
+           "table": summarise(results, rigs, scenes, labels), "errors": errors}
+    out.mkdir(parents=True, exist_ok=True)
+    stem = f"accuracy-{doc['device']}"
+    (out / f"{stem}.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
+    text = markdown(doc)
+    (out / f"{stem}.md").write_text(text)
+    print(text)
+    missing = len(jobs) - sum(1 for r in results if "error" not in r)
+    if missing:
+        print(f"{missing} runs missing or failed: run the same command again to go on", file=sys.stderr)
+    return 0 if not errors else 1
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
+    sys.exit(main())
