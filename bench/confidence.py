@@ -38,8 +38,8 @@ BASELINES = [  # (label, method, frames)
     ("N-PMP(6)", "npmp", "phase:col:period=48,phase:col:period=70"),
 ]
 PHOTOMETRIC_CHECK = 0.6  # the photometric check of old: min_confidence 0.6 on the photometric kind
-# geometric means of two terms, measured beside the library's kinds (gm:a+b rows)
-PRODUCTS = [("photometric", "agreement"), ("photometric", "peak"), ("photometric", "uniqueness")]
+# geometric means of terms, measured beside the library's kinds (gm:a+b rows)
+PRODUCTS = [("photometric", "agreement"), ("photometric", "uniqueness"), ("photometric", "peak", "uniqueness")]
 
 
 def cpu_name() -> str:

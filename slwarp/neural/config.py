@@ -156,7 +156,7 @@ class ExtractionConfig:
     confidence: Literal["photometric", "peak", "agreement", "uniqueness", "combined"] = option(
         "photometric", "per-pixel confidence written as confidence.npy and used by min_confidence: photometric (1 - "
         "relative RMS residual of the codes), peak (NeuS weight on the surface), agreement (rendered vs extracted "
-        "depth), uniqueness (no other depth on the ray fits the codes), combined")
+        "depth), uniqueness (no other depth on the ray fits the codes), combined (photometric x peak: ranks errors best)")
     min_confidence: float = option(0.6, "drop depth pixels whose confidence is below this (0: keep all)", min=0.0,
                                    max=1.0)
 
