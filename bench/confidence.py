@@ -214,7 +214,7 @@ def plot(results: dict, path: Path) -> None:
             ax.set_ylabel("MAE (mm)")
             ax.invert_xaxis()
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=72)
     plt.close(fig)
 
 
