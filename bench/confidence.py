@@ -21,6 +21,7 @@ import argparse
 import json
 import os
 import platform
+import re
 import sys
 import time
 from pathlib import Path
@@ -218,6 +219,23 @@ def plot(results: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def dump_json(doc) -> str:
+    """The results as JSON, numbers to 5 significant digits and each curve on one line (the file stays small)."""
+    def compact(x):
+        if isinstance(x, dict):
+            return {k: compact(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [compact(v) for v in x]
+        if isinstance(x, (float, np.floating)):
+            return float(f"{float(x):.5g}")
+        return x
+
+    text = json.dumps(compact(doc), indent=1)
+    # join the lines of number lists (the curves) into one line each
+    return re.sub(r"\[\s*([-0-9.eE+,\sNaInfity]+?)\s*\]", lambda m: "[" + ", ".join(m.group(1).split()).replace(",,", ",") + "]",
+                  text) + "\n"
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--scenes", default="bunny,boxes,spheres,torus,vase,steps", help="scenes for the classical decoders")
@@ -240,7 +258,7 @@ def main(argv=None) -> int:
             "command": "python bench/confidence.py " + " ".join(sys.argv[1:] if argv is None else argv)}
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps({"meta": meta, "results": results}, indent=1, default=float) + "\n")
+    out.with_suffix(".json").write_text(dump_json({"meta": meta, "results": results}))
     md = markdown(results, meta)
     out.with_suffix(".md").write_text(md + "\n")
     plot(results, out.with_suffix(".png"))
