@@ -149,21 +149,35 @@ def _add_simulate(sub):
     p.set_defaults(func=cmd_simulate)
 
 
-def _write_metrics(out: Path, pred, scan, mask, title: str, extra: dict) -> dict:
-    """Metrics of `pred` against the scan's ground truth: metrics.json + error_map.png in `out`."""
+def _write_metrics(out: Path, pred, scan, mask, title: str, extra: dict, confidence=None) -> tuple[dict, dict | None]:
+    """Metrics of `pred` against the scan's ground truth: metrics.json + error_map.png in `out`; with a
+    confidence map [H, W], also how well it ranks the errors (`confidence_metrics`, metrics.json's
+    "confidence"). Returns (metrics, confidence metrics or None)."""
     import json
 
     import numpy as np
 
-    from .evaluation.metrics import depth_metrics
+    from .evaluation.metrics import confidence_metrics, depth_metrics
     from .evaluation.viz import save_error_map
 
     m = depth_metrics(pred, scan.gt_depth, mask)
     doc = {**extra, "mask": "scan mask" if mask is not None else "none", "metrics": m}
+    cm = None
+    if confidence is not None:
+        doc["confidence"] = cm = confidence_metrics(pred, confidence, scan.gt_depth, mask)
     (out / "metrics.json").write_text(json.dumps(doc, indent=2, default=float) + "\n")
     shown = pred if mask is None else np.where(mask, pred, np.nan)  # the map shows what the numbers count
     save_error_map(out / "error_map.png", shown, scan.gt_depth, title=title)
-    return m
+    return m, cm
+
+
+def _print_confidence_metrics(name: str, cm: dict) -> None:
+    from .evaluation.metrics import CONFIDENCE_COLUMNS, format_table
+
+    print("confidence ranking: MAE of the most confident 90% and 75% of the pixels with depth; AUSE: the mean excess "
+          "MAE of the most confident x% over the x% with the smallest errors, x = 100 to 50 (0: a perfect ranking; "
+          "'random': a confidence that ranks nothing)")
+    print(format_table([(name, cm)], CONFIDENCE_COLUMNS, title_header="confidence of"))
 
 
 def cmd_decode(args) -> int:
@@ -171,11 +185,11 @@ def cmd_decode(args) -> int:
 
     import numpy as np
 
-    from .decode import METHODS, reconstruct_depth
+    from .decode import METHODS, decoding_confidence, reconstruct_depth
     from .evaluation.metrics import format_table
-    from .evaluation.outputs import write_depth_png
+    from .evaluation.outputs import write_confidence, write_depth_png
     from .evaluation.outputs import write_points_ply as write_ply
-    from .evaluation.viz import ensure_dir, save_depth_color
+    from .evaluation.viz import ensure_dir, save_confidence_map, save_depth_color
     from .scans.scan import load_scan
 
     scan = load_scan(args.scan)
@@ -196,6 +210,9 @@ def cmd_decode(args) -> int:
     np.save(out / "depth.npy", depth.astype(np.float32))
     write_depth_png(out / "depth.png", depth)
     save_depth_color(out / "depth_color.png", depth)
+    confidence = decoding_confidence(dec, depth)  # code certainty x signal swing (slwarp.decode.confidence)
+    write_confidence(out, confidence)
+    save_confidence_map(out / "confidence.png", confidence, f"{args.method} confidence")
     for axis, coord in (("col", dec.col), ("row", dec.row)):
         if coord is not None:
             np.save(out / f"projector_{axis}.npy", coord.astype(np.float32))
@@ -215,11 +232,12 @@ def cmd_decode(args) -> int:
           f"total {t1 - t0:.2f} s")
     info = {"scan": scan.source, "method": args.method, "frames": dec.frames, "triangulation": dec.extra["triangulation"],
             "params": params}
-    written = ["depth.npy", "depth.png", "depth_color.png", "points.ply"]
+    written = ["depth.npy", "depth.png", "depth_color.png", "confidence.npy", "confidence.png", "points.ply"]
     if scan.gt_depth is not None:
         mask = scan.mask if scan.mask is not None else None
-        m = _write_metrics(out, depth, scan, mask, f"{args.method}: |depth error|", info)
+        m, cm = _write_metrics(out, depth, scan, mask, f"{args.method}: |depth error|", info, confidence)
         print(format_table([(args.method, m)]))
+        _print_confidence_metrics(args.method, cm)
         written += ["metrics.json", "error_map.png"]
     else:
         (out / "decode.json").write_text(json.dumps({**info, "valid_share": float(valid.mean())}, indent=2) + "\n")
@@ -260,6 +278,7 @@ def cmd_evaluate(args) -> int:
     import numpy as np
 
     from .evaluation.metrics import format_table
+    from .evaluation.outputs import read_confidence
     from .scans.scan import load_scan, read_depth
     from .evaluation.viz import ensure_dir
 
@@ -271,21 +290,38 @@ def cmd_evaluate(args) -> int:
         raise UserError(f"{args.pred}: depth map is {pred.shape[1]}x{pred.shape[0]}, the scan's camera is "
                         f"{scan.gt_depth.shape[1]}x{scan.gt_depth.shape[0]}")
     mask = None if args.no_mask else scan.mask
+    # the confidence map: --confidence FILE, else confidence.npy beside the prediction when there is one
+    conf_path = Path(args.confidence) if args.confidence else Path(args.pred).parent / "confidence.npy"
+    confidence = None
+    if args.confidence or conf_path.is_file():
+        try:
+            confidence = read_confidence(conf_path, pred.shape)
+        except ValueError as e:
+            raise UserError(str(e)) from None
     out = ensure_dir(args.out or Path(args.pred).parent)
-    m = _write_metrics(out, pred.astype(np.float64), scan, mask, f"{Path(args.pred).name}: |depth error|",
-                       {"prediction": str(args.pred), "scan": scan.source})
+    info = {"prediction": str(args.pred), "scan": scan.source}
+    if confidence is not None:
+        info["confidence_map"] = str(conf_path)
+    m, cm = _write_metrics(out, pred.astype(np.float64), scan, mask, f"{Path(args.pred).name}: |depth error|", info,
+                           confidence)
     print(format_table([(Path(args.pred).name, m)], title_header="prediction"))
+    if cm is not None:
+        _print_confidence_metrics(f"{conf_path.name} ({conf_path.parent.name})", cm)
     print(f"over {m['n_gt']} ground-truth pixels ({'inside the scan mask' if mask is not None else 'no mask'}); "
           f"wrote {out}/metrics.json and error_map.png")
     return 0
 
 
 def _add_evaluate(sub):
-    p = sub.add_parser("evaluate", help="depth metrics (MAE, RMSE, >1/2/5 mm, completeness) against a scan's ground truth")
+    p = sub.add_parser("evaluate", help="depth metrics (MAE, RMSE, >1/2/5 mm, completeness) against a scan's ground "
+                       "truth, and how well a confidence map ranks the errors")
     p.add_argument("pred", help="predicted depth: .npy (float, mm) or 16-bit PNG (0.1 mm, 0 = invalid)")
     p.add_argument("scan", help="scan folder with ground-truth depth")
     p.add_argument("--out", help="folder for metrics.json and error_map.png (default: the prediction's folder)")
     p.add_argument("--no-mask", action="store_true", help="evaluate every ground-truth pixel, not only the scan's mask")
+    p.add_argument("--confidence", metavar="FILE.npy", help="a confidence map [H, W] in [0, 1] of the prediction "
+                   "(default: confidence.npy beside it, when there is one): also report the MAE of its 90%% and 75%% "
+                   "most confident pixels and the AUSE")
     p.set_defaults(func=cmd_evaluate)
 
 
@@ -409,10 +445,11 @@ def cmd_reconstruct(args) -> int:
     t = res.timings
     valid = np.isfinite(res.depth)
     print(f"trained {t['iterations']} iterations in {t['train_wall_s_total']:.1f} s; marching cubes {t['marching_cubes_s']:.1f} s; "
-          f"depth {t['depth_s']:.1f} s; valid depth on {valid.mean():.1%} of pixels")
+          f"depth {t['depth_s']:.1f} s; confidence {t['confidence_s']:.1f} s; valid depth on {valid.mean():.1%} of pixels")
     if res.metrics is not None:
         print(format_table([("neural SDF", res.metrics)]))
-    print(f"wrote {args.out}/: depth.npy, depth.png, depth_color.png, mesh.ply, points.ply, loss.png, history.json, "
+    print(f"wrote {args.out}/: depth.npy, depth.png, depth_color.png, confidence.npy, confidence.png, mesh.ply, "
+          "points.ply, loss.png, history.json, "
           "config.yaml" + (", metrics.json, error_map.png" if res.metrics is not None else "")
           + "; train/checkpoint.pt (--resume continues)")
     return 0

@@ -2,13 +2,15 @@
 
     decode(scan, method, frames=None, **params) -> Decoding (col, row [H, W] projector px, NaN invalid; valid)
     reconstruct_depth(scan, method, ...) -> (depth [H, W] mm NaN invalid, points [H, W, 3], Decoding)
+    decoding_confidence(dec, depth) -> [H, W] in [0, 1] (code certainty x signal swing; NaN invalid)
     METHODS: gc, gc-interp, ps, cgc, hpmp, npmp, gt
 
 Modules: frames (which frames a method uses, from the scan's frame roles), gray (Gray code tables,
 binarisation, stripe interpolation along the code gradient), phase (wrapped phase, unwrapping), cgc (Gray
-code + phase: CGC and the GT pipeline), triangulate (plane, both-coordinate and ray-ray midpoint
+code + phase: CGC and the GT pipeline), confidence (per-pixel confidence of a decoding), triangulate (plane, both-coordinate and ray-ray midpoint
 triangulation chosen from the rig), methods (the registry). Point clouds are written by slwarp.evaluation.outputs.
 """
+from .confidence import decoding_confidence
 from .frames import MissingFrames
 from .methods import METHODS, Decoding, decode, finalize_positions, reconstruct_depth
 from .triangulate import (baseline_alignment, choose_plane_axis, choose_triangulation, triangulate, triangulate_midpoint,
@@ -17,6 +19,7 @@ from .triangulate import (baseline_alignment, choose_plane_axis, choose_triangul
 __all__ = [
     "METHODS",
     "Decoding",
+    "decoding_confidence",
     "MissingFrames",
     "decode",
     "reconstruct_depth",

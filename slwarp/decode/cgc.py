@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .confidence import code_certainty
 from .frames import DEFAULT_MIN_AMPLITUDE, GrayFrames, PhaseSet
 from .gray import GrayTable, binarize, decode_stripes
 from .phase import unwrap_with_reference, wrapped_phase, wrapped_position
@@ -28,7 +29,7 @@ def decode_gray_phase(gf: GrayFrames, pset: PhaseSet, min_amplitude: float = DEF
     """Absolute projector positions from a Gray code and a phase-shift set along the same axis.
 
     Returns (u [H, W] float64 projector px, NaN invalid; extra dict with 'stripe', 'modulation',
-    'amplitude', 'wrapped'). A pixel is valid where its phase modulation and Gray code amplitude are both
+    'amplitude', 'wrapped', 'certainty' (`confidence.code_certainty`)). A pixel is valid where its phase modulation and Gray code amplitude are both
     at least `min_amplitude` and its code names a stripe.
     """
     table = GrayTable.from_patterns(gf.patterns, gf.axis, gf.names)
@@ -43,4 +44,5 @@ def decode_gray_phase(gf: GrayFrames, pset: PhaseSet, min_amplitude: float = DEF
     u_w = wrapped_position(phi, pset.period)
     valid = (stripe >= 0) & (modulation >= min_amplitude)
     u = np.where(valid, unwrap_with_reference(u_w, center, pset.period), np.nan)
-    return u, {"stripe": stripe, "modulation": modulation, "amplitude": b.amplitude, "wrapped": u_w}
+    return u, {"stripe": stripe, "modulation": modulation, "amplitude": b.amplitude, "wrapped": u_w,
+               "certainty": code_certainty(b.signal, stripe, table.flips)}

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .cgc import decode_gray_phase
+from .confidence import code_certainty
 from .frames import DEFAULT_MIN_AMPLITUDE, MissingFrames, PhaseSet, axis_size, gray_frames, phase_sets
 from .gray import GrayTable, binarize, decode_stripes, interpolate_stripes
 from .phase import (NumberTheoreticTable, coarse_position, unwrap_number_theoretic, unwrap_with_reference,
@@ -34,8 +35,9 @@ class Decoding:
 
     col, row: [H, W] float64 continuous projector px (NaN invalid), or None when the method does not
     decode that axis; valid [H, W] bool: every decoded coordinate is finite; method: its name;
-    frames: the frame names used; extra: diagnostics ('stripe_col', 'amplitude_col', 'how_col' (gc-interp,
-    see `gray.HOW_*`), 'modulation', 'periods', 'decode_s', 'triangulation', ...).
+    frames: the frame names used; extra: diagnostics ('stripe_col', 'amplitude_col', 'certainty_col' (Gray code
+    bits, see `confidence.code_certainty`), 'how_col' (gc-interp, see `gray.HOW_*`), 'modulation', 'periods',
+    'decode_s', 'triangulation', ...); `confidence.decoding_confidence` rates its pixels from them.
     """
 
     col: np.ndarray | None
@@ -70,6 +72,7 @@ def _gc(scan, interp: bool, min_amplitude=DEFAULT_MIN_AMPLITUDE, min_bit_contras
         table = GrayTable.from_patterns(gf.patterns, axis, gf.names)
         b = binarize(gf, min_amplitude, min_bit_contrast)
         stripe, center = decode_stripes(b, table)
+        extra[f"certainty_{axis}"] = code_certainty(b.signal, stripe, table.flips)  # for decoding_confidence
         if interp:
             # along camera rows, columns or both, as the local code gradient runs (see interpolate_stripes)
             u, how, info = interpolate_stripes(stripe, b.signal, table, fallback=fallback)

@@ -12,7 +12,8 @@ import math
 
 import numpy as np
 
-__all__ = ["depth_metrics", "format_table", "METRIC_COLUMNS", "error_map", "chessboard_region", "plane_rms"]
+__all__ = ["depth_metrics", "format_table", "METRIC_COLUMNS", "error_map", "chessboard_region", "plane_rms",
+           "sparsification_curve", "confidence_metrics", "CONFIDENCE_COLUMNS", "SPARSIFICATION_FRACTIONS"]
 
 THRESHOLDS_MM = (1.0, 2.0, 5.0)
 
@@ -63,6 +64,92 @@ def depth_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = No
     out.update(mae=float(err.mean()), rmse=float(np.sqrt((err * err).mean())), median=float(np.median(err)))
     for t in THRESHOLDS_MM:
         out[f"over_{t:g}mm"] = float((err > t).mean())
+    return out
+
+
+# kept fractions of the sparsification curves: 100% down to 50% of the compared pixels, in steps of 1%
+SPARSIFICATION_FRACTIONS = np.round(np.linspace(1.0, 0.5, 51), 2)
+# the fixed shares of the most confident compared pixels that `confidence_metrics` reports the MAE of
+CONFIDENCE_SHARES = (0.9, 0.75)
+
+CONFIDENCE_COLUMNS = [
+    ("mae_top90", "MAE top 90% mm", "{:.3f}"),
+    ("mae_top75", "MAE top 75% mm", "{:.3f}"),
+    ("ause", "AUSE mm", "{:.3f}"),
+    ("ause_random", "AUSE random mm", "{:.3f}"),
+]
+
+
+def sparsification_curve(errors: np.ndarray, confidence: np.ndarray, fractions=SPARSIFICATION_FRACTIONS) -> np.ndarray:
+    """MAE [len(fractions)] of the most confident `fractions` (each in (0, 1]) of the pixels.
+
+    errors, confidence [P]: |error| (mm) and confidence (higher = more trusted; only the order counts) of the
+    same P pixels. A fraction that cuts k = f P pixels where k is not whole takes the last pixel in part. Pixels
+    of equal confidence are taken in no particular order: a tie group cut in part counts its mean error (what
+    a random order within the group gives on average), so the curve does not depend on the pixel order.
+    The oracle's curve is `sparsification_curve(errors, -errors)`.
+    """
+    e = np.asarray(errors, np.float64).ravel()
+    c = np.asarray(confidence, np.float64).ravel()
+    if e.shape != c.shape:
+        raise ValueError(f"errors ({e.size}) and confidence ({c.size}) must hold the same pixels")
+    f = np.asarray(fractions, np.float64)
+    if e.size == 0:
+        return np.full(f.shape, np.nan)
+    if not ((f > 0) & (f <= 1)).all():
+        raise ValueError(f"fractions must lie in (0, 1], got {f}")
+    order = np.argsort(-c, kind="stable")
+    cs, es = c[order], e[order]
+    # each tie group's pixels all carry the group's mean error
+    starts = np.flatnonzero(np.r_[True, cs[1:] != cs[:-1]])
+    sums = np.add.reduceat(es, starts)
+    counts = np.diff(np.r_[starts, es.size])
+    es = np.repeat(sums / counts, counts)
+    cum = np.r_[0.0, np.cumsum(es)]
+    k = f * es.size
+    whole = np.minimum(np.floor(k).astype(np.int64), es.size)
+    part = k - whole
+    partial = np.where(whole < es.size, es[np.minimum(whole, es.size - 1)], 0.0)
+    return (cum[whole] + part * partial) / k
+
+
+def confidence_metrics(pred: np.ndarray, confidence: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None,
+                       fractions=SPARSIFICATION_FRACTIONS) -> dict:
+    """How well a confidence map [H, W] ranks the pixels of a depth map by their error (both against gt, NaN
+    invalid; over the pixels `depth_metrics` compares).
+
+    Returns a dict: mae_top90, mae_top75 (mm): MAE of the 90% and 75% most confident compared pixels (accuracy
+    at a fixed share of the answers); ause (mm): the area between the sparsification curve (MAE of the most
+    confident x% of the compared pixels, x = 100 down to 50) and the oracle's (pixels sorted by their true
+    error), divided by the width of that range: the mean excess MAE over it, 0 for a perfect ranking;
+    ause_random (mm): the same for a confidence that ranks nothing (a flat curve at the MAE), the scale AUSE
+    is read against; sparsification: {fractions, curve, oracle}, both curves at `fractions`. Non-finite confidence at a compared pixel
+    counts as the lowest. NaN entries when no pixel is compared.
+    """
+    pred, gt, mask = _check_pair(pred, gt, mask)
+    conf = np.asarray(confidence, np.float64)
+    if conf.shape != gt.shape:
+        raise ValueError(f"confidence shape {conf.shape} != depth shape {gt.shape}")
+    ref = np.isfinite(gt) & (gt > 0)
+    if mask is not None:
+        ref &= mask
+    both = ref & np.isfinite(pred)
+    err = np.abs(pred[both] - gt[both])
+    c = np.where(np.isfinite(conf[both]), conf[both], -np.inf)
+    f = np.asarray(fractions, np.float64)
+    curve = sparsification_curve(err, c, f)
+    oracle = sparsification_curve(err, -err, f)
+    width = float(f.max() - f.min())
+
+    def area(y):  # trapezoids over the fractions, divided by their range
+        o = np.argsort(f)
+        x, y = f[o], y[o]
+        return float(((y[1:] + y[:-1]) * np.diff(x)).sum() / (2.0 * width)) if width > 0 else float(y[0])
+
+    out = {f"mae_top{round(s * 100)}": float(sparsification_curve(err, c, [s])[0]) for s in CONFIDENCE_SHARES}
+    mae = float(err.mean()) if err.size else math.nan
+    out.update(ause=area(curve - oracle), ause_random=area(mae - oracle),
+               sparsification={"fractions": f.tolist(), "curve": curve.tolist(), "oracle": oracle.tolist()})
     return out
 
 

@@ -1,6 +1,8 @@
 """Output writers: depth maps and point clouds/meshes, the files every reconstruction method leaves.
 
     write_depth(folder, depth)           depth.npy (float32 mm, NaN invalid) + depth.png (uint16, 0.1 mm, 0 invalid)
+    write_confidence(folder, conf)       confidence.npy (float32 in [0, 1], higher = more trusted, NaN where no depth);
+                                         read_confidence reads it back, checked
     write_depth_png(path, depth)         the 16-bit PNG alone (the authors' depth format; read back by
                                          slwarp.scans.scan.read_depth)
     write_points_ply(path, points, ...)  the finite points of a point map as a binary PLY (trimesh), gray or RGB
@@ -15,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["write_depth", "write_depth_png", "write_points_ply", "write_mesh_ply"]
+__all__ = ["write_depth", "write_depth_png", "write_points_ply", "write_mesh_ply", "write_confidence", "read_confidence"]
 
 DEPTH_PNG_PER_MM = 10.0  # depth PNG counts per mm: one count is 0.1 mm (max 6553.5 mm); 0 marks an invalid pixel
 
@@ -62,3 +64,32 @@ def write_points_ply(path: str | os.PathLike, points: np.ndarray, colors: np.nda
 def write_mesh_ply(path: str | os.PathLike, mesh) -> None:
     """Write a trimesh mesh (mm) as a binary PLY."""
     mesh.export(str(path), file_type="ply")
+
+
+def write_confidence(folder: str | os.PathLike, confidence: np.ndarray) -> None:
+    """confidence.npy in `folder`: the per-pixel confidence [H, W] of the depth map beside it (float32 in [0, 1],
+    higher = more trusted, NaN where there is no depth). Its picture: slwarp.evaluation.viz.save_confidence_map."""
+    np.save(Path(folder) / "confidence.npy", np.asarray(confidence).astype(np.float32))
+
+
+def read_confidence(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """A confidence map [H, W] (float64) from a .npy file; raises ValueError naming the file when it is not a
+    2-D array of numbers, not of `shape` (when given), or holds finite values outside [0, 1]."""
+    path = Path(path)
+    if path.suffix.lower() != ".npy":
+        raise ValueError(f"{path}: a confidence map is read from .npy (confidence.png is only its picture)")
+    if not path.is_file():
+        raise FileNotFoundError(f"confidence map not found: {path}")
+    try:
+        c = np.load(path, allow_pickle=False)
+    except ValueError as e:
+        raise ValueError(f"{path}: not a numpy array file ({e})") from None
+    if c.ndim != 2 or not np.issubdtype(c.dtype, np.number):
+        raise ValueError(f"{path}: a confidence map is a 2-D array of numbers, got {c.dtype} {c.shape}")
+    if shape is not None and c.shape != tuple(shape):
+        raise ValueError(f"{path}: confidence map is {c.shape[1]}x{c.shape[0]}, the depth map is {shape[1]}x{shape[0]}")
+    c = c.astype(np.float64)
+    fin = c[np.isfinite(c)]
+    if fin.size and (fin.min() < 0 or fin.max() > 1):
+        raise ValueError(f"{path}: confidence values must lie in [0, 1], found {fin.min():g} .. {fin.max():g}")
+    return c

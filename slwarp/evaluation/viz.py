@@ -1,4 +1,4 @@
-"""Pictures: colourised depth maps, error maps with a colour bar, scan previews, point-cloud renders.
+"""Pictures: colourised depth maps, error and confidence maps with a colour bar, scan previews, point-cloud renders.
 
 All writers take depth in mm with NaN where invalid and write 8-bit RGB PNGs.
 """
@@ -63,6 +63,15 @@ def save_map_with_colorbar(path, values: np.ndarray, title: str, label: str, val
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+def save_confidence_map(path, confidence: np.ndarray, title: str = "confidence") -> None:
+    """Confidence [H, W] in [0, 1] (higher = more trusted) with a colour bar (viridis: dark = doubtful, yellow =
+    trusted); gray where there is no depth (NaN)."""
+    c = np.asarray(confidence, np.float64)
+    shown = c[np.isfinite(c)]
+    detail = f", median {np.median(shown):.2f} over {shown.size} px" if shown.size else ", no pixel"
+    save_map_with_colorbar(path, c, title + detail, "confidence", value_range=(0.0, 1.0), cmap="viridis")
 
 
 def save_error_map(path, pred: np.ndarray, gt: np.ndarray, title: str = "absolute depth error", max_mm: float = 5.0) -> None:

@@ -151,8 +151,14 @@ class ExtractionConfig:
                                                      "sphere tracing the field")
     edge_filter: float = option(10.0, "drop depth-edge (flying) pixels: jumps above this many pixel footprints (0: off)",
                                 min=0.0)
-    photometric_filter: float = option(0.4, "drop depth pixels whose relative RMS residual reaches this (0: off)",
-                                       min=0.0)
+    # what the method knows about each pixel, as a map in [0, 1] written beside the depth (slwarp.neural.confidence);
+    # photometric with min_confidence 0.6 is the photometric check (relative RMS residual below 0.4)
+    confidence: Literal["photometric", "peak", "agreement", "uniqueness", "combined"] = option(
+        "photometric", "per-pixel confidence written as confidence.npy and used by min_confidence: photometric (1 - "
+        "relative RMS residual of the codes), peak (NeuS weight on the surface), agreement (rendered vs extracted "
+        "depth), uniqueness (no other depth on the ray fits the codes), combined (photometric x peak: ranks errors best)")
+    min_confidence: float = option(0.6, "drop depth pixels whose confidence is below this (0: keep all)", min=0.0,
+                                   max=1.0)
 
 
 SECTIONS = {"field": FieldConfig, "sampling": SamplingConfig, "schedule": ScheduleConfig, "init": InitConfig,

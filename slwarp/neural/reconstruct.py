@@ -4,7 +4,8 @@
     result.depth      # [H, W] mm, NaN where no surface
     result.metrics    # when the scan has ground truth
 
-Outputs written to out_dir: depth.npy, depth.png (uint16, 0.1 mm), depth_color.png, mesh.ply,
+Outputs written to out_dir: depth.npy, depth.png (uint16, 0.1 mm), depth_color.png, confidence.npy (float32 in
+[0, 1], NaN where no depth) + confidence.png, mesh.ply,
 points.ply, history.json + loss.png, timings.json, config.yaml (the run's TrainConfig and the values it
 fitted; `--config` reads it back), and metrics.json + error_map.png when the scan has ground truth;
 train/checkpoint.pt holds the resumable training state.
@@ -19,9 +20,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..evaluation.outputs import write_depth, write_mesh_ply, write_points_ply
+from ..evaluation.outputs import write_confidence, write_depth, write_mesh_ply, write_points_ply
 from .extract import depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, sphere_trace_depth
-from .pattern_model import photometric_filter
+from .confidence import depth_confidence
 from .config import TrainConfig, save_config
 from .train import Trainer
 
@@ -29,7 +30,8 @@ from .train import Trainer
 @dataclass
 class Reconstruction:
     """depth [H, W] mm (NaN invalid); mesh (trimesh, mm) or None; points [P, 3] mm; metrics (dict or
-    None); timings (seconds per stage); trainer (the trained state)."""
+    None); timings (seconds per stage); trainer (the trained state); confidence [H, W] in [0, 1] (NaN where
+    depth is; slwarp.neural.confidence)."""
 
     depth: np.ndarray
     mesh: object
@@ -37,12 +39,14 @@ class Reconstruction:
     metrics: dict | None
     timings: dict = field(default_factory=dict)
     trainer: Trainer | None = None
+    confidence: np.ndarray | None = None
 
 
 def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: bool = False):
-    """(depth [H, W], mesh, timings) from a trained field as its config's extraction section says: marching
-    cubes, then the mesh ray-cast (or sphere tracing when depth_method is 'sphere'), the depth range, the
-    flying-pixel and the photometric filters; depth is kept only inside `valid`."""
+    """(depth [H, W], confidence [H, W], mesh, timings) from a trained field as its config's extraction section
+    says: marching cubes, then the mesh ray-cast (or sphere tracing when depth_method is 'sphere'), the depth
+    range, the flying-pixel filter, the confidence map (`extraction.confidence`) and the pixels below
+    `extraction.min_confidence` dropped; depth is kept only inside `valid`. Both maps are NaN where no depth."""
     ex = trainer.cfg.extraction
     t0 = time.perf_counter()
     cam = trainer.scan.camera
@@ -59,12 +63,16 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     depth[(depth < near) | (depth > far)] = np.nan
     if ex.edge_filter > 0:
         depth = flying_pixel_filter(depth, cam, ex.edge_filter)
-    if ex.photometric_filter > 0:
-        patterns = trainer.renderer.rendered_patterns.cpu().numpy()
-        depth = photometric_filter(depth, cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames], patterns,
-                                   ex.photometric_filter)
     field_.train()
-    return depth, mesh, {"marching_cubes_s": t1 - t0, "depth_s": time.perf_counter() - t1}
+    t2 = time.perf_counter()
+    # confidence (slwarp.neural.confidence): the map beside the depth, and the filter of the pixels below min_confidence
+    confidence = depth_confidence(trainer, depth, ex.confidence)
+    if ex.min_confidence > 0:
+        drop = ~(confidence >= ex.min_confidence)
+        depth[drop] = np.nan
+        confidence[drop] = np.nan
+    return depth, confidence, mesh, {"marching_cubes_s": t1 - t0, "depth_s": t2 - t1,
+                                     "confidence_s": time.perf_counter() - t2}
 
 
 def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, depth_range=None,
@@ -75,8 +83,8 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
     enough contrast in the images, the same information the classical decoders use). progress: a bar on a
     terminal, else a line every few seconds; log_every_s: progress lines every this many seconds in any case.
     """
-    from ..evaluation.metrics import depth_metrics, error_map
-    from ..evaluation.viz import save_depth_color, save_map_with_colorbar
+    from ..evaluation.metrics import confidence_metrics, depth_metrics, error_map
+    from ..evaluation.viz import save_confidence_map, save_depth_color, save_map_with_colorbar
 
     out = Path(out_dir) if out_dir is not None else None
     if out is not None:
@@ -92,7 +100,7 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
     valid = trainer.renderer.valid_map.cpu().numpy()
     if use_mask and scan.mask is not None:
         valid &= scan.mask
-    depth, mesh, ext_t = extract_depth(trainer, valid, progress=progress)
+    depth, confidence, mesh, ext_t = extract_depth(trainer, valid, progress=progress)
     points = depth_to_points(depth, scan.camera)
     metrics = None
     if scan.gt_depth is not None:
@@ -108,12 +116,17 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
         write_points_ply(out / "points.ply", points, scan.images.max(0)[np.isfinite(depth)])
         trainer.save_history(out)
         if metrics is not None:
-            doc = {"method": "neural-sdf", "frames": list(scan.names), "mask": "scan mask", "metrics": metrics}
+            doc = {"method": "neural-sdf", "frames": list(scan.names), "mask": "scan mask", "metrics": metrics,
+                   "confidence": {"kind": config.extraction.confidence,
+                                  **confidence_metrics(depth, confidence, scan.gt_depth, scan.mask)}}
             (out / "metrics.json").write_text(json.dumps(doc, indent=1, default=float))
             save_map_with_colorbar(out / "error_map.png", error_map(depth, scan.gt_depth, scan.mask),
                                    f"|depth error|, MAE {metrics['mae']:.3f} mm", "mm", value_range=(0.0, 5.0), cmap="inferno")
+        # the confidence map beside the depth map
+        write_confidence(out, confidence)
+        save_confidence_map(out / "confidence.png", confidence, f"confidence ({config.extraction.confidence})")
         (out / "timings.json").write_text(json.dumps(timings, indent=1))
         fitted = {"pattern_blur_px": trainer.renderer.pattern_blur, "pattern_blur_fit_mse": trainer.blur_fit,
                   "depth_search": {k: v for k, v in (trainer.search_info or {}).items() if k != "pattern_blur_fit"}}
         save_config(out / "config.yaml", config, fitted)
-    return Reconstruction(depth, mesh, points, metrics, timings, trainer)
+    return Reconstruction(depth, mesh, points, metrics, timings, trainer, confidence)
