@@ -420,9 +420,11 @@ class BatchSummary:
 
     def totals(self) -> dict:
         """Counts by status; wall time; throughput (scans reconstructed now per hour of wall time); the mean
-        MAE and completeness over the scans that have them."""
+        MAE over the scans that have a finite one, the mean completeness over those that have ground truth."""
         done = [r for r in self.results if r.status == "done"]
         with_gt = [r for r in self.results if r.mae is not None and math.isfinite(r.mae)]
+        # a scan with ground truth but no valid depth has no MAE yet a completeness of 0: it counts there
+        complete = [r.completeness for r in self.results if r.completeness is not None and math.isfinite(r.completeness)]
         return {
             "scans": len(self.results), "done": len(done), "skipped": sum(r.status == "skipped" for r in self.results),
             "failed": len(self.failed), "workers": self.workers, "wall_s": self.wall_s,
@@ -430,8 +432,7 @@ class BatchSummary:
             "scans_per_hour": len(done) / self.wall_s * 3600.0 if self.wall_s > 0 and done else 0.0,
             "with_ground_truth": len(with_gt),
             "mean_mae": sum(r.mae for r in with_gt) / len(with_gt) if with_gt else None,
-            "mean_completeness": (sum(r.completeness for r in with_gt if r.completeness is not None) / len(with_gt)
-                                  if with_gt else None),
+            "mean_completeness": sum(complete) / len(complete) if complete else None,
         }
 
     def table(self) -> str:

@@ -107,14 +107,17 @@ def test_summary_totals_report_and_json(tmp_path):
     rows = [ScanResult("a", "/s/a", "/o/a", "done", "rank 0", "cpu", seconds=30.0, iterations=10, valid_share=0.5,
                        mae=1.0, completeness=0.9),
             ScanResult("b", "/s/b", "/o/b", "skipped", seconds=50.0, valid_share=0.75, mae=3.0, completeness=0.7),
-            ScanResult("c", "/s/c", "/o/c", "done", "rank 1", "cpu", seconds=20.0, valid_share=0.0, mae=math.nan),
+            ScanResult("c", "/s/c", "/o/c", "done", "rank 1", "cpu", seconds=20.0, valid_share=0.0, mae=math.nan,
+                       completeness=0.0),
             ScanResult("d", "/s/d", "/o/d", "failed", "rank 1", "cpu", seconds=0.5, error="ScanError: bad", traceback="tb")]
     summary = BatchSummary(rows, "torchrun", 2, wall_s=40.0, devices=["cpu", "cpu"])
     t = summary.totals()
     assert (t["scans"], t["done"], t["skipped"], t["failed"]) == (4, 2, 1, 1)
     assert t["scans_per_hour"] == pytest.approx(2 / 40.0 * 3600.0)  # scans reconstructed now per hour of wall time
     assert t["scan_s"] == pytest.approx(50.0)
-    assert t["with_ground_truth"] == 2 and t["mean_mae"] == pytest.approx(2.0) and t["mean_completeness"] == pytest.approx(0.8)
+    # no valid depth (c): no MAE, but its completeness of 0 counts: (0.9 + 0.7 + 0) / 3
+    assert t["with_ground_truth"] == 2 and t["mean_mae"] == pytest.approx(2.0)
+    assert t["mean_completeness"] == pytest.approx(1.6 / 3)
     report = summary.report()
     assert "failed: d (/s/d): ScanError: bad" in report and "180.0 scans/h" in report
     assert [line.split("|")[1].strip() for line in report.splitlines()[2:6]] == ["a", "b", "c", "d"]
