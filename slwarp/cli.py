@@ -4,7 +4,8 @@
     slwarp simulate --scene NAME ...      render a scan with exact ground truth (virtual scanner)
     slwarp decode SCAN --method M --out D classical decoding (Gray code, CGC, PMP, ...) + triangulation
     slwarp evaluate PRED SCAN             depth metrics of a depth map against the scan's ground truth
-    slwarp reconstruct SCAN --out D       the neural SDF method: train, then depth, mesh, point cloud
+    slwarp reconstruct SCAN... --out D    the neural SDF method: train, then depth, mesh, point cloud (several
+                                          scans: a batch, sharded over torchrun's processes; see slwarp.batch)
     slwarp demo                           the paper's comparison on an embedded default scene
 
 The training options of `reconstruct` and `demo` are generated from slwarp.neural.config.TrainConfig (flag,
@@ -325,6 +326,17 @@ def _add_evaluate(sub):
     p.set_defaults(func=cmd_evaluate)
 
 
+def _positive_int(text: str) -> int:
+    """argparse's `type` for a count of at least 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not allowed; it takes an integer >= 1")
+    return value
+
+
 def _parse_range(text: str | None):
     if text is None:
         return None
@@ -423,18 +435,28 @@ def _config_from_args(args):
 
 
 def cmd_reconstruct(args) -> int:
+    """One scan folder: reconstructed here into --out. Several scans (or a folder of them, or a glob), under
+    torchrun, or with --per-device: a batch (_reconstruct_batch)."""
     import numpy as np
     import torch
 
+    from .batch import find_scans, launched_by_torchrun
     from .evaluation.metrics import format_table
     from .neural.reconstruct import reconstruct
     from .scans.scan import load_scan
 
     name, cfg, dev = _config_from_args(args)
-    scan = load_scan(args.scan, frames=args.frames)
+    if args.per_device is not None and launched_by_torchrun():
+        raise UserError("--per-device starts its own worker processes: under torchrun use --nproc-per-node "
+                        "(K x GPUs for K scans per GPU) instead")
+    found = find_scans(args.scans)
+    if not found.single or args.per_device is not None or launched_by_torchrun():
+        return _reconstruct_batch(args, found, name, cfg, dev)
+    scan_path = args.scans[0]
+    scan = load_scan(scan_path, frames=args.frames)
     depth_range = _parse_range(args.depth_range)
     if depth_range is None and scan.depth_range is None:
-        raise UserError(f"{args.scan}: the scan declares no depth range: pass --depth-range NEAR,FAR (mm)")
+        raise UserError(f"{scan_path}: the scan declares no depth range: pass --depth-range NEAR,FAR (mm)")
     f, s = cfg.field, cfg.sampling
     print(f"reconstructing {scan.source} ({len(scan)} frames: {', '.join(scan.names)}) with preset '{name}'"
           + (f" + {args.config}" if args.config else "")
@@ -455,15 +477,48 @@ def cmd_reconstruct(args) -> int:
     return 0
 
 
+def _reconstruct_batch(args, found, name: str, cfg, dev) -> int:
+    """The scans `found` (slwarp.batch.find_scans) as a batch: each into --out/<name>/ (--out for a lone scan
+    folder), a summary printed by the process that gathers it; exit status 1 when a scan failed."""
+    from .batch import BatchOptions, run_batch
+
+    rank = int(os.environ.get("RANK", 0))
+    if rank == 0:
+        for folder in found.ignored:
+            print(f"note: {folder} holds no scan: passed over", file=sys.stderr)
+        f, s = cfg.field, cfg.sampling
+        how = (f"{args.per_device} per device" if args.per_device is not None else
+               f"torchrun, {os.environ['WORLD_SIZE']} processes" if "WORLD_SIZE" in os.environ else "one after another")
+        print(f"reconstructing {len(found.scans)} scans ({how}) with preset '{name}'" + (f" + {args.config}" if args.config else "")
+              + f" ({cfg.schedule.iters} iterations, {s.rays} rays, {s.n_samples}+{s.n_importance} samples, "
+              f"{f.hidden}x{f.layers} field) on {dev}", flush=True)
+    options = BatchOptions(frames=args.frames, depth_range=_parse_range(args.depth_range), use_mask=args.use_mask,
+                           resume=args.resume, progress=not args.quiet, log=not args.quiet)
+    summary = run_batch(found.scans, cfg, args.out, options, single=found.single, per_device=args.per_device)
+    if summary is None:  # a rank other than 0: rank 0 reports
+        return 0
+    print(summary.report())
+    print(f"wrote {args.out}/summary.json and summary.md" + ("" if found.single else "; each scan's outputs in its folder"))
+    return 1 if summary.failed else 0
+
+
 def _add_reconstruct(sub, argv=None):
     name = _chosen_preset(argv)
     p = sub.add_parser("reconstruct", help="depth, mesh and point cloud from a scan with the neural SDF method",
                        description="Train the neural SDF on a scan, then write its depth map, mesh, point cloud and "
                        f"config.yaml. The defaults shown are preset {name}'s (--preset P --help shows P's).")
-    p.add_argument("scan", help="scan folder")
+    p.add_argument("scans", nargs="+", metavar="SCAN",
+                   help="a scan folder, a folder of scan folders, or a quoted glob; several scans (or a folder of "
+                        "them, or a glob) write each scan's outputs into OUT/<scan name>/ and a summary "
+                        "(OUT/summary.json, summary.md), and exit with status 1 when a scan failed; a lone scan "
+                        "folder writes into OUT itself. Under torchrun the scans are shared over its processes "
+                        "(GPU LOCAL_RANK %% device count)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--frames", help="use only these frames (names, globs, indices, slices; comma-separated)")
-    p.add_argument("--resume", action="store_true", help="continue from OUT/train/checkpoint.pt")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/train/checkpoint.pt; with several scans: "
+                   "skip the scans whose outputs are complete, continue those with a checkpoint, start the others")
+    p.add_argument("--per-device", type=_positive_int, metavar="K", help="run K scans at a time on each device (every visible "
+                   "GPU for --device cuda or auto, the CPU for cpu) in worker processes started here, without torchrun")
     p.add_argument("--depth-range", help="NEAR,FAR camera depth in mm (default: the scan's)")
     p.add_argument("--use-mask", action="store_true", help="also restrict the depth map to the scan's mask")
     p.add_argument("--quiet", action="store_true", help="no progress output")

@@ -1,0 +1,201 @@
+"""Many scans in one command (slwarp.batch): finding the scans, sharing them out, the summary, and a batch of
+three small scans (one broken) under torchrun's two gloo processes on the CPU, resumed with worker processes."""
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from slwarp.batch import (BatchSummary, ScanResult, find_scans, largest_first, scan_cost, shard, unique_names)
+from slwarp.cli import main as cli_main
+from slwarp.scans.scan import ScanError
+
+
+def fake_scan(folder: Path, marker: str = "scan.yaml", text: str = "units: mm\n") -> Path:
+    """A folder that discovery takes for a scan (discovery never loads it)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / marker).write_text(text)
+    return folder
+
+
+@pytest.fixture
+def station(tmp_path):
+    """day1/{bunny, vase (NeSS layout)}, day2/{bunny, chessboard (procam layout), notes (no scan)}, empty/."""
+    fake_scan(tmp_path / "day1" / "bunny")
+    fake_scan(tmp_path / "day1" / "vase", "config.ini", "[RawCalib]\n")
+    fake_scan(tmp_path / "day2" / "bunny")
+    fake_scan(tmp_path / "day2" / "chessboard", "calibration_result.xml", "<opencv_storage/>\n")
+    (tmp_path / "day2" / "notes").mkdir()
+    (tmp_path / "empty").mkdir()
+    return tmp_path
+
+
+def names_and_sources(found):
+    return [(e.name, e.source.relative_to(e.source.parents[1]).as_posix()) for e in found.scans]
+
+
+def test_find_scans_folders_of_scans_paths_and_globs(station, monkeypatch):
+    monkeypatch.chdir(station)
+    # a lone scan folder (or its scan.yaml): outputs straight into --out
+    for spec in ("day1/bunny", "day1/bunny/scan.yaml", str(station / "day1" / "bunny")):
+        found = find_scans([spec])
+        assert found.single and names_and_sources(found) == [("bunny", "day1/bunny")], spec
+    # a folder of scans: its scan subfolders, any layout, sorted; a subfolder without a scan is passed over
+    found = find_scans(["day2"])
+    assert not found.single and names_and_sources(found) == [("bunny", "day2/bunny"), ("chessboard", "day2/chessboard")]
+    assert found.ignored == [Path("day2/notes")]
+    # two folders: the two bunnies take their parent's name in front
+    found = find_scans(["day1", "day2"])
+    assert names_and_sources(found) == [("chessboard", "day2/chessboard"), ("day1-bunny", "day1/bunny"),
+                                        ("day2-bunny", "day2/bunny"), ("vase", "day1/vase")]
+    # globs: matches that are scans, folders of scans, or scan.yaml files; a scan named twice is one scan
+    assert names_and_sources(find_scans(["day*/bunny"])) == [("day1-bunny", "day1/bunny"), ("day2-bunny", "day2/bunny")]
+    assert names_and_sources(find_scans(["**/scan.yaml", "day1/bunny"])) == [("day1-bunny", "day1/bunny"),
+                                                                            ("day2-bunny", "day2/bunny")]
+    found = find_scans(["day?"])
+    assert len(found.scans) == 4 and found.ignored == [Path("day2/notes")]
+    assert not find_scans(["day1/b*"]).single  # a glob names a set, even of one scan
+
+
+def test_find_scans_refuses_words_that_name_no_scan(station, monkeypatch):
+    monkeypatch.chdir(station)
+    cases = [(["day1", "nowhere"], "scan not found: nowhere"), (["empty"], "empty: holds no scan"),
+             (["day2/notes"], "day2/notes: holds no scan"), (["day3*"], "day3*: no scan matches"),
+             (["day1/bunny/scan.yaml/x"], "scan not found"), ([], "no scan given")]
+    (station / "a_file.txt").write_text("x")
+    cases.append((["a_file.txt"], "a_file.txt: not a scan folder"))
+    for specs, message in cases:
+        with pytest.raises(ScanError, match=message.replace("*", r"\*").replace("?", r"\?")):
+            find_scans(specs)
+
+
+def test_unique_names():
+    assert unique_names([Path("/s/bunny"), Path("/s/vase")]) == ["bunny", "vase"]
+    assert unique_names([Path("/d1/x/bunny"), Path("/d2/x/bunny"), Path("/d1/vase")]) == ["d1-x-bunny", "d2-x-bunny", "vase"]
+    # a grown name that meets another folder's own name: that one grows too, if it can
+    assert unique_names([Path("/x/c"), Path("/y/c"), Path("/z/x-c")]) == ["x-c", "y-c", "z-x-c"]
+    # names still equal with every parent in front get a number, in the given order
+    assert unique_names([Path("/x/c"), Path("/y/c"), Path("/x-c")]) == ["x-c", "y-c", "x-c-2"]
+
+
+def test_sharding_is_longest_first_to_the_least_loaded_worker():
+    # costs 5 3 3 2 2 1 over two workers, by hand: 5 -> w0 (5); 3 -> w1 (3); 3 -> w1 (6); 2 -> w0 (7); 2 -> w1 (8);
+    # 1 -> w0 (8)
+    assert shard([5, 3, 3, 2, 2, 1], 2) == [[0, 3, 5], [1, 2, 4]]
+    assert shard([2, 2, 2, 2, 2], 2) == [[0, 2, 4], [1, 3]]  # equal costs deal round-robin
+    assert shard([1, 9, 4], 5) == [[1], [2], [0], [], []]  # more workers than scans
+    # an unknown cost counts as the mean of the known ones: (3 + 1 + 5 + 2) / 4 = 2.75
+    assert largest_first([3, None, 1, 5, 2]) == [3, 0, 1, 4, 2]
+    assert shard([3, None, 1, 5, 2], 2) == [[3, 4], [0, 1, 2]]
+    assert shard([None, None, None], 2) == [[0, 2], [1]]
+    with pytest.raises(ValueError, match="n_workers"):
+        shard([1.0], 0)
+
+
+def test_scan_cost_is_pixels_times_frames_from_scan_yaml(tmp_path):
+    frames = "".join(f"  - {{name: f{i}, image: images/{i}.png, pattern: patterns/{i}.png}}\n" for i in range(3))
+    fake_scan(tmp_path / "a", text=f"camera: {{width: 320, height: 256}}\nframes:\n{frames}")
+    assert scan_cost(tmp_path / "a") == 320 * 256 * 3
+    assert scan_cost(fake_scan(tmp_path / "b", text="camera: [oops\n")) is None  # the scan reports it when it runs
+    assert scan_cost(fake_scan(tmp_path / "c", "config.ini")) is None
+
+
+def test_summary_totals_report_and_json(tmp_path):
+    rows = [ScanResult("a", "/s/a", "/o/a", "done", "rank 0", "cpu", seconds=30.0, iterations=10, valid_share=0.5,
+                       mae=1.0, completeness=0.9),
+            ScanResult("b", "/s/b", "/o/b", "skipped", seconds=50.0, valid_share=0.75, mae=3.0, completeness=0.7),
+            ScanResult("c", "/s/c", "/o/c", "done", "rank 1", "cpu", seconds=20.0, valid_share=0.0, mae=math.nan,
+                       completeness=0.0),
+            ScanResult("d", "/s/d", "/o/d", "failed", "rank 1", "cpu", seconds=0.5, error="ScanError: bad", traceback="tb")]
+    summary = BatchSummary(rows, "torchrun", 2, wall_s=40.0, devices=["cpu", "cpu"])
+    t = summary.totals()
+    assert (t["scans"], t["done"], t["skipped"], t["failed"]) == (4, 2, 1, 1)
+    assert t["scans_per_hour"] == pytest.approx(2 / 40.0 * 3600.0)  # scans reconstructed now per hour of wall time
+    assert t["scan_s"] == pytest.approx(50.0)
+    # no valid depth (c): no MAE, but its completeness of 0 counts: (0.9 + 0.7 + 0) / 3
+    assert t["with_ground_truth"] == 2 and t["mean_mae"] == pytest.approx(2.0)
+    assert t["mean_completeness"] == pytest.approx(1.6 / 3)
+    report = summary.report()
+    assert "failed: d (/s/d): ScanError: bad" in report and "180.0 scans/h" in report
+    assert [line.split("|")[1].strip() for line in report.splitlines()[2:6]] == ["a", "b", "c", "d"]
+    json_path, md_path = summary.write(tmp_path)
+    doc = json.loads(json_path.read_text())  # strict JSON: NaN is written as null
+    assert doc["scans"][2]["mae"] is None and doc["scans"][3]["traceback"] == "tb" and doc["totals"]["done"] == 2
+    assert md_path.read_text().strip() == report
+
+
+def test_cli_refuses_bad_batch_commands(tmp_path, capsys, monkeypatch):
+    fake_scan(tmp_path / "s" / "a")
+    base = ["reconstruct", "--out", str(tmp_path / "o"), "--device", "cpu", "--preset", "tiny"]
+    assert cli_main(base + [str(tmp_path / "s"), str(tmp_path / "typo")]) == 2  # before any scan runs
+    assert "scan not found" in capsys.readouterr().err and not (tmp_path / "o").exists()
+    with pytest.raises(SystemExit):
+        cli_main(base + [str(tmp_path / "s"), "--per-device", "0"])
+    assert "it takes an integer >= 1" in capsys.readouterr().err
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("RANK", "0")
+    assert cli_main(base + [str(tmp_path / "s"), "--per-device", "2"]) == 2
+    assert "--nproc-per-node" in capsys.readouterr().err
+
+
+# A batch end to end: the 'tiny' preset cut to a few iterations, on the torch twin with sphere-traced depth so that
+# the worker processes compile no Warp kernel (the numbers do not matter here, only that each scan runs where the
+# plan says and its outputs and summary line come back).
+FAST = ["--preset", "tiny", "--device", "cpu", "--iters", "5", "--init", "sphere", "--rays", "128", "--mc-resolution", "32",
+        "--backend", "torch", "--depth-method", "sphere", "--quiet"]
+
+
+def test_batch_under_torchrun_with_a_broken_scan_then_resumed(tmp_path):
+    from slwarp.batch import BatchOptions, run_batch
+    from slwarp.neural.config import preset
+    from slwarp.sim.simulate import simulate_scene
+
+    scan = simulate_scene("spheres", "random6", rig="small")
+    for name in ("a", "b", "broken"):
+        scan.save(tmp_path / "scans" / name)
+    missing = tmp_path / "scans" / "broken" / "images" / f"002_{scan.names[2]}.png"
+    missing.unlink()
+    out = tmp_path / "out"
+
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    run = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2", "-m", "slwarp",
+                          "reconstruct", "scans", "--out", "out", *FAST], cwd=tmp_path, env=env, capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode != 0, run.stdout + run.stderr  # a scan failed: rank 0 exits with 1, torchrun says so
+    assert run.stdout.count("3 scans: 2 done, 0 skipped (complete before), 1 failed; torchrun, 2 worker(s)") == 1, run.stdout
+    doc = json.loads((out / "summary.json").read_text())
+    rows = {r["name"]: r for r in doc["scans"]}
+    assert list(rows) == ["a", "b", "broken"] and doc["mode"] == "torchrun" and doc["devices"] == ["cpu", "cpu"]
+    # the plan: equal costs (320 x 256 x 6 each) deal round-robin in name order
+    assert {k: r["worker"] for k, r in rows.items()} == {"a": "rank 0", "b": "rank 1", "broken": "rank 0"}
+    for name in ("a", "b"):
+        r = rows[name]
+        assert r["status"] == "done" and r["iterations"] == 5 and r["error"] is None, r
+        assert 0 < r["valid_share"] <= 1 and r["mae"] is not None and 0 < r["completeness"] <= 1
+        assert (r["frames"], r["pixels"]) == (6, 320 * 256)
+        for f in ("depth.npy", "depth.png", "config.yaml", "timings.json", "metrics.json"):
+            assert (out / name / f).is_file(), (name, f)
+    # the same scan and config give the same result in either process
+    assert (rows["a"]["mae"], rows["a"]["valid_share"]) == (rows["b"]["mae"], rows["b"]["valid_share"])
+    bad = rows["broken"]
+    assert bad["status"] == "failed" and bad["error"].startswith("ScanError:") and str(missing) in bad["error"]
+    assert "Traceback" in bad["traceback"] and not (out / "broken" / "depth.npy").exists()
+    assert f"failed: broken ({tmp_path / 'scans' / 'broken'}): ScanError" in (out / "summary.md").read_text()
+
+    # resumed with worker processes started here (two per device, one needed): the finished scans are skipped with
+    # their numbers, the broken one is tried again and fails alone
+    found = find_scans([tmp_path / "scans"])
+    cfg = preset("tiny", device="cpu", iters=5, init="sphere", rays=128, mc_resolution=32, backend="torch",
+                 depth_method="sphere")
+    summary = run_batch(found.scans, cfg, out, BatchOptions(resume=True, log=False), per_device=2)
+    rows2 = {r.name: r for r in summary.results}
+    assert [rows2[k].status for k in ("a", "b", "broken")] == ["skipped", "skipped", "failed"]
+    assert summary.mode == "per-device" and summary.workers == 1 and rows2["broken"].worker == "worker 0"
+    assert str(missing) in rows2["broken"].error
+    for name in ("a", "b"):
+        assert rows2[name].mae == pytest.approx(rows[name]["mae"]) and rows2[name].valid_share == pytest.approx(
+            rows[name]["valid_share"])
+    assert json.loads((out / "summary.json").read_text())["totals"]["skipped"] == 2
