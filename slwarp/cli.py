@@ -52,7 +52,7 @@ def _add_info(sub):
 
 def cmd_simulate(args) -> int:
     from .scans.patterns import named_set
-    from .sim.rigs import DEPTH_RANGE_MM, make_rig
+    from .sim.rigs import DEPTH_RANGE_MM, describe_rigs, make_rig
     from .sim.scenes import SCENE_NAMES, build_scene, load_mesh_objects
     from .sim.simulate import SimOptions, simulate
     from .evaluation.viz import save_scan_preview
@@ -61,7 +61,9 @@ def cmd_simulate(args) -> int:
         from .scans.patterns import NAMED_SETS
 
         print("scenes: " + ", ".join(SCENE_NAMES))
-        print("rigs: default, small")
+        print("rigs (geometry / small-resolution twin; full: camera 1280x1024, projector 1280x800; small: 320x256, 640x400):")
+        for line in describe_rigs():
+            print(f"  {line}")
         print("pattern sets (join with '+'):")
         for k, v in NAMED_SETS.items():
             print(f"  {k:22s} {v}")
@@ -101,11 +103,15 @@ def cmd_simulate(args) -> int:
 
 
 def _add_simulate(sub):
+    from .sim.rigs import RIG_NAMES
+
     p = sub.add_parser("simulate", help="render a scan with exact ground truth on the virtual scanner")
     p.add_argument("--scene", help="built-in scene (see --list)")
     p.add_argument("--mesh", action="append", help="mesh file in mm, camera frame (repeatable)")
     p.add_argument("--patterns", default="random6", help="pattern set, e.g. random6, gray7, gt, random6+gray7 (default: random6)")
-    p.add_argument("--rig", default="default", choices=["default", "small"], help="built-in rig (default: default)")
+    p.add_argument("--rig", default="default", choices=list(RIG_NAMES),
+                   help="built-in rig: geometry default, vertical, oblique or rolled, at full resolution or small "
+                        "(small, small-vertical, ...; see --list; default: default)")
     p.add_argument("--seed", type=int, default=0, help="noise seed (default: 0)")
     p.add_argument("--pattern-seed", type=int, default=0, help="seed of the random patterns (default: 0)")
     p.add_argument("--out", help="output scan folder")
