@@ -10,7 +10,7 @@ through marching cubes); nothing is downloaded.
     bunny     a smooth blobby "bunny-like" shape (body, head, ears) built as an implicit surface
     vase      a textured surface of revolution and a lying cylinder
     steps     a staircase receding in depth, a cone and a capsule
-    checker   a wall printed with a high-contrast checkerboard (20 mm squares, albedo 0.07 to 0.7) and
+    checker   a wall printed with a high-contrast checkerboard (20 mm squares, albedo 0.16 to 0.8) and
               objects with strong textures (a checkered sphere, a box with a fine sinusoid)
     rods      thin rods (2.5 mm diameter, 560 to 680 mm away: about 2 camera pixels wide on the small rig,
               7 on the default rig) in front of two spheres and the wall: thin structures, the shadows
@@ -182,10 +182,11 @@ def build_scene(name: str) -> list[SceneObject]:
         objs += [SceneObject("cone", cone, 0.75), SceneObject("capsule", capsule, 0.6)]
         return objs
     if name == "checker":
-        # albedo 0.7 x (1 - 0.9 + 0.9 T): squares of 0.07 and 0.7, a 10:1 contrast
+        # albedo 0.8 x (1 - 0.8 + 0.8 T): squares of 0.16 and 0.8, a 5:1 contrast whose dark squares stay above
+        # the decoders' contrast thresholds (a 10:1 print leaves them unlit for every method alike)
         box = trimesh.creation.box((150.0, 150.0, 150.0), transform=_transform((140.0, 30.0, 760.0), rx=15.0, ry=-35.0))
         return [
-            _wall(tilt_deg=8.0, albedo=0.7, texture=0.9, texture_period=40.0, texture_kind="checker"),
+            _wall(tilt_deg=8.0, albedo=0.8, texture=0.8, texture_period=40.0, texture_kind="checker"),
             SceneObject("sphere_checker", _sphere((-120.0, -20.0, 720.0), 90.0), 0.8, 0.8, 30.0, "checker"),
             SceneObject("box_fine_sine", box, 0.7, 0.9, 12.0, "sine"),
         ]
