@@ -25,13 +25,12 @@ from pathlib import Path
 
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from slwarp.neural import ops
+from slwarp.neural.render import structured_light_losses
+from slwarp.scans.patterns import random_binary
+from slwarp.sim.rigs import make_rig
 
-from slwarp.neural import ops, twin  # noqa: E402
-from slwarp.scans.patterns import random_binary  # noqa: E402
-from slwarp.sim.rigs import make_rig  # noqa: E402
-from slwarp.neural.render import structured_light_losses  # noqa: E402
+REPO = Path(__file__).resolve().parents[1]
 
 FULL_GRID = [(R, S, N) for R in (2048, 16384, 65536) for S in (64, 128) for N in (6, 9)]
 CPU_GRID = [(R, S, N) for R in (2048, 16384) for S in (64,) for N in (6,)]

@@ -1,81 +1,94 @@
-"""The real capture (../shared/data/procam_chessboard): the chessboard plate's planarity (RMS distance of
-its points to their least-squares plane) for the full 40-image Gray code decode, classical decoding of the
-7 most significant column bits (no inverses), and the neural SDF from the same 7 images.
+"""The real capture (../shared/data/procam_chessboard): the chessboard plate's planarity (RMS distance of its
+points to their least-squares plane) for the full 40-image Gray code decode, classical decoding of the 7 most
+significant ROW bits (no inverses), and the neural SDF trained on those same 7 images.
 
-    python bench/chessboard.py [--preset paper] [--skip-neural]
-Writes bench/results/chessboard-<device>.json and .md. The rig's baseline is mostly vertical, so column
-codes carry little depth information here: the column-plane triangulation is ill-conditioned by design.
+The rig's baseline is mostly vertical (the projector 273 mm below the camera), so the projector's rows carry
+the depth: the decoders triangulate with the row plane (`--triangulation auto`). One row shows the 7 column
+bits for contrast: their plane nearly contains the camera rays, so their depth is ill-conditioned.
+
+    python bench/chessboard.py --skip-neural                 # classical rows only (CPU, a minute)
+    python bench/chessboard.py --preset paper                # with the neural SDF: needs a GPU
+    python bench/chessboard.py --preset tiny --out /tmp/cb   # smoke check of the neural path on a CPU
+Writes <out>/chessboard-<cpu|cuda>.json and .md.
 """
 from __future__ import annotations
 
 import argparse
 import datetime
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 DEFAULT_DATA = REPO.parent / "shared" / "data" / "procam_chessboard"
 DEPTH_RANGE = (1050.0, 1750.0)  # the full decode spans 1117 to 1649 mm (0.5 and 99.5 percentiles)
-SEVEN = ",".join(f"gc_col_b{k}" for k in range(7))
+SEVEN_ROWS = "gray:row:bit=0-6:noinv"  # the 7 most significant row bits, no inverses (role selector)
+SEVEN_COLS = "gray:col:bit=0-6:noinv"
 
 
 def main(argv=None):
     import torch
 
     from slwarp.decode import reconstruct_depth
-    from slwarp.neural.extract import depth_to_points
     from slwarp.evaluation.metrics import chessboard_region, plane_rms
+    from slwarp.neural.extract import depth_to_points
     from slwarp.neural.reconstruct import reconstruct
+    from slwarp.devices import torch_device
+    from slwarp.neural.config import default_preset_name, preset
     from slwarp.scans.scan import load_scan
-    from slwarp.neural.train import preset
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", default=str(DEFAULT_DATA))
-    p.add_argument("--preset", default=None)
+    p.add_argument("--preset", default=None, help="neural preset (default: paper on a GPU, cpu otherwise)")
     p.add_argument("--iters", type=int, default=None)
     p.add_argument("--skip-neural", action="store_true")
     p.add_argument("--out", default=str(REPO / "bench" / "results"))
     args = p.parse_args(argv)
     scan = load_scan(args.data)
-    region = chessboard_region(scan.image("white"))
+    region = chessboard_region(scan.images[scan.frame_with("white")])
     rows = {}
 
-    def record(name, depth, seconds, frames):
+    def record(name, depth, seconds, frames, triangulation):
         pts = depth_to_points(np.where(region, depth, np.nan), scan.camera)
         rms, n = plane_rms(pts)
-        rows[name] = {"plane_rms_mm": rms, "points": n, "board_pixels": int(region.sum()), "frames": frames, "seconds": seconds}
-        print(f"{name}: plane RMS {rms:.3f} mm over {n} points ({n / region.sum():.1%} of the board), {seconds:.1f} s", flush=True)
+        rows[name] = {"plane_rms_mm": rms, "points": n, "board_pixels": int(region.sum()), "frames": frames,
+                      "triangulation": triangulation, "seconds": seconds}
+        print(f"{name}: plane RMS {rms:.3f} mm over {n} points ({n / region.sum():.1%} of the board), "
+              f"{triangulation}, {seconds:.1f} s", flush=True)
 
-    for name, method, frames in (("GC full (40 images), row plane", "gc", None),
+    for name, method, frames in (("GC full (40 images)", "gc", None),
                                  ("GC full (40 images) interp", "gc-interp", None),
-                                 ("GC 7 column bits", "gc", SEVEN),
-                                 ("GC 7 column bits interp", "gc-interp", SEVEN)):
+                                 ("GC 7 row bits", "gc", SEVEN_ROWS),
+                                 ("GC 7 row bits interp", "gc-interp", SEVEN_ROWS),
+                                 ("GC 7 column bits interp (little depth on this rig)", "gc-interp", SEVEN_COLS)):
         t = time.perf_counter()
-        d, _, _ = reconstruct_depth(scan, method, frames=frames, depth_range=DEPTH_RANGE)
-        record(name, d, time.perf_counter() - t, 40 if frames is None else 7)
+        d, _, dec = reconstruct_depth(scan, method, frames=frames, depth_range=DEPTH_RANGE)
+        record(name, d, time.perf_counter() - t, len(dec.frames), dec.extra["triangulation"])
     if not args.skip_neural:
-        dev = "cuda" if torch.cuda.is_available() else "cpu"
-        name = args.preset or ("paper" if dev == "cuda" else "cpu")
-        cfg = preset(name, iters=args.iters)
+        name = args.preset or default_preset_name(torch_device("auto"))
+        cfg = preset(name, **({"iters": args.iters} if args.iters is not None else {}))
+        seven = scan.select(SEVEN_ROWS)
         t = time.perf_counter()
-        res = reconstruct(scan.select(SEVEN), cfg, out_dir=None, depth_range=DEPTH_RANGE, progress=False, log_every_s=30)
-        record(f"neural SDF, 7 column bits ({name} preset)", res.depth, time.perf_counter() - t, 7)
+        res = reconstruct(seven, cfg, out_dir=None, depth_range=DEPTH_RANGE, progress=False, log_every_s=30)
+        record(f"neural SDF, 7 row bits ({name} preset)", res.depth, time.perf_counter() - t, len(seven), "-")
     device = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "CPU"
     lines = [f"# Real capture: chessboard plate planarity, {device}, {datetime.date.today()}", "",
-             "RMS distance (mm) of the reconstructed points inside the 9x7 inner-corner quadrilateral to their plane.", "",
-             "| method | images | plane RMS mm | points | share of board | time s |", "|---|---|---|---|---|---|"]
+             "RMS distance (mm) of the reconstructed points inside the 9x7 inner-corner quadrilateral to their plane. "
+             "Vertical baseline: the row codes carry depth. "
+             f"`python bench/chessboard.py {' '.join(sys.argv[1:] if argv is None else argv)}`", "",
+             "| method | images | triangulation | plane RMS mm | points | share of board | time s |",
+             "|---|---|---|---|---|---|---|"]
     for k, r in rows.items():
-        lines.append(f"| {k} | {r['frames']} | {r['plane_rms_mm']:.3f} | {r['points']} | {r['points'] / r['board_pixels']:.1%} | {r['seconds']:.1f} |")
+        lines.append(f"| {k} | {r['frames']} | {r['triangulation']} | {r['plane_rms_mm']:.3f} | {r['points']} | "
+                     f"{r['points'] / r['board_pixels']:.1%} | {r['seconds']:.1f} |")
     print("\n".join(lines))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     tag = "cuda" if torch.cuda.is_available() else "cpu"
-    (out / f"chessboard-{tag}.json").write_text(json.dumps({"device": device, "date": str(datetime.date.today()), "rows": rows}, indent=1))
+    (out / f"chessboard-{tag}.json").write_text(json.dumps({"device": device, "date": str(datetime.date.today()),
+                                                           "rows": rows}, indent=1))
     (out / f"chessboard-{tag}.md").write_text("\n".join(lines) + "\n")
 
 

@@ -27,12 +27,9 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from train_variants import run_variants  # a sibling script: bench/ is sys.path[0] when this one runs
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "bench"))
-sys.path.insert(0, str(REPO))
-
-from train_variants import run_variants  # noqa: E402
 
 SCENES = ("spheres", "torus", "boxes", "bunny", "vase", "steps")
 CLASSICAL_ROWS = [("GC(6) interp", "GC(6)"), ("GC(7) interp", "GC(7)"), ("CGC(6): 3 GC + 3-step W/4", "CGC(6)"),
@@ -95,7 +92,7 @@ def plt():
 
 def iters_run(docs: dict, args):
     """The training iterations the runs used (the preset's unless --iters)."""
-    return next(iter(docs.values()))["config"]["iters"] if docs else args.iters
+    return next(iter(docs.values()))["config"]["schedule"]["iters"] if docs else args.iters
 
 
 def rig_of(args) -> str:

@@ -21,12 +21,10 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
-import sys
 import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 WARP_KERNEL_MARKERS = ("render_kernels", "cast_camera", "upsample", "merge_sorted", "stratified", "camera_rays")
 MARKER_KERNEL = "spin_kernel"  # torch.cuda._sleep's kernel: the phase marker
@@ -51,7 +49,7 @@ def breakdown(trainer, steps: int = 5) -> dict:
         torch.cuda._sleep(0)
 
     trainer.renderer.phase_hook = hook
-    trainer._graph = None  # recapture with the markers inside
+    trainer.reset_graph()  # recapture with the markers inside
     trainer.step()
     trainer.step()
     torch.cuda.synchronize()
@@ -61,7 +59,7 @@ def breakdown(trainer, steps: int = 5) -> dict:
             trainer.step()
         torch.cuda.synchronize()
     trainer.renderer.phase_hook = None
-    trainer._graph = None
+    trainer.reset_graph()
     evs = [e for e in prof.profiler.kineto_results.events() if e.device_type() == DeviceType.CUDA]
     evs.sort(key=lambda e: e.start_ns())
     order = ["batch", "rays", "field", "render", "backward", "optimizer", "end"]
@@ -110,7 +108,8 @@ def cpu_breakdown(trainer, steps: int = 10) -> dict:
 def time_config(scan, spec: str, preset_name: str, warmup: int, iters: int, dev: str) -> dict:
     import torch
 
-    from slwarp.neural.train import Trainer, preset
+    from slwarp.neural.config import preset
+    from slwarp.neural.train import Trainer
 
     parts = spec.split(":")
     backend, mode, mm = parts[:3]
@@ -131,7 +130,7 @@ def time_config(scan, spec: str, preset_name: str, warmup: int, iters: int, dev:
     sync()
     ms = (time.perf_counter() - t0) / iters * 1e3
     row = {"config": spec, "preset": preset_name, "ms_per_it": ms, "it_per_s": 1e3 / ms, "warmup_s": t_warm,
-           "projected_s": cfg.iters * ms / 1e3, "iters_of_preset": cfg.iters, "graph_used": bool(tr._graph is not None)}
+           "projected_s": cfg.schedule.iters * ms / 1e3, "iters_of_preset": cfg.schedule.iters, "graph_used": tr.graph_captured}
     if dev == "cuda":
         b = breakdown(tr)
         b["host_and_idle"] = max(0.0, ms - b["gpu_total"])
@@ -150,7 +149,7 @@ def end_to_end(scan, backend: str, preset_name: str, dev: str) -> dict:
     import torch
 
     from slwarp.neural.reconstruct import reconstruct
-    from slwarp.neural.train import preset
+    from slwarp.neural.config import preset
 
     cfg = preset(preset_name, backend=backend)
     if dev == "cuda":
@@ -161,7 +160,7 @@ def end_to_end(scan, backend: str, preset_name: str, dev: str) -> dict:
     wall = time.perf_counter() - t0
     t = res.timings
     row = {"backend": backend, "preset": preset_name, "wall_s": wall, "timings": t, "it_per_s": t["iterations"] / t["train_s"],
-           "graph_used": bool(res.trainer._graph is not None), "pattern_blur_px": res.trainer.renderer.pattern_blur,
+           "graph_used": res.trainer.graph_captured, "pattern_blur_px": res.trainer.renderer.pattern_blur,
            "metrics": res.metrics}
     if dev == "cuda":
         row["peak_gpu_mem_GB"] = torch.cuda.max_memory_allocated() / 1e9

@@ -1,7 +1,7 @@
 """Run several neural-SDF training variants side by side (one process each) and tabulate their accuracy.
 
-Each variant is NAME:key=value,key=value with keys scene, rig, patterns, frames, seed and any TrainConfig
-field (iters, lr, init, matmul, depth_method, preset, ...). Processes run `--parallel` at a time, which
+Each variant is NAME:key=value,key=value with keys scene, rig, patterns, frames, noise_seed, preset and any
+TrainConfig option by its flat name (slwarp.neural.config.OPTIONS: iters, lr, init, matmul, depth_method, ...). Processes run `--parallel` at a time, which
 fills a large GPU better than one 2048-ray run. Each writes <out>/<NAME>.json (metrics, timings, config).
 
     python bench/train_variants.py --out bench/results/variants A:scene=bunny B:scene=bunny,init=camera
@@ -17,7 +17,6 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 SCAN_KEYS = {"scene": str, "rig": str, "patterns": str, "frames": str, "noise_seed": int}
 
@@ -31,26 +30,12 @@ def parse(spec: str):
     return name, kv
 
 
-def convert(cfg_field_type, value: str):
-    if value in ("None", "none"):
-        return None
-    if cfg_field_type in (int, "int"):
-        return int(value)
-    if cfg_field_type in (float, "float"):
-        return float(value)
-    if cfg_field_type in (bool, "bool"):
-        return value.lower() in ("1", "true", "yes")
-    return value
-
-
 def run_one(name: str, kv: dict, out: Path) -> dict:
-    import dataclasses
-
     import torch
 
     from slwarp.neural.reconstruct import reconstruct
     from slwarp.sim.simulate import SimOptions, simulate_scene
-    from slwarp.neural.train import TrainConfig, preset
+    from slwarp.neural.config import OPTIONS, preset
 
     scene = kv.pop("scene", "bunny")
     rig = kv.pop("rig", "default")
@@ -58,16 +43,17 @@ def run_one(name: str, kv: dict, out: Path) -> dict:
     frames = kv.pop("frames", None)
     noise_seed = int(kv.pop("noise_seed", 0))
     pname = kv.pop("preset", "paper")
-    types = {f.name: f.type for f in dataclasses.fields(TrainConfig)}
-    overrides = {k: convert(types[k], v) for k, v in kv.items()}
-    cfg = preset(pname, **overrides)
+    unknown = sorted(set(kv) - set(OPTIONS))
+    if unknown:
+        raise SystemExit(f"{name}: unknown option(s) {', '.join(unknown)}; options: {', '.join(OPTIONS)}")
+    cfg = preset(pname, **{k: OPTIONS[k].parse(v) for k, v in kv.items()})
     t0 = time.perf_counter()
     scan = simulate_scene(scene, patterns, rig=rig, options=SimOptions(seed=noise_seed),
                           device="cuda:0" if torch.cuda.is_available() else "cpu")
     if frames:
         scan = scan.select(frames.replace(";", ","))
     t1 = time.perf_counter()
-    print(f"{name}: simulated {scene} in {t1 - t0:.1f} s; training {cfg.iters} iterations", flush=True)
+    print(f"{name}: simulated {scene} in {t1 - t0:.1f} s; training {cfg.schedule.iters} iterations", flush=True)
     res = reconstruct(scan, cfg, out_dir=out / name, progress=False, log_every_s=20.0)
     doc = {"name": name, "scene": scene, "rig": rig, "patterns": patterns, "frames": scan.names, "preset": pname,
            "config": cfg.to_dict(), "pattern_blur_px": res.trainer.renderer.pattern_blur, "metrics": res.metrics, "timings": {**res.timings, "simulate_s": t1 - t0},

@@ -24,17 +24,17 @@ Both loops are software-pipelined (the next sample's inputs load while this one 
 thread per ray the kernels are latency-bound, and sample-major inputs make each load coalesced.
 
 Kernels are specialised on the pattern count N (a compile-time constant: per-pattern accumulators stay
-in registers). Patterns are packed [H, W, N] so the N values of one projector pixel are contiguous.
+in registers). Patterns are packed [H, W, N] so the N values of one projector pixel are contiguous; their
+bilinear taps come from slwarp.kernels.geometry.pattern_sampler, shared with the depth search.
 """
 
 import functools
 
 import warp as wp
 
-from slwarp.kernels.geometry import ProjectorParams, project_to_projector, project_to_projector_grad
+from slwarp.kernels.geometry import (ALPHA_EPS, TRANS_EPS, ProjectorParams, inside_box, pattern_sampler,
+                                     project_to_projector, project_to_projector_grad, sigmoid)
 
-ALPHA_EPS = 1.0e-5  # NeuS's alpha regulariser
-TRANS_EPS = 1.0e-7  # NeuS's transmittance regulariser
 NORM_EPS = 1.0e-12  # |g| = sqrt(g.g + eps): finite Eikonal gradient at g = 0
 WSUM_EPS = 1.0e-6  # surface point = sum w x / (sum w + eps): defined for rays with no weight
 
@@ -42,11 +42,6 @@ WSUM_EPS = 1.0e-6  # surface point = sum w x / (sum w + eps): defined for rays w
 @wp.func
 def iter_cos(true_cos: float, anneal: float) -> float:
     return -(wp.max(-true_cos * 0.5 + 0.5, 0.0) * (1.0 - anneal) + wp.max(-true_cos, 0.0) * anneal)
-
-
-@wp.func
-def sigmoid(x: float) -> float:
-    return 1.0 / (1.0 + wp.exp(-x))
 
 
 @wp.func
@@ -78,77 +73,10 @@ def neus_alpha_vjp(sdf: float, true_cos: float, dz: float, inv_s: float, anneal:
     return wp.vec3(g_prev + g_next, g_c * dc_dcos, g_prev_arg * prev + g_next_arg * nxt)
 
 
-@wp.func
-def inside_box(x: wp.vec3, bmin: wp.vec3, bmax: wp.vec3) -> bool:
-    return x[0] >= bmin[0] and x[0] <= bmax[0] and x[1] >= bmin[1] and x[1] <= bmax[1] and x[2] >= bmin[2] and x[2] <= bmax[2]
-
-
-@functools.lru_cache(maxsize=None)
-def pattern_sampler(N: int):
-    """(vecN, sample_all): the Warp vector type of N pattern values and the bilinear lookup of all N patterns
-    (pattern stack [H, W, N]) at a projector position (u, v, ok); shared by the renderer and the depth search."""
-    vecN = wp.types.vector(length=N, dtype=wp.float32)
-
-    @wp.func
-    def sample_all(pat: wp.array3d(dtype=float), uvo: wp.vec3) -> vecN:
-        """Bilinear values of all N patterns at (u, v); zero taps outside the image, zero when not ok."""
-        out = vecN()
-        if uvo[2] == 0.0:
-            return out
-        H = pat.shape[0]
-        W = pat.shape[1]
-        u0 = wp.floor(uvo[0])
-        v0 = wp.floor(uvo[1])
-        fu = uvo[0] - u0
-        fv = uvo[1] - v0
-        iu = int(u0)
-        iv = int(v0)
-        for dy in range(2):
-            for dx in range(2):
-                x = iu + dx
-                y = iv + dy
-                if x >= 0 and x < W and y >= 0 and y < H:
-                    wgt = wp.where(dx == 0, 1.0 - fu, fu) * wp.where(dy == 0, 1.0 - fv, fv)
-                    for n in range(N):
-                        out[n] += wgt * pat[y, x, n]
-        return out
-
-    return vecN, sample_all
-
-
 @functools.lru_cache(maxsize=None)
 def render_kernels(N: int):
     """(forward, backward) kernels for N patterns."""
-    vecN, sample_all = pattern_sampler(N)
-
-    @wp.func
-    def sample_all_grad(pat: wp.array3d(dtype=float), uvo: wp.vec3, cot: vecN) -> wp.vec2:
-        """d(sum_n cot_n P_n(u, v)) / d(u, v)."""
-        if uvo[2] == 0.0:
-            return wp.vec2(0.0, 0.0)
-        H = pat.shape[0]
-        W = pat.shape[1]
-        u0 = wp.floor(uvo[0])
-        v0 = wp.floor(uvo[1])
-        fu = uvo[0] - u0
-        fv = uvo[1] - v0
-        iu = int(u0)
-        iv = int(v0)
-        gu = float(0.0)
-        gv = float(0.0)
-        for dy in range(2):
-            for dx in range(2):
-                x = iu + dx
-                y = iv + dy
-                if x >= 0 and x < W and y >= 0 and y < H:
-                    val = float(0.0)
-                    for n in range(N):
-                        val += cot[n] * pat[y, x, n]
-                    wu = wp.where(dy == 0, 1.0 - fv, fv) * wp.where(dx == 0, -1.0, 1.0)
-                    wv = wp.where(dx == 0, 1.0 - fu, fu) * wp.where(dy == 0, -1.0, 1.0)
-                    gu += wu * val
-                    gv += wv * val
-        return wp.vec2(gu, gv)
+    vecN, sample_all, sample_all_grad = pattern_sampler(N)
 
     @wp.kernel(module="unique")
     def forward(

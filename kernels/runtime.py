@@ -1,4 +1,4 @@
-"""Warp runtime helpers: lazy init, the kernel cache location, and device/stream mapping from torch.
+"""Warp runtime helpers: lazy init, the kernel cache location, array descriptors and cached launches.
 
 Warp is initialised on first use, never at import. The kernel cache goes to $SLWARP_KERNEL_CACHE, else
 $WARP_CACHE_PATH, else Warp's default (per user). Kernels are pure functions of their source, so a warm
@@ -32,54 +32,20 @@ def init():
     return wp
 
 
-def warp_device(device) -> str:
-    """A torch device (or string) -> Warp device name ('cpu', 'cuda:0', ...)."""
-    import torch
-
-    dev = torch.device(device)
-    if dev.type == "cuda":
-        return f"cuda:{dev.index if dev.index is not None else torch.cuda.current_device()}"
-    if dev.type != "cpu":
-        raise ValueError(f"Warp kernels run on CPU or CUDA devices, got {dev}")
-    return "cpu"
-
-
-class on_torch_stream:
-    """Context: launch Warp work on torch's current stream of `device` (no-op on the CPU)."""
-
-    def __init__(self, device):
-        import torch
-
-        self.dev = torch.device(device)
-        self._ctx = None
-
-    def __enter__(self):
-        wp = init()
-        if self.dev.type == "cuda":
-            self._ctx = wp.ScopedStream(wp.stream_from_torch(self.dev))
-            self._ctx.__enter__()
-        return self
-
-    def __exit__(self, *exc):
-        if self._ctx is not None:
-            self._ctx.__exit__(*exc)
-        return False
-
-
 def array_desc(t, vec: int = 0):
-    """A Warp array descriptor for a contiguous torch tensor, without building a wp.array.
-
-    vec = 0: the tensor's own shape (float32/int32 elements); vec = k: the last axis (size k) becomes
-    a k-vector element, e.g. [R, S, 3] -> array2d of vec3. Kernels accept descriptors verbatim.
-    """
-    from warp._src.types import array_t
-
-    shape = tuple(t.shape[:-1]) if vec else tuple(t.shape)
-    item = t.element_size() * (vec if vec else 1)
-    strides = tuple(s * t.element_size() for s in t.stride()[: len(shape)]) if vec else tuple(s * t.element_size() for s in t.stride())
-    if not shape:  # a 0-d tensor is passed as a 1-element array
-        shape, strides = (1,), (item,)
-    return array_t(data=t.data_ptr(), grad=0, ndim=len(shape), shape=shape, strides=strides)
+    """A Warp array descriptor (wp.from_torch(..., return_ctype=True)) of a torch tensor, without building
+    a wp.array: any strides; vec = 0: the tensor's own shape and element type; vec = 2 or 3: the last axis
+    (contiguous) becomes a vec2/vec3 element, e.g. [R, S, 3] -> array2d of vec3; any other vec = n: a float32 vector
+    of length n (the hash grid's feature vectors). A 0-d tensor is passed as a 1-element array. Kernels accept
+    descriptors verbatim."""
+    wp = init()
+    if t.dim() == 0:
+        t = t.reshape(1)
+    if vec == 0:
+        dtype = None
+    else:
+        dtype = {2: wp.vec2, 3: wp.vec3}.get(vec) or wp.types.vector(length=vec, dtype=wp.float32)
+    return wp.from_torch(t, dtype=dtype, requires_grad=False, return_ctype=True)
 
 
 class CachedLaunch:

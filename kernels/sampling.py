@@ -10,8 +10,15 @@ merge_sorted:   merge two per-ray sorted sample lists (z and SDF) into one, stab
 
 import warp as wp
 
-from slwarp.kernels.geometry import CameraParams, pixel_ray
-from slwarp.kernels.render import inside_box, sigmoid
+from slwarp.kernels.geometry import ALPHA_EPS, TRANS_EPS, CameraParams, inside_box, pixel_ray, sigmoid
+
+# NeuS's up-sampling regularisers (all 1e-5 in NeuS's renderer): the SDF slope over an interval divides by its
+# length + SLOPE_EPS and is clamped to [MIN_SLOPE, 0]; every interval's weight gets PDF_EPS so the CDF rises
+# everywhere; an interval whose CDF rises by less than CDF_EPS places its quantiles at its start
+SLOPE_EPS = 1.0e-5
+MIN_SLOPE = -1.0e3
+PDF_EPS = 1.0e-5
+CDF_EPS = 1.0e-5
 
 
 @wp.kernel
@@ -48,18 +55,18 @@ def upsample_alpha(z: wp.array2d(dtype=float), sdf: wp.array2d(dtype=float), r: 
                    inv_s: float) -> float:
     """NeuS's estimated alpha of interval [z_i, z_{i+1}] (the cosine from SDF differences)."""
     dist = z[r, i + 1] - z[r, i]
-    c = (sdf[r, i + 1] - sdf[r, i]) / (dist + 1.0e-5)
+    c = (sdf[r, i + 1] - sdf[r, i]) / (dist + SLOPE_EPS)
     if i > 0:
-        c = wp.min(c, (sdf[r, i] - sdf[r, i - 1]) / (z[r, i] - z[r, i - 1] + 1.0e-5))
+        c = wp.min(c, (sdf[r, i] - sdf[r, i - 1]) / (z[r, i] - z[r, i - 1] + SLOPE_EPS))
     else:
         c = wp.min(c, 0.0)
-    c = wp.clamp(c, -1.0e3, 0.0)
+    c = wp.clamp(c, MIN_SLOPE, 0.0)
     if not inside_i:
         c = 0.0
     mid = (sdf[r, i] + sdf[r, i + 1]) * 0.5
     prev_cdf = sigmoid((mid - c * dist * 0.5) * inv_s)
     next_cdf = sigmoid((mid + c * dist * 0.5) * inv_s)
-    return (prev_cdf - next_cdf + 1.0e-5) / (prev_cdf + 1.0e-5)
+    return (prev_cdf - next_cdf + ALPHA_EPS) / (prev_cdf + ALPHA_EPS)
 
 
 @wp.kernel
@@ -85,8 +92,8 @@ def upsample(
     for i in range(S - 1):
         in_next = inside_box(o + d * z[r, i + 1], bmin, bmax)
         alpha = upsample_alpha(z, sdf, r, i, in_prev or in_next, inv_s)
-        total += alpha * trans + 1.0e-5
-        trans = trans * (1.0 - alpha + 1.0e-7)
+        total += alpha * trans + PDF_EPS
+        trans = trans * (1.0 - alpha + TRANS_EPS)
         in_prev = in_next
     # pass 2: walk the CDF and place quantiles (j + 0.5) / n_new in order
     j = int(0)
@@ -96,11 +103,11 @@ def upsample(
     for i in range(S - 1):
         in_next = inside_box(o + d * z[r, i + 1], bmin, bmax)
         alpha = upsample_alpha(z, sdf, r, i, in_prev or in_next, inv_s)
-        cdf_hi = cdf_lo + (alpha * trans + 1.0e-5) / total
-        trans = trans * (1.0 - alpha + 1.0e-7)
+        cdf_hi = cdf_lo + (alpha * trans + PDF_EPS) / total
+        trans = trans * (1.0 - alpha + TRANS_EPS)
         in_prev = in_next
         denom = cdf_hi - cdf_lo
-        if denom < 1.0e-5:
+        if denom < CDF_EPS:
             denom = 1.0
         while j < n_new and (float(j) + 0.5) / float(n_new) < cdf_hi:
             u = (float(j) + 0.5) / float(n_new)

@@ -8,13 +8,15 @@ import functools
 
 import warp as wp
 
-from slwarp.kernels.geometry import ProjectorParams, project_to_projector
-from slwarp.kernels.render import pattern_sampler
+from slwarp.kernels.geometry import ProjectorParams, pattern_sampler, project_to_projector
+
+NO_COST = 1.0e30  # the cost of "no hypothesis yet": above any mean L1 cost of intensities in [0, 1]
 
 
 @functools.lru_cache(maxsize=None)
 def search_kernel(N: int):
-    _, patterns_at = pattern_sampler(N)
+    """The search kernel for N patterns (see module docstring)."""
+    _, patterns_at, _ = pattern_sampler(N)
 
     @wp.kernel(module="unique")
     def search(
@@ -40,9 +42,9 @@ def search_kernel(N: int):
         W = rays.shape[1]
         v = i * stride
         u = j * stride
-        best = float(1.0e30)
+        best = float(NO_COST)
         best_h = int(-1)
-        costs_far = float(1.0e30)
+        costs_far = float(NO_COST)
         for h in range(n_hyp):
             z = z_near + (z_far - z_near) * (float(h) + 0.5) / float(n_hyp)
             cost = float(0.0)

@@ -13,7 +13,7 @@ first_hit_depth, mesh_hits: camera z of the first (K) hit(s) of each camera ray 
 
 import warp as wp
 
-from slwarp.kernels.geometry import ProjectorParams, project_to_projector
+from slwarp.kernels.geometry import ProjectorParams, bilinear_channel, project_to_projector
 
 
 TEXTURE_SINE = wp.constant(0)  # smooth 3-D sinusoid (texture_value)
@@ -116,29 +116,6 @@ def cast_camera_rays(
     shade[i] = a * cos_p * falloff * falloff
 
 
-@wp.func
-def bilinear_zero(img: wp.array3d(dtype=float), level: int, u: float, v: float) -> float:
-    """Bilinear value of img[level] at continuous (u, v); taps outside the image count as 0."""
-    h = img.shape[1]
-    w = img.shape[2]
-    u0 = wp.floor(u)
-    v0 = wp.floor(v)
-    fu = u - u0
-    fv = v - v0
-    iu = int(u0)
-    iv = int(v0)
-    acc = float(0.0)
-    for dy in range(2):
-        for dx in range(2):
-            x = iu + dx
-            y = iv + dy
-            if x >= 0 and x < w and y >= 0 and y < h:
-                wx = wp.where(dx == 0, 1.0 - fu, fu)
-                wy = wp.where(dy == 0, 1.0 - fv, fv)
-                acc += wx * wy * img[level, y, x]
-    return acc
-
-
 @wp.kernel
 def sample_patterns(
     blurred: wp.array(dtype=wp.float32, ndim=4),  # [L, N, Hp, Wp]: the patterns blurred at L sigmas
@@ -166,10 +143,10 @@ def sample_patterns(
     if hi != lo:
         t = wp.clamp((sigma - level_sigma[lo]) / (level_sigma[hi] - level_sigma[lo]), 0.0, 1.0)
     uv = uv_proj[i]
-    a = bilinear_zero(blurred[lo], n, uv[0], uv[1])
+    a = bilinear_channel(blurred[lo], n, uv[0], uv[1])
     b = a
     if hi != lo:
-        b = bilinear_zero(blurred[hi], n, uv[0], uv[1])
+        b = bilinear_channel(blurred[hi], n, uv[0], uv[1])
     out[n, i] = (1.0 - t) * a + t * b
 
 

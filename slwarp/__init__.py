@@ -11,7 +11,8 @@ Public API (imported lazily, so `import slwarp` stays fast):
     render_structured_light, RenderOutput  the fused Warp renderer as a torch op (slwarp.neural.ops)
     StructuredLightRenderer                sampling + any SDF module + losses: a drop-in loss (slwarp.neural.render)
     NeuSField, LearnedVariance, Volume     the SDF network in mm (slwarp.neural.field)
-    Trainer, TrainConfig, preset           training with the paper's schedule (slwarp.neural.train)
+    TrainConfig, preset, load_config       the typed run configuration and its presets (slwarp.neural.config)
+    Trainer                                training with the paper's schedule (slwarp.neural.train)
     reconstruct                            train, extract mesh and depth (slwarp.neural.reconstruct)
     search_depth                           depth by exhaustive search, the training's start (slwarp.neural.search)
 """
@@ -40,9 +41,10 @@ _LAZY = {
     "NeuSField": "slwarp.neural.field",
     "LearnedVariance": "slwarp.neural.field",
     "Volume": "slwarp.neural.field",
-    "TrainConfig": "slwarp.neural.train",
+    "TrainConfig": "slwarp.neural.config",
+    "load_config": "slwarp.neural.config",
     "Trainer": "slwarp.neural.train",
-    "preset": "slwarp.neural.train",
+    "preset": "slwarp.neural.config",
     "reconstruct": "slwarp.neural.reconstruct",
     "search_depth": "slwarp.neural.search",
     "depth_metrics": "slwarp.evaluation.metrics",

@@ -7,14 +7,19 @@
     slwarp reconstruct SCAN --out D       the neural SDF method: train, then depth, mesh, point cloud
     slwarp demo                           the paper's comparison on an embedded default scene
 
-Bad input exits with status 2 and a one-line message naming the file and the problem
-(SLWARP_DEBUG=1 shows the traceback instead).
+The training options of `reconstruct` and `demo` are generated from slwarp.neural.config.TrainConfig (flag,
+type, choices, help and the chosen preset's default); `--config FILE.yaml` reads a config, and flags override it.
+
+Bad input (a user error: a missing or malformed file, an option out of range) exits with status 2 and a
+one-line message naming the file or option and the problem (SLWARP_DEBUG=1 shows the traceback instead);
+anything else is a bug and keeps its traceback.
 """
 from __future__ import annotations
 
 import argparse
 import os
 import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -23,30 +28,44 @@ class UserError(Exception):
     """An error caused by the user's input: printed as one line, exit status 2."""
 
 
-def _known_errors():
+def _user_errors() -> tuple:
+    """The exceptions that report bad input (printed as one line); every other exception is a bug."""
+    from .decode.frames import MissingFrames
+    from .devices import DeviceError
+    from .neural.config import ConfigError
+    from .neural.train import TrainingDiverged
     from .scans.scan import ScanError
     from .scans.scanner import CalibrationError
 
-    from .neural.train import TrainingDiverged
+    # OSError: a file that cannot be found, read or written (a missing folder, no permission, a full disk)
+    return (UserError, ScanError, CalibrationError, ConfigError, DeviceError, MissingFrames, OSError, TrainingDiverged)
 
-    return (UserError, ScanError, CalibrationError, FileNotFoundError, ValueError, TrainingDiverged)
+
+# Commands whose library code reports input that does not fit (a method the scan has no codes for, a
+# triangulation it cannot do) as a plain ValueError: there it is a user error too.
+_VALUE_ERRORS_ARE_USER_ERRORS = {"decode"}
 
 
 # ----------------------------------------------------------------------------------------------
+
+
+FRAMES_HELP = ("frame selection, comma-separated tokens: frame names, indices, slices (0:7), role selectors "
+               "(gray:col:bit=0-6:noinv, phase:row:period=40, white, random:size=20) or name globs (gc_col_b*)")
 
 
 def cmd_info(args) -> int:
     from .scans.scan import load_scan
 
     scan = load_scan(args.scan, frames=args.frames)
-    print(scan.summary())
+    print(scan.summary(each_frame=args.roles))
     return 0
 
 
 def _add_info(sub):
     p = sub.add_parser("info", help="validate a scan and print its summary (rig, frames, ground truth)")
     p.add_argument("scan", help="scan folder (native scan.yaml, NeSS config.ini or procam calibration_result.xml)")
-    p.add_argument("--frames", help="frame selection: names, globs, indices or slices, comma-separated")
+    p.add_argument("--frames", help=FRAMES_HELP)
+    p.add_argument("--roles", action="store_true", help="also list every frame with its role")
     p.set_defaults(func=cmd_info)
 
 
@@ -73,7 +92,10 @@ def cmd_simulate(args) -> int:
     if bool(args.scene) == bool(args.mesh):
         raise UserError("simulate: give either --scene NAME or --mesh FILE (repeatable)")
     camera, projector = make_rig(args.rig)
-    pset = named_set(args.patterns, projector.width, projector.height, seed=args.pattern_seed)
+    try:
+        pset = named_set(args.patterns, projector.width, projector.height, seed=args.pattern_seed)
+    except ValueError as e:  # an unknown or malformed pattern set name
+        raise UserError(f"--patterns: {e}") from None
     if args.scene:
         if args.scene not in SCENE_NAMES:
             raise UserError(f"unknown scene {args.scene!r}; built-in scenes: {', '.join(SCENE_NAMES)}")
@@ -149,10 +171,12 @@ def cmd_decode(args) -> int:
 
     import numpy as np
 
-    from .decode import METHODS, reconstruct_depth, write_ply
+    from .decode import METHODS, reconstruct_depth
     from .evaluation.metrics import format_table
-    from .scans.scan import load_scan, write_depth_png
+    from .evaluation.outputs import write_depth_png
+    from .evaluation.outputs import write_points_ply as write_ply
     from .evaluation.viz import ensure_dir, save_depth_color
+    from .scans.scan import load_scan
 
     scan = load_scan(args.scan)
     params = {"min_amplitude": args.min_amplitude}
@@ -175,13 +199,18 @@ def cmd_decode(args) -> int:
     for axis, coord in (("col", dec.col), ("row", dec.row)):
         if coord is not None:
             np.save(out / f"projector_{axis}.npy", coord.astype(np.float32))
-    shade = scan.image("white") if "white" in scan.names else scan.images.max(axis=0)
+    white = scan.frames_with("white")
+    shade = scan.images[white[0]] if white else scan.images.max(axis=0)
     n_pts = write_ply(out / "points.ply", points, shade)
     valid = np.isfinite(depth)
     print(f"decoded {scan.source or 'scan'} with {args.method} ({METHODS[args.method].summary})")
     print(f"  frames ({len(dec.frames)}): {', '.join(dec.frames)}")
     print(f"  triangulation: {dec.extra['triangulation']}; valid depth: {valid.mean():.1%} of pixels"
           + (f", {np.nanmin(depth):.1f} .. {np.nanmax(depth):.1f} mm" if valid.any() else ""))
+    if dec.extra["baseline_alignment"] < 0.5:
+        print(f"  warning: the decoded projector {dec.extra['triangulation']}s see only "
+              f"{dec.extra['baseline_alignment']:.0%} of the baseline on this rig: depth from them is ill-conditioned "
+              "(decode the codes of the other projector axis)")
     print(f"  time: decode {dec.extra['decode_s']:.2f} s, triangulate {dec.extra['triangulate_s']:.2f} s, "
           f"total {t1 - t0:.2f} s")
     info = {"scan": scan.source, "method": args.method, "frames": dec.frames, "triangulation": dec.extra["triangulation"],
@@ -207,13 +236,15 @@ def _add_decode(sub):
     p.add_argument("scan", help="scan folder")
     p.add_argument("--method", required=True, choices=list(METHODS),
                    help="; ".join(f"{k}: {m.summary} (sets: {m.pattern_sets})" for k, m in METHODS.items()))
-    p.add_argument("--frames", help="use only these frames (names, globs, indices, slices; comma-separated), "
-                   "e.g. 'gc_col_b[0-5]' for GC(6) from a scan with more bits")
+    p.add_argument("--frames", help="use only these frames: " + FRAMES_HELP + "; e.g. 'gray:col:bit=0-5:noinv' "
+                   "for GC(6) from a scan with more bits")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--triangulation", default="auto", choices=["auto", "col", "row", "midpoint"],
-                   help="projector column/row plane, ray-ray midpoint (needs column and row codes), or auto: "
-                        "the plane along the baseline (default)")
-    p.add_argument("--axis", choices=["col", "row"], help="axis of the phase methods' patterns (default: col)")
+    p.add_argument("--triangulation", default="auto", choices=["auto", "col", "row", "both", "midpoint"],
+                   help="projector column or row plane; both: the point on the camera ray that best matches column "
+                        "and row; midpoint: ray-ray midpoint (both need column and row codes); auto (default): the "
+                        "plane of the projector axis along the baseline, or both codes on an oblique baseline")
+    p.add_argument("--axis", choices=["col", "row"], help="axis of the phase methods' patterns (default: the one "
+                   "along the baseline when the scan has its frames, else the other)")
     p.add_argument("--min-amplitude", type=float, default=DEFAULT_MIN_AMPLITUDE,
                    help="shadow threshold: half the on/off difference or the phase modulation, in full-scale units "
                         f"(images in [0, 1]; default: {DEFAULT_MIN_AMPLITUDE:g})")
@@ -270,6 +301,91 @@ def _parse_range(text: str | None):
     return near, far
 
 
+# ----------------------------------------------------------------------------------------------
+# training options, generated from TrainConfig
+
+
+def _chosen_preset(argv) -> str:
+    """The preset a reconstruct or demo command line runs with: --preset, else the device's default (paper on
+    CUDA, cpu otherwise; the device from --device, default auto). Used for the defaults --help shows."""
+    from .devices import DeviceError, torch_device
+    from .neural.config import PRESETS, default_preset_name
+
+    argv = list(argv or [])
+    given = {}
+    for i, word in enumerate(argv):
+        for flag in ("--preset", "--device"):
+            if word == flag and i + 1 < len(argv):
+                given[flag] = argv[i + 1]
+            elif word.startswith(flag + "="):
+                given[flag] = word.split("=", 1)[1]
+    if given.get("--preset") in PRESETS:
+        return given["--preset"]
+    try:
+        return default_preset_name(torch_device(given.get("--device", "auto")))
+    except DeviceError:
+        return default_preset_name("cpu")
+
+
+def _add_config_options(p, preset_name: str) -> None:
+    """--preset, --config and one flag per TrainConfig option (grouped by section), with the help and default
+    the config declares; flags the user does not give stay out of the namespace."""
+    from .neural.config import OPTIONS, PRESET_SUMMARIES, PRESETS, SECTIONS
+
+    p.add_argument("--preset", choices=list(PRESETS), help="the starting configuration (see the list below); default: "
+                   "paper when the device is CUDA, else cpu")
+    p.add_argument("--config", metavar="FILE.yaml", help="a TrainConfig in YAML (sections field, sampling, schedule, "
+                   "init, runtime, extraction; any option may be left out) applied over the preset; a run's "
+                   "config.yaml reads back; flags override it")
+    p.description = textwrap.fill(p.description, 100)
+    p.epilog = "presets:\n" + "\n".join(f"  {k:6s} {v}" for k, v in PRESET_SUMMARIES.items())
+    p.formatter_class = argparse.RawDescriptionHelpFormatter  # keeps the preset list one line each
+    defaults = PRESETS[preset_name]
+    for section, cls in SECTIONS.items():
+        title = cls.__doc__.splitlines()[0].rstrip(".")
+        group = p.add_argument_group(f"{section}: {title[0].lower() + title[1:]}")
+        for opt in (o for o in OPTIONS.values() if o.section == section):
+            default = defaults.get(opt.name)
+            shown = "none" if default is None else str(default).lower() if opt.is_bool else default
+            kw = dict(dest=opt.name, default=argparse.SUPPRESS, help=f"{opt.help} (preset {preset_name}: {shown})")
+            if opt.is_bool:
+                kw["action"] = argparse.BooleanOptionalAction
+            else:
+                kw["type"] = _option_parser(opt)
+                kw["metavar"] = opt.metavar()
+            group.add_argument("--" + opt.name.replace("_", "-"), **kw)
+
+
+def _option_parser(opt):
+    """argparse's `type` for an option: its parser, with errors as argparse reports them."""
+
+    def parse(text):
+        from .neural.config import ConfigError
+
+        try:
+            return opt.parse(text)
+        except ConfigError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
+
+    return parse
+
+
+def _config_from_args(args):
+    """(preset name, TrainConfig, torch device) of a reconstruct or demo command line: the preset, the --config
+    file over it, the flags given over both; the device resolved."""
+    from .devices import torch_device
+    from .neural.config import OPTIONS, default_preset_name, load_config, preset
+
+    given = {name: getattr(args, name) for name in OPTIONS if hasattr(args, name)}
+    name = args.preset or default_preset_name(torch_device(given.get("device", "auto")))
+    cfg = preset(name)
+    if args.config:
+        cfg = load_config(args.config, base=cfg)
+    cfg = cfg.with_options(**given)
+    dev = torch_device(cfg.runtime.device)
+    return name, cfg.with_options(device=str(dev)), dev
+
+
 def cmd_reconstruct(args) -> int:
     import numpy as np
     import torch
@@ -277,21 +393,17 @@ def cmd_reconstruct(args) -> int:
     from .evaluation.metrics import format_table
     from .neural.reconstruct import reconstruct
     from .scans.scan import load_scan
-    from .neural.train import preset, resolve_device
 
+    name, cfg, dev = _config_from_args(args)
     scan = load_scan(args.scan, frames=args.frames)
-    dev = resolve_device(args.device)
-    name = args.preset or ("paper" if dev.type == "cuda" else "cpu")
-    cfg = preset(name, iters=args.iters, rays=args.rays, lr=args.lr, seed=args.seed, device=str(dev), backend=args.backend,
-                 incremental=args.incremental or None, start_frames=args.start_frames, add_every=args.add_every,
-                 matmul=args.matmul, depth_method=args.depth_method, mc_resolution=args.mc_resolution,
-                 pattern_blur=_parse_blur(args.pattern_blur), photometric_filter=args.photometric_filter)
     depth_range = _parse_range(args.depth_range)
     if depth_range is None and scan.depth_range is None:
         raise UserError(f"{args.scan}: the scan declares no depth range: pass --depth-range NEAR,FAR (mm)")
-    print(f"reconstructing {scan.source} ({len(scan)} frames: {', '.join(scan.names)}) with preset '{name}' "
-          f"({cfg.iters} iterations, {cfg.rays} rays, {cfg.n_samples}+{cfg.n_importance} samples, "
-          f"{cfg.hidden}x{cfg.layers} field) on {dev}" + (f" ({torch.cuda.get_device_name(dev)})" if dev.type == "cuda" else ""))
+    f, s = cfg.field, cfg.sampling
+    print(f"reconstructing {scan.source} ({len(scan)} frames: {', '.join(scan.names)}) with preset '{name}'"
+          + (f" + {args.config}" if args.config else "")
+          + f" ({cfg.schedule.iters} iterations, {s.rays} rays, {s.n_samples}+{s.n_importance} samples, "
+          f"{f.hidden}x{f.layers} field) on {dev}" + (f" ({torch.cuda.get_device_name(dev)})" if dev.type == "cuda" else ""))
     res = reconstruct(scan, cfg, out_dir=args.out, resume=args.resume, depth_range=depth_range, use_mask=args.use_mask,
                       progress=not args.quiet)
     t = res.timings
@@ -300,83 +412,56 @@ def cmd_reconstruct(args) -> int:
           f"depth {t['depth_s']:.1f} s; valid depth on {valid.mean():.1%} of pixels")
     if res.metrics is not None:
         print(format_table([("neural SDF", res.metrics)]))
-    print(f"wrote {args.out}/: depth.npy, depth.png, depth_color.png, mesh.ply, points.ply, loss.png, history.json"
-          + (", metrics.json, error_map.png" if res.metrics is not None else "") + "; train/checkpoint.pt (--resume continues)")
+    print(f"wrote {args.out}/: depth.npy, depth.png, depth_color.png, mesh.ply, points.ply, loss.png, history.json, "
+          "config.yaml" + (", metrics.json, error_map.png" if res.metrics is not None else "")
+          + "; train/checkpoint.pt (--resume continues)")
     return 0
 
 
-def _add_reconstruct(sub):
-    from .neural.train import PRESETS
-
-    p = sub.add_parser("reconstruct", help="depth, mesh and point cloud from a scan with the neural SDF method")
+def _add_reconstruct(sub, argv=None):
+    name = _chosen_preset(argv)
+    p = sub.add_parser("reconstruct", help="depth, mesh and point cloud from a scan with the neural SDF method",
+                       description="Train the neural SDF on a scan, then write its depth map, mesh, point cloud and "
+                       f"config.yaml. The defaults shown are preset {name}'s (--preset P --help shows P's).")
     p.add_argument("scan", help="scan folder")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--preset", choices=list(PRESETS), help="paper (GPU), cpu (small field, minutes on a CPU), tiny (tests); "
-                   "default: paper with a GPU, else cpu")
     p.add_argument("--frames", help="use only these frames (names, globs, indices, slices; comma-separated)")
-    p.add_argument("--iters", type=int, help="training iterations (default: the preset's)")
-    p.add_argument("--rays", type=int, help="rays per iteration (default: the preset's)")
-    p.add_argument("--lr", type=float, help="Adam learning rate (default: the preset's)")
-    p.add_argument("--seed", type=int, help="random seed (default: 0)")
-    p.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda:N")
-    p.add_argument("--backend", default="warp", choices=["warp", "torch"], help="fused Warp kernels or the torch twin")
-    p.add_argument("--incremental", action="store_true", help="start with a few frames and add one every --add-every iterations")
-    p.add_argument("--start-frames", type=int, help="incremental: frames at the start (default: 3)")
-    p.add_argument("--add-every", type=int, help="incremental: iterations between added frames (default: 500)")
     p.add_argument("--resume", action="store_true", help="continue from OUT/train/checkpoint.pt")
     p.add_argument("--depth-range", help="NEAR,FAR camera depth in mm (default: the scan's)")
-    p.add_argument("--depth-method", choices=["mesh", "sphere"], help="depth from the marching-cubes mesh (default) or by sphere tracing")
-    p.add_argument("--mc-resolution", type=int, help="marching-cubes cells along the volume's longest side")
-    p.add_argument("--matmul", choices=["fp32", "tf32"], help="CUDA matrix precision for the MLP (default: the preset's; tf32 for paper and tuned)")
-    p.add_argument("--pattern-blur", help="Gaussian blur of the rendered patterns, projector px, or 'auto' (default: "
-                   "fitted to the images at the depth-search map)")
-    p.add_argument("--photometric-filter", type=float, help="drop depth pixels whose relative RMS residual reaches this "
-                   "(default: 0.4; 0 = off)")
     p.add_argument("--use-mask", action="store_true", help="also restrict the depth map to the scan's mask")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    _add_config_options(p, name)
     p.set_defaults(func=cmd_reconstruct)
-
-
-def _parse_blur(text):
-    if text is None or text == "auto":
-        return text
-    try:
-        value = float(text)
-    except ValueError:
-        raise UserError(f"--pattern-blur: expected a number of projector px or 'auto', got {text!r}") from None
-    if not value >= 0:
-        raise UserError(f"--pattern-blur must be >= 0, got {text}")
-    return value
 
 
 def cmd_demo(args) -> int:
     from .demo import run_demo
 
-    run_demo(args.out, scene=args.scene, device=args.device, preset_name=args.preset, iters=args.iters,
-             backend=args.backend, progress=not args.quiet)
+    name, cfg, _ = _config_from_args(args)
+    run_demo(args.out, scene=args.scene, config=cfg, preset_name=name, progress=not args.quiet)
     return 0
 
 
-def _add_demo(sub):
+def _add_demo(sub, argv=None):
     from .demo import DEMO_SCENE
     from .sim.scenes import SCENE_NAMES
-    from .neural.train import PRESETS
 
-    p = sub.add_parser("demo", help="simulate a scene, reconstruct it with the neural SDF and with Gray code, compare")
+    name = _chosen_preset(argv)
+    p = sub.add_parser("demo", help="simulate a scene, reconstruct it with the neural SDF and with Gray code, compare",
+                       description="The paper's comparison on a simulated scene (the default rig on CUDA, the small rig "
+                       f"on the CPU). The defaults shown are preset {name}'s (--preset P --help shows P's).")
     p.add_argument("--out", default="slwarp-demo", help="output folder (default: ./slwarp-demo)")
     p.add_argument("--scene", default=DEMO_SCENE, choices=list(SCENE_NAMES), help=f"built-in scene (default: {DEMO_SCENE})")
-    p.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda:N")
-    p.add_argument("--preset", choices=list(PRESETS), help="default: paper with a GPU (default rig), cpu without (small rig)")
-    p.add_argument("--iters", type=int, help="training iterations (default: the preset's)")
-    p.add_argument("--backend", default="warp", choices=["warp", "torch"])
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    _add_config_options(p, name)
     p.set_defaults(func=cmd_demo)
 
 
 # ----------------------------------------------------------------------------------------------
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv=None) -> argparse.ArgumentParser:
+    """The `slwarp` parser; argv (the command line to parse) picks the preset whose defaults --help shows."""
     parser = argparse.ArgumentParser(
         prog="slwarp",
         description="Depth reconstruction with neural SDFs in camera + projector structured-light systems.",
@@ -384,28 +469,42 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for add in _COMMANDS:
-        add(sub)
+        if add in _TRAINING_COMMANDS:
+            add(sub, argv)
+        else:
+            add(sub)
     return parser
 
 
 _COMMANDS = [_add_demo, _add_info, _add_simulate, _add_decode, _add_evaluate, _add_reconstruct]
+_TRAINING_COMMANDS = (_add_demo, _add_reconstruct)  # their options come from TrainConfig (and the chosen preset)
 
 
 def main(argv=None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(argv)
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except _known_errors() as e:
-        if os.environ.get("SLWARP_DEBUG"):
-            raise
-        print(f"slwarp {args.command}: error: {e}", file=sys.stderr)
-        return 2
     except BrokenPipeError:  # output piped into `head` and the like
         return 0
+    except _user_errors() as e:
+        return _report(args, e)
+    except ValueError as e:
+        if args.command not in _VALUE_ERRORS_ARE_USER_ERRORS:
+            raise
+        return _report(args, e)
     except KeyboardInterrupt:
         print(f"slwarp {args.command}: interrupted", file=sys.stderr)
         return 130
+
+
+def _report(args, error: Exception) -> int:
+    """A user error as one line on stderr (exit status 2); SLWARP_DEBUG=1 re-raises it with its traceback."""
+    if os.environ.get("SLWARP_DEBUG"):
+        raise error
+    print(f"slwarp {args.command}: error: {error}", file=sys.stderr)
+    return 2
 
 
 if __name__ == "__main__":

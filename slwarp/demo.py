@@ -51,32 +51,40 @@ def comparison_figure(path, gt, results: dict, max_err: float = 3.0) -> None:
     plt.close(fig)
 
 
-def run_demo(out_dir="slwarp-demo", scene: str = DEMO_SCENE, device: str = "auto", preset_name: str | None = None,
-             iters: int | None = None, backend: str = "warp", progress: bool = True, log=print) -> dict:
-    """Run the demo (see module docstring) and return its results dict (also written to results.json)."""
+def run_demo(out_dir="slwarp-demo", scene: str = DEMO_SCENE, config=None, preset_name: str | None = None,
+             progress: bool = True, log=print) -> dict:
+    """Run the demo (see module docstring) and return its results dict (also written to results.json).
+
+    config: the TrainConfig of the neural SDF (default: preset `preset_name`, else the device's default preset);
+    its runtime.device picks the rig: the default rig on CUDA, the small one on the CPU."""
     import torch
 
     from .decode import reconstruct_depth
-    from .neural.extract import depth_to_points
+    from .devices import torch_device, warp_device
     from .evaluation.metrics import depth_metrics, format_table
-    from .neural.reconstruct import reconstruct
-    from .scans.scan import write_depth_png
-    from .sim.simulate import simulate_scene
-    from .neural.train import preset, resolve_device
+    from .evaluation.outputs import write_depth
     from .evaluation.viz import save_depth_color, save_error_map, save_point_cloud_render
+    from .neural.config import default_preset_name, preset
+    from .neural.extract import depth_to_points
+    from .neural.reconstruct import reconstruct
+    from .sim.simulate import simulate_scene
 
     t0 = time.perf_counter()
-    dev = resolve_device(device)
+    if config is None:
+        preset_name = preset_name or default_preset_name(torch_device("auto"))
+        config = preset(preset_name)
+    cfg = config
+    dev = torch_device(cfg.runtime.device)
+    cfg = cfg.with_options(device=str(dev))
     gpu = dev.type == "cuda"
     rig = "default" if gpu else "small"
-    preset_name = preset_name or ("paper" if gpu else "cpu")
-    cfg = preset(preset_name, iters=iters, device=str(dev), backend=backend)
+    preset_name = preset_name or "custom"
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    log(f"slwarp demo: scene '{scene}', {rig} rig, preset '{preset_name}' ({cfg.iters} iterations), device {dev}")
+    log(f"slwarp demo: scene '{scene}', {rig} rig, preset '{preset_name}' ({cfg.schedule.iters} iterations), device {dev}")
 
     log("1/4 simulating the scan (paper's 6 random patterns + 7-bit Gray code) ...")
-    scan = simulate_scene(scene, "random6+gray7", rig=rig, device="cuda:0" if gpu else "cpu")
+    scan = simulate_scene(scene, "random6+gray7", rig=rig, device=warp_device(dev))
     scan.save(out / "scan")
     t_sim = time.perf_counter()
 
@@ -91,8 +99,7 @@ def run_demo(out_dir="slwarp-demo", scene: str = DEMO_SCENE, device: str = "auto
         depth, _, _ = reconstruct_depth(scan, "gc-interp", frames=frames)
         folder = out / f"gc{bits}-interp"
         folder.mkdir(exist_ok=True)
-        np.save(folder / "depth.npy", depth.astype(np.float32))
-        write_depth_png(folder / "depth.png", depth)
+        write_depth(folder, depth)
         m = depth_metrics(depth, scan.gt_depth, scan.mask)
         (folder / "metrics.json").write_text(json.dumps({"method": "gc-interp", "frames": frames.split(","), "metrics": m}, indent=1))
         results[f"GC({bits}) interp"] = {"depth": depth, "metrics": m, "patterns": bits}
@@ -117,7 +124,7 @@ def run_demo(out_dir="slwarp-demo", scene: str = DEMO_SCENE, device: str = "auto
     table = format_table(rows)
     ratio = {k: results["ours (6 random)"]["metrics"]["mae"] / v["metrics"]["mae"] for k, v in results.items() if k.startswith("GC")}
     summary = {
-        "scene": scene, "rig": rig, "preset": preset_name, "iterations": cfg.iters, "device": str(dev),
+        "scene": scene, "rig": rig, "preset": preset_name, "iterations": cfg.schedule.iters, "device": str(dev),
         "device_name": torch.cuda.get_device_name(dev) if gpu else "cpu",
         "metrics": {k: v["metrics"] for k, v in results.items()},
         "ours_mae_over": ratio,

@@ -67,7 +67,8 @@ def test_cli_decode_gc6_frames(scan_dir, tmp_path):
 def test_cli_decode_missing_frames_and_bad_input(scan_dir, tmp_path, capsys):
     assert cli_main(["decode", str(scan_dir), "--method", "npmp", "--frames", "gc_col_b*", "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err
-    assert "method npmp needs two 3-step phase shifts" in err and "ps_col_p48_s*of3" in err and "the scan has: gc_col_b0..b6 (+inv)" in err
+    assert "method npmp needs two 3-step phase shifts" in err and "phase:col:period=48" in err
+    assert err.strip().endswith("the scan has: gray:col:bit=0-6 (+inv)")
     assert len(err.strip().splitlines()) == 1
     assert cli_main(["decode", str(scan_dir), "--method", "gc", "--frames", "nope*", "--out", str(tmp_path / "x")]) == 2
     assert "no frame matches 'nope*'" in capsys.readouterr().err
@@ -75,3 +76,19 @@ def test_cli_decode_missing_frames_and_bad_input(scan_dir, tmp_path, capsys):
     assert "scan not found" in capsys.readouterr().err
     assert cli_main(["decode", str(scan_dir), "--method", "gc", "--triangulation", "midpoint", "--out", str(tmp_path / "x")]) == 2
     assert "midpoint triangulation needs both" in capsys.readouterr().err
+
+
+def test_cli_decode_on_vertical_rig_by_role(tmp_path, capsys):
+    """On the vertical rig the row codes carry depth: decoding them triangulates with the row plane; decoding
+    the column codes alone works but warns that they see almost none of the baseline."""
+    folder = tmp_path / "v"
+    simulate_scene("torus", "gray7+gray7_row", "small-vertical", SimOptions(seed=2), device="cpu").save(folder)
+    assert cli_main(["decode", str(folder), "--method", "gc-interp", "--frames", "gray:row", "--out", str(tmp_path / "r")]) == 0
+    out = capsys.readouterr().out
+    assert "triangulation: row" in out and "warning" not in out
+    doc = json.loads((tmp_path / "r" / "metrics.json").read_text())
+    assert doc["triangulation"] == "row" and doc["frames"] == [f"gc_row_b{k}" for k in range(7)]
+    assert doc["metrics"]["mae"] < 1.0
+    assert cli_main(["decode", str(folder), "--method", "gc-interp", "--frames", "gray:col", "--out", str(tmp_path / "c")]) == 0
+    out = capsys.readouterr().out
+    assert "triangulation: col" in out and "warning: the decoded projector cols see only 0% of the baseline" in out

@@ -5,7 +5,7 @@ import pytest
 import trimesh
 
 from slwarp.decode import METHODS, MissingFrames, decode, finalize_positions
-from slwarp.decode.frames import describe_names
+from slwarp.scans.roles import describe_roles, resolve_roles
 from slwarp.decode.gray import HOW_EXTRAPOLATED, HOW_INTERPOLATED, GrayTable
 from slwarp.decode.phase import (NumberTheoreticTable, coarse_position, unwrap_number_theoretic,
                                  unwrap_with_reference, wrapped_phase, wrapped_position)
@@ -311,11 +311,11 @@ def _fake_scan(pattern_spec: str):
 
 
 @pytest.mark.parametrize("method,needs", [
-    ("cgc", ["gc_col_b0, gc_col_b1, gc_col_b2", "3-step phase shift", "W/4 = 160 px"]),
-    ("hpmp", ["ps_col_p640_s*of3", "ps_col_p80_s*of3"]),
-    ("npmp", ["ps_col_p48_s*of3", "ps_col_p70_s*of3"]),
-    ("gt", ["gc_col_b0..gc_col_b6 with inverses", "ps_col_p40"]),
-    ("ps", ["ps_col_p640", "width"]),
+    ("cgc", ["gray:col:bit=0-2", "3-step phase shift", "W/4 = 160 px", "phase:col:period=160"]),
+    ("hpmp", ["phase:col:period=640", "phase:col:period=80", "3-step"]),
+    ("npmp", ["phase:col:period=48", "phase:col:period=70"]),
+    ("gt", ["gray:col:bit=0-6", "with inverses", "gc_col_b0..gc_col_b6", "phase:col:period=40"]),
+    ("ps", ["phase:col:period=640", "width", "ps_col_p640_s0ofN"]),
 ])
 def test_missing_frames_message_names_needs_and_haves(method, needs):
     scan = _fake_scan("gray7")
@@ -325,12 +325,12 @@ def test_missing_frames_message_names_needs_and_haves(method, needs):
     assert msg.startswith(f"method {method} needs")
     for n in needs:
         assert n in msg
-    assert "the scan has: gc_col_b0..b6" in msg
+    assert msg.endswith("the scan has: gray:col:bit=0-6")
 
 
 def test_missing_gray_code_and_unknown_method():
     scan = _fake_scan("npmp6")
-    with pytest.raises(MissingFrames, match="gc needs Gray code frames gc_col_b0"):
+    with pytest.raises(MissingFrames, match="gc needs Gray code frames: roles gray:col:bit=0"):
         decode(scan, "gc")
     with pytest.raises(ValueError, match="unknown decoding method 'zebra'"):
         decode(scan, "zebra")
@@ -339,12 +339,33 @@ def test_missing_gray_code_and_unknown_method():
 
 def test_wrong_phase_pattern_is_reported():
     scan = _fake_scan("ps4")
-    scan.patterns[1] = 1.0 - scan.patterns[1]
-    with pytest.raises(ValueError, match="ps_col_p640_s1of4 does not follow the phase-shift contract"):
+    scan.patterns[1] = scan.patterns[1] ** 3  # not a sinusoid any more
+    with pytest.raises(ValueError, match="ps_col_p640_s1of4 is not a sinusoid of period 640 px along the projector columns"):
         decode(scan, "ps")
+    scan = _fake_scan("npmp6")  # a role whose period is not the pattern's
+    renamed = [n.replace("ps_col_p48", "p48") for n in scan.names]
+    declared = {f"p48_s{k}of3": {"kind": "phase", "axis": "col", "period": 50.0, "step": k, "steps": 3} for k in range(3)}
+    bad = Scan(scan.camera, scan.projector, scan.images, scan.patterns, renamed, declared_roles=declared)
+    with pytest.raises(ValueError, match="frame p48_s0of3 is not a sinusoid of period 50 px"):
+        decode(bad, "npmp", periods=(50, 70))
 
 
-def test_describe_names():
-    names = named_set("gray7inv+npmp6+whiteblack", 640, 400).names
-    assert describe_names(names) == ("gc_col_b0..b6 (+inv), ps_col_p48_s{0,1,2}of3, ps_col_p70_s{0,1,2}of3, "
-                                     "white, black")
+def test_phase_shifts_are_measured_from_the_patterns(plane_scan, plane_truth):
+    """Another N-step convention (the steps in reverse order, as the NeSS authors' patterns run) decodes to
+    the same positions: each step's shift comes from its pattern, not from a formula."""
+    uv, sel = plane_truth
+    sub = plane_scan.select("phase:col:period=640:steps=4")
+    order = [3, 2, 1, 0]  # the frame of role step k shows the pattern of step 3 - k
+    flipped = Scan(sub.camera, sub.projector, sub.images[order], sub.patterns[order], [f"f{k}" for k in range(4)],
+                   declared_roles={f"f{k}": {"kind": "phase", "axis": "col", "period": 640, "step": k, "steps": 4}
+                                   for k in range(4)})
+    d = decode(flipped, "ps")
+    err = np.abs(d.col - uv[..., 0])[sel]
+    assert np.isfinite(err).all() and err.max() < 0.05
+
+
+def test_describe_roles():
+    names = named_set("gray7inv+npmp6+whiteblack+random6", 640, 400).names + ["frame_a", "frame_b"]
+    assert describe_roles(names, resolve_roles(names)) == (
+        "gray:col:bit=0-6 (+inv), phase:col:period=48:steps=3 (step=0-2), phase:col:period=70:steps=3 (step=0-2), "
+        "white, black, random:size=20 x2, random:size=10 x2, random:size=5 x2, no role (2 frames: frame_a, frame_b)")

@@ -7,7 +7,8 @@ import pytest
 
 from slwarp.cli import main as cli_main
 from slwarp.evaluation.metrics import depth_metrics, error_map, format_table
-from slwarp.scans.scan import Scan, load_scan, write_depth_png
+from slwarp.evaluation.outputs import write_depth_png
+from slwarp.scans.scan import Scan, load_scan
 from slwarp.scans.scanner import Camera, Projector, look_at_rotation
 
 

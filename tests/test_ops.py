@@ -78,7 +78,7 @@ def test_twin_gradcheck_float64():
     bounds = ops._bounds_list([[-300.0, -300.0, 550.0], [300.0, 300.0, 850.0]])
 
     def f(sdf, grad, inv_s):
-        outs = twin.render(sdf, grad, inputs["z_vals"], inputs["rays_o"], inputs["rays_d"], inputs["a"], inputs["b"],
+        outs = twin.render_structured_light(sdf, grad, inputs["z_vals"], inputs["rays_o"], inputs["rays_d"], inputs["a"], inputs["b"],
                            inputs["patterns"], proj, inv_s, 0.6, -1.0, bounds)
         return outs[:8]
 

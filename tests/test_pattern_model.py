@@ -6,9 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from slwarp.neural.extract import photometric_filter, photometric_residual
-from slwarp.neural.render import blur_patterns
-from slwarp.neural.search import estimate_pattern_blur
+from slwarp.neural.pattern_model import blur_patterns, estimate_pattern_blur, photometric_filter, photometric_residual
 from slwarp.sim.simulate import SimOptions, simulate_scene
 
 

@@ -16,3 +16,12 @@ def test_readme_drop_in_example_runs(capsys):
     losses = scope["losses"]
     assert all(math.isfinite(float(v)) for v in (losses.color, losses.surface, losses.eikonal))
     assert "L_rc" in capsys.readouterr().out
+
+
+def test_readme_config_example_is_a_valid_config(tmp_path):
+    from slwarp.neural.config import load_config, preset
+
+    block = next(b for b in re.findall(r"```yaml\n(.*?)```", README.read_text(), flags=re.S) if "schedule:" in b)
+    (tmp_path / "c.yaml").write_text(block)
+    cfg = load_config(tmp_path / "c.yaml", base=preset("cpu"))
+    assert cfg.schedule.iters == 2000 and cfg.schedule.lr == 5e-4 and cfg.extraction.mc_resolution == 256

@@ -1,5 +1,6 @@
 """Scans on disk: native save/load, the NeSS and procam importers, frame selection, and one test per
 bad input (each must raise ScanError naming the file and the problem, and exit 2 from the CLI)."""
+import dataclasses
 import shutil
 
 import cv2
@@ -9,7 +10,8 @@ import yaml
 
 from slwarp.cli import main as cli_main
 from slwarp.scans.patterns import gray_code
-from slwarp.scans.scan import Scan, ScanError, load_scan, read_depth, write_depth_png
+from slwarp.evaluation.outputs import write_depth_png
+from slwarp.scans.scan import Scan, ScanError, load_scan, read_depth
 from slwarp.scans.scanner import Camera, Projector, look_at_rotation
 
 
@@ -124,10 +126,11 @@ def write_ness(folder, scan: Scan):
 
 
 def test_ness_layout(tmp_path):
-    ref = Scan(**{**tiny_scan().__dict__, "camera": Camera(64, 48, [[60, 0, 31.5], [0, 60, 23.5], [0, 0, 1]])})
+    ref = dataclasses.replace(tiny_scan(), camera=Camera(64, 48, [[60, 0, 31.5], [0, 60, 23.5], [0, 0, 1]]))
     write_ness(tmp_path / "ness", ref)
     scan = load_scan(tmp_path / "ness")
-    assert scan.names == ["ness_0", "ness_1", "ness_2"]
+    assert scan.names == ["0", "1", "2"]  # tags outside the authors' grammar: kept, in natural order, no role
+    assert scan.roles == [None, None, None] and scan.select("1").names == ["1"]  # a name before an index
     assert np.allclose(scan.projector.R, ref.projector.R, atol=1e-9)
     assert np.allclose(scan.projector.T, ref.projector.T)
     assert scan.depth_range == (300.0, 1000.0)

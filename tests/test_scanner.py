@@ -125,3 +125,23 @@ def test_rotation_checks():
         check_rotation(np.diag([1.0, 1.0, -1.0]))
     with pytest.raises(CalibrationError, match="not a rotation"):
         Projector(10, 10, np.eye(3), R=np.diag([1.0, 1.0, -1.0]))
+
+
+def test_packed_projector_names_its_floats():
+    _, proj = make_rig("small")
+    rng = np.random.default_rng(4)
+    proj = Projector(proj.width, proj.height, proj.K, [0.05, -0.02, 0.001, -0.002, 0.01], R=proj.R, T=[150.0, -3.0, 2.0])
+    p = proj.packed
+    assert len(p) == 24 and all(type(x) is float for x in p)
+    assert p.R == tuple(proj.R.ravel()) and p.T == (150.0, -3.0, 2.0)
+    assert (p.fx, p.fy, p.cx, p.cy) == (proj.fx, proj.fy, proj.cx, proj.cy)
+    assert (p.k1, p.k2, p.p1, p.p2, p.k3) == (0.05, -0.02, 0.001, -0.002, 0.01) and p.dist == tuple(proj.dist)
+    assert (p.width, p.height, p.max_r2) == (proj.width, proj.height, proj.max_normalized_r2)
+    # the torch twin's projection reads the packed floats and agrees with the projector's own model
+    from slwarp.neural import twin
+
+    uvp = np.stack([rng.uniform(0, proj.width - 1, 200), rng.uniform(0, proj.height - 1, 200)], -1)
+    X = torch.as_tensor(proj.center + proj.pixel_to_ray_in_camera(uvp) * rng.uniform(400, 1200, (200, 1)))
+    uv, ok = twin.project_to_projector(X, p)
+    assert ok.all()
+    np.testing.assert_allclose(uv.numpy(), proj.project_camera_points(X.numpy()), rtol=0, atol=1e-9)

@@ -5,11 +5,13 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+import yaml
 
 from slwarp.cli import main as cli_main
 from slwarp.neural.reconstruct import reconstruct
 from slwarp.sim.simulate import SimOptions, simulate_scene
-from slwarp.neural.train import Trainer, preset
+from slwarp.neural.config import load_config, preset
+from slwarp.neural.train import Trainer
 
 # Bounds set from measurement with margin: small rig, 'spheres' (noise seed 3), 6 random patterns, the
 # 'tiny' preset (100 warm-up + 300 iterations) on the CPU gave, for seeds 0, 1, 2: median 1.96, 2.10,
@@ -40,8 +42,12 @@ def test_end_to_end_accuracy(small_scan, tmp_path):
     assert m["mae"] < E2E_MAE_BOUND_MM
     assert m["over_5mm"] < E2E_OVER_5MM_BOUND
     for f in ("depth.npy", "depth.png", "depth_color.png", "mesh.ply", "points.ply", "metrics.json", "error_map.png",
-              "loss.png", "history.json", "train/checkpoint.pt"):
+              "loss.png", "history.json", "train/checkpoint.pt", "config.yaml"):
         assert (tmp_path / "run" / f).is_file(), f
+    # the run's config reads back (its fitted values ride along in a section of their own)
+    assert load_config(tmp_path / "run" / "config.yaml") == tiny(iters=E2E_ITERS)
+    fitted = yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())["fitted"]
+    assert fitted["pattern_blur_px"] == res.trainer.renderer.pattern_blur and fitted["depth_search"]["hypotheses"] > 0
 
 
 def params_vector(trainer):
@@ -58,7 +64,7 @@ def test_resume_matches_uninterrupted_run(small_scan, tmp_path):
     resumed = Trainer(scan, cfg, out_dir=tmp_path / "part", resume=True, progress=False)
     assert resumed.iteration == 30
     resumed.train()
-    assert resumed.iteration == full.iteration == cfg.iters + cfg.init_iters  # warm-up + the schedule
+    assert resumed.iteration == full.iteration == cfg.schedule.iters + cfg.init.iters  # warm-up + the schedule
     assert torch.equal(params_vector(full), params_vector(resumed))
     # the same losses at the iterations both logged (the interrupted run also logged where it stopped)
     full_log = dict(zip(full.history.iters, full.history.loss))
@@ -85,6 +91,35 @@ def test_incremental_mode_adds_frames_and_keeps_improving(small_scan):
     assert np.array_equal(tr.renderer.patterns[6].cpu().numpy(), extra.patterns[0])  # the caller's frame is in use
     tr.train(iters=250)
     assert tr.iteration == 250 and np.isfinite(tr.history.loss[-1])
+
+
+def test_trainer_builds_the_renderer_around_its_field(small_scan):
+    from slwarp.neural.field import Volume
+
+    tr = Trainer(small_scan.select("0:6"), tiny(init="sphere"), progress=False)
+    r = tr.renderer
+    assert r.sdf is tr.field and r.volume is tr.volume
+    # the volume the trainer sized the field with is the renderer's own default: the frustum of its valid pixels
+    assert tr.volume == Volume.from_frustum(small_scan.camera, r.valid_map.cpu().numpy(), tr.depth_range)
+    # drawing and gathering apart (what a captured step does) equals sample_pixels on the same draws
+    g1, g2 = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
+    a, b = r.sample_pixels(64, g1), r.valid_batch(r.draw_valid(64, g2))
+    assert all(torch.equal(x, y) for x, y in zip(a, b)) and bool(a.valid.all())
+    version = r.frames_version
+    r.set_pattern_blur(0.5)
+    assert r.frames_version != version  # a captured step would be stale: it recaptures
+    assert not tr.graph_captured  # plain launches on the CPU
+    tr.reset_graph()
+    tr.step()
+    assert tr.iteration == 1
+
+
+def test_unfittable_pattern_blur_is_a_scan_error(small_scan):
+    from slwarp.scans.scan import ScanError
+
+    no_depth = np.full((small_scan.camera.height, small_scan.camera.width), np.nan, np.float32)
+    with pytest.raises(ScanError, match="cannot fit the pattern blur .*only 0 pixels"):
+        Trainer(small_scan.select("0:6"), tiny(), init_depth=no_depth, progress=False)
 
 
 def test_non_finite_loss_stops_with_a_clear_message(small_scan, tmp_path):
@@ -137,6 +172,6 @@ def test_cuda_graph_step_matches_plain_launches(small_scan, backend):
                 tr.add_frames(count=1)
             losses.append(float(tr.step()["loss"]))
         runs[graph] = (np.array(losses), params_vector(tr).cpu(), tr)
-    assert runs[True][2]._graph is not None, "the step was not captured"
+    assert runs[True][2].graph_captured, "the step was not captured"
     np.testing.assert_allclose(runs[True][0], runs[False][0], rtol=2e-4, atol=1e-6)
     torch.testing.assert_close(runs[True][1], runs[False][1], rtol=1e-3, atol=1e-5)

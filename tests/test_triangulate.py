@@ -3,7 +3,8 @@ give the known depth back to 0.01 mm by the column plane, the row plane and the 
 import numpy as np
 import pytest
 
-from slwarp.decode import choose_plane_axis, reconstruct_depth, triangulate, triangulate_midpoint, triangulate_plane, write_ply
+from slwarp.decode import choose_plane_axis, reconstruct_depth, triangulate, triangulate_midpoint, triangulate_plane
+from slwarp.evaluation.outputs import write_points_ply as write_ply
 from slwarp.sim.rigs import make_rig
 from slwarp.scans.scanner import Camera, Projector
 
@@ -137,7 +138,8 @@ def test_write_ply(tmp_path):
     data = (tmp_path / "a.ply").read_bytes()
     head, body = data.split(b"end_header\n")
     assert b"element vertex 3" in head and b"property uchar red" in head
-    rec = np.frombuffer(body, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
+    rec = np.frombuffer(body, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1"),
+                                     ("a", "u1")])  # trimesh writes RGBA
     assert rec["z"].tolist() == [500, 3, 6] and rec["r"].tolist() == [0, 128, 255]
     assert write_ply(tmp_path / "b.ply", pts) == 3
 

@@ -4,13 +4,15 @@
     reconstruct_depth(scan, method, ...) -> (depth [H, W] mm NaN invalid, points [H, W, 3], Decoding)
     METHODS: gc, gc-interp, ps, cgc, hpmp, npmp, gt
 
-Modules: frames (which frame is what, from its name), gray (Gray code tables, binarisation, stripe
-interpolation), phase (wrapped phase, unwrapping), cgc (Gray code + phase: CGC and the GT pipeline),
-triangulate (plane and ray-ray midpoint triangulation, PLY output), methods (the registry).
+Modules: frames (which frames a method uses, from the scan's frame roles), gray (Gray code tables,
+binarisation, stripe interpolation along the code gradient), phase (wrapped phase, unwrapping), cgc (Gray
+code + phase: CGC and the GT pipeline), triangulate (plane, both-coordinate and ray-ray midpoint
+triangulation chosen from the rig), methods (the registry). Point clouds are written by slwarp.evaluation.outputs.
 """
 from .frames import MissingFrames
 from .methods import METHODS, Decoding, decode, finalize_positions, reconstruct_depth
-from .triangulate import choose_plane_axis, triangulate, triangulate_midpoint, triangulate_plane, write_ply
+from .triangulate import (baseline_alignment, choose_plane_axis, choose_triangulation, triangulate, triangulate_midpoint,
+                          triangulate_plane, triangulate_rays)
 
 __all__ = [
     "METHODS",
@@ -22,6 +24,8 @@ __all__ = [
     "triangulate",
     "triangulate_plane",
     "triangulate_midpoint",
+    "triangulate_rays",
+    "baseline_alignment",
     "choose_plane_axis",
-    "write_ply",
+    "choose_triangulation",
 ]

@@ -9,7 +9,7 @@ Both decode a Gray code to a stripe and unwrap a phase-shift set with it (`unwra
 - Ground truth: 7 bits with inverses (10 px stripes on 1280 columns) + a 4-step phase shift with period 40 px
   (4 stripes per period: the stripe centre is within 5 px of the true position, the margin is 15 px).
 
-Without inverses and without white/black frames, the Gray code threshold is the phase set's offset A
+Without inverses and without uniform (white/black) frames, the Gray code threshold is the phase set's offset A
 (equal to (white + black) / 2 in the image model), which is exact where (max + min) / 2 over three Gray
 code images is not, and which decodes stripe 0 (all bits off).
 """
@@ -37,7 +37,7 @@ def decode_gray_phase(gf: GrayFrames, pset: PhaseSet, min_amplitude: float = DEF
             f"Gray code stripes of up to {table.max_width} px cannot unwrap a phase with period {pset.period:g} px "
             f"(they must be narrower than the period; {gf.bits} bits given)"
         )
-    phi, offset, modulation = wrapped_phase(pset.images)
+    phi, offset, modulation = wrapped_phase(pset.images, pset.shifts)
     b = binarize(gf, min_amplitude, min_bit_contrast, reference=(offset, modulation))
     stripe, center = decode_stripes(b, table)
     u_w = wrapped_position(phi, pset.period)

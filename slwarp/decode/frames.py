@@ -1,69 +1,36 @@
-"""Which frames of a scan play which role, read from their names (the contract in `slwarp.scans.patterns`).
+"""Which frames of a scan the decoders use, read from the scan's frame roles (`Scan.roles`, see
+`slwarp.scans.roles`): Gray code bits and their inverses, phase-shift sets, and uniform frames (white, black,
+other levels) that give the per-pixel threshold and amplitude.
 
-    gc_{col|row}_b{k}[_inv]          Gray code bit k (k = 0 most significant) and its inverse
-    white, black                     full-on and full-off frames
-    ps_{col|row}_p{P}_s{k}of{N}      N-step phase shift, period P projector px, step k
-
-Decoders never guess a role from frame order or image content; a method whose frames are missing raises
-`MissingFrames`, whose message says what the method needs and what the scan has.
+Decoders never guess a role from a frame's name, its order or its image content; a method whose frames are
+missing raises `MissingFrames`, whose message says what the method needs and what the scan has. What the
+pattern images themselves determine is read from them: the Gray code's stripes (`gray.GrayTable`), each
+phase-shift frame's shift (`measure_phase_shifts`), each uniform frame's level.
 """
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["DEFAULT_MIN_AMPLITUDE", "MissingFrames", "GrayFrames", "PhaseSet", "gray_frames", "phase_sets", "axis_size", "describe_names"]
+from ..scans.roles import describe_roles
+
+__all__ = ["DEFAULT_MIN_AMPLITUDE", "MissingFrames", "GrayFrames", "LitReference", "PhaseSet", "gray_frames",
+           "lit_reference", "phase_sets", "measure_phase_shifts", "axis_size"]
 
 # Shadow threshold shared by every decoder: the pixel's on/off amplitude (half of white - black) or phase
 # modulation, in full-scale units (images in [0, 1]). 0.03 is ~8 grey levels of 255 (white - black >= 15),
 # about 3x the simulator's noise at mid grey; lit surfaces facing the projector have 0.1 to 0.3.
 DEFAULT_MIN_AMPLITUDE = 0.03
 
-_GC = re.compile(r"gc_(col|row)_b(\d+)(_inv)?")
-_PS = re.compile(r"ps_(col|row)_p([0-9]*\.?[0-9]+(?:e[+-]?\d+)?)_s(\d+)of(\d+)")
-
 
 class MissingFrames(ValueError):
-    """A decoding method's frames are not in the scan. The message names the frames it needs."""
+    """A decoding method's frames are not in the scan. The message names the roles it needs and lists the
+    scan's frames by role."""
 
-    def __init__(self, method: str, needs: str, names: list[str]):
-        self.method, self.needs, self.names = method, needs, list(names)
-        super().__init__(f"method {method} needs {needs}; the scan has: {describe_names(names)}")
-
-
-def describe_names(names: list[str], limit: int = 12) -> str:
-    """A compact listing of frame names: runs of one family are abbreviated (gc_col_b0..b6 (+inv))."""
-    if not names:
-        return "(no frames)"
-    groups: dict[str, list[str]] = {}
-    for n in names:
-        m = _GC.fullmatch(n)
-        if m:
-            key = f"gc_{m.group(1)}"
-        else:
-            m = _PS.fullmatch(n)
-            key = f"ps_{m.group(1)}_p{m.group(2)}_of{m.group(4)}" if m else n
-        groups.setdefault(key, []).append(n)
-    parts = []
-    for key, members in groups.items():
-        if key.startswith("gc_"):
-            bits = sorted({int(_GC.fullmatch(n).group(2)) for n in members})
-            inv = sum(1 for n in members if n.endswith("_inv"))
-            rng = f"{key}_b{bits[0]}" + (f"..b{bits[-1]}" if len(bits) > 1 else "")
-            if len(bits) > 1 and bits != list(range(bits[0], bits[-1] + 1)):
-                rng = f"{key}_b{{{','.join(map(str, bits))}}}"
-            parts.append(rng + (" (+inv)" if inv == len(bits) else f" ({inv} inverses)" if inv else ""))
-        elif key.startswith("ps_"):
-            m = _PS.fullmatch(members[0])
-            steps = sorted(int(_PS.fullmatch(n).group(3)) for n in members)
-            parts.append(f"ps_{m.group(1)}_p{m.group(2)}_s{{{','.join(map(str, steps))}}}of{m.group(4)}")
-        else:
-            parts.append(key if len(members) == 1 else f"{key} x{len(members)}")
-    if len(parts) > limit:
-        parts = parts[:limit] + [f"... ({len(names)} frames in all)"]
-    return ", ".join(parts)
+    def __init__(self, method: str, needs: str, scan):
+        self.method, self.needs, self.names = method, needs, list(scan.names)
+        super().__init__(f"method {method} needs {needs}; the scan has: {describe_roles(scan.names, scan.roles)}")
 
 
 def axis_size(scan, axis: str) -> int:
@@ -72,104 +39,145 @@ def axis_size(scan, axis: str) -> int:
 
 
 @dataclass
-class GrayFrames:
-    """The Gray code frames of one axis: `bits` consecutive bits from b0, with or without inverses.
+class LitReference:
+    """Per-pixel threshold and amplitude of a binary pattern, from uniform frames: threshold [H, W] = the image
+    a pattern of level 0.5 would give, amplitude [H, W] = half the on/off difference (full-scale units);
+    names: the frames used."""
 
-    images [n, H, W] and patterns [n, Hp, Wp] of the bit frames; inverse_images [n, H, W] or None;
-    white, black: [H, W] images or None.
+    threshold: np.ndarray
+    amplitude: np.ndarray
+    names: list[str]
+
+
+def lit_reference(scan, min_level_gap: float = 0.25) -> LitReference | None:
+    """The threshold and amplitude from the scan's uniform frames (roles white, black, uniform), or None.
+
+    Each frame's level is its pattern's mean (0 = black, 1 = white). The two frames whose levels differ the
+    most (by at least `min_level_gap`) give, under the linear image model I = A + B level, the threshold
+    A + B / 2 and the amplitude B / 2; with white and black that is (white + black) / 2 and (white - black) / 2.
+    """
+    idx = [i for i, r in enumerate(scan.roles) if r is not None and r.kind in ("white", "black", "uniform")]
+    if len(idx) < 2:
+        return None
+    levels = np.array([float(scan.patterns[i].mean()) for i in idx])
+    hi, lo = int(np.argmax(levels)), int(np.argmin(levels))
+    gap = levels[hi] - levels[lo]
+    if gap < min_level_gap:
+        return None
+    i_hi, i_lo = scan.images[idx[hi]].astype(np.float64), scan.images[idx[lo]].astype(np.float64)
+    slope = (i_hi - i_lo) / gap  # image per unit of pattern level: B
+    return LitReference(i_lo + (0.5 - levels[lo]) * slope, 0.5 * slope, [scan.names[idx[hi]], scan.names[idx[lo]]])
+
+
+@dataclass
+class GrayFrames:
+    """The Gray code frames of one axis: `bits` consecutive bits from bit 0, with or without inverses.
+
+    names: the bit frames' names; images [n, H, W] and patterns [n, Hp, Wp] of the bit frames;
+    inverse_names / inverse_images [n, H, W] or None; lit: threshold and amplitude from uniform frames or None.
     """
 
     axis: str
     names: list[str]
     images: np.ndarray
     patterns: np.ndarray
+    inverse_names: list[str] | None
     inverse_images: np.ndarray | None
-    white: np.ndarray | None
-    black: np.ndarray | None
+    lit: LitReference | None
 
     @property
     def bits(self) -> int:
         return len(self.names)
 
+    @property
+    def used(self) -> list[str]:
+        """Every frame these frames were read from (bits, inverses, uniform frames)."""
+        return self.names + (self.inverse_names or []) + (self.lit.names if self.lit is not None else [])
+
 
 def gray_frames(scan, axis: str = "col", bits: int | None = None, use_inverse: bool | None = None) -> GrayFrames | None:
-    """The scan's Gray code frames along `axis`: the consecutive bits b0, b1, ... it holds (all of them,
-    or the first `bits`), with inverses when every one of those bits has its inverse (and `use_inverse`
-    is not False). None when the scan has no gc_{axis}_b0, or fewer than `bits` consecutive bits."""
-    n = 0
-    while f"gc_{axis}_b{n}" in scan.names:
-        n += 1
-    if n == 0 or (bits is not None and n < bits):
+    """The scan's Gray code frames along `axis`: the consecutive bits 0, 1, ... it holds (all of them, or the
+    first `bits`), with inverses when every one of those bits has its inverse (and `use_inverse` is not
+    False). None when the scan has no bit 0 along `axis`, or fewer than `bits` consecutive bits."""
+    idx, inv = [], []
+    while True:
+        i = scan.frame_with("gray", axis=axis, bit=len(idx), inverse=False)
+        if i is None:
+            break
+        idx.append(i)
+        inv.append(scan.frame_with("gray", axis=axis, bit=len(idx) - 1, inverse=True))
+    if not idx or (bits is not None and len(idx) < bits):
         return None
-    n = n if bits is None else bits
-    names = [f"gc_{axis}_b{k}" for k in range(n)]
-    inv_names = [f"{nm}_inv" for nm in names]
-    has_inv = all(nm in scan.names for nm in inv_names) if use_inverse is not False else False
-    idx = [scan.names.index(nm) for nm in names]
-    inv = scan.images[[scan.names.index(nm) for nm in inv_names]] if has_inv else None
-    white = scan.image("white") if "white" in scan.names else None
-    black = scan.image("black") if "black" in scan.names else None
-    if white is None or black is None:
-        white = black = None  # the threshold needs both
-    return GrayFrames(axis, names, scan.images[idx], scan.patterns[idx], inv, white, black)
+    n = len(idx) if bits is None else bits
+    idx, inv = idx[:n], inv[:n]
+    has_inv = use_inverse is not False and all(i is not None for i in inv)
+    return GrayFrames(axis, [scan.names[i] for i in idx], scan.images[idx], scan.patterns[idx],
+                      [scan.names[i] for i in inv] if has_inv else None, scan.images[inv] if has_inv else None,
+                      lit_reference(scan))
 
 
 @dataclass
 class PhaseSet:
-    """One complete N-step phase-shift set: images [N, H, W] in step order, period (projector px)."""
+    """One complete N-step phase-shift set: images [N, H, W] in step order, period (projector px), and the
+    shift of each step measured from its pattern, shifts [N] rad (pattern = a + b cos(2 pi u / P - shift))."""
 
     axis: str
     period: float
     steps: int
     names: list[str]
     images: np.ndarray
+    shifts: np.ndarray
 
     def describe(self) -> str:
-        return f"{self.steps}-step phase shift ps_{self.axis}_p{self.period:g}_s*of{self.steps}"
+        return f"{self.steps}-step phase shift phase:{self.axis}:period={self.period:g}"
 
 
-def phase_sets(scan, axis: str = "col", check_patterns: bool = True) -> list[PhaseSet]:
-    """Every complete phase-shift set along `axis` in the scan (all steps 0..N-1 present), in the order
-    of their first frame.
-
-    With `check_patterns`, each pattern is compared with the contract 0.5 + 0.5 cos(2 pi u / P - 2 pi k / N)
-    along one projector row (column for row codes): a mismatch would silently bias every decoded
-    coordinate, so it raises ValueError naming the frame instead.
-    """
-    found: dict[tuple[str, int], dict[int, int]] = {}
-    order: list[tuple[str, int]] = []
-    for i, n in enumerate(scan.names):
-        m = _PS.fullmatch(n)
-        if not m or m.group(1) != axis:
-            continue
-        key = (m.group(2), int(m.group(4)))
-        if key not in found:
-            found[key] = {}
-            order.append(key)
-        found[key][int(m.group(3))] = i
+def phase_sets(scan, axis: str = "col") -> list[PhaseSet]:
+    """Every complete phase-shift set along `axis` in the scan (all steps 0..N-1 present), in the order of
+    their first frame, with each step's shift measured from its pattern (`measure_phase_shifts`)."""
+    found: dict[tuple[float, int], dict[int, int]] = {}
+    for i, r in enumerate(scan.roles):
+        if r is not None and r.kind == "phase" and r.axis == axis:
+            found.setdefault((r.period, r.steps), {})[r.step] = i
     out = []
-    for key in order:
-        p_str, steps = key
-        idx = found[key]
-        if sorted(idx) != list(range(steps)):
+    for (period, steps), by_step in found.items():
+        if sorted(by_step) != list(range(steps)):
             continue
-        ids = [idx[k] for k in range(steps)]
-        period = float(p_str)
-        if check_patterns:
-            _check_phase_patterns(scan, ids, axis, period, steps)
-        out.append(PhaseSet(axis, period, steps, [scan.names[i] for i in ids], scan.images[ids]))
+        ids = [by_step[k] for k in range(steps)]
+        names = [scan.names[i] for i in ids]
+        shifts = measure_phase_shifts(scan.patterns[ids], axis, period, names)
+        out.append(PhaseSet(axis, period, steps, names, scan.images[ids], shifts))
     return out
 
 
-def _check_phase_patterns(scan, ids, axis, period, steps, tol: float = 0.02) -> None:
-    pats = scan.patterns[ids]
+def measure_phase_shifts(patterns: np.ndarray, axis: str, period: float, names: list[str],
+                         max_residual: float = 0.05, min_modulation: float = 0.05) -> np.ndarray:
+    """Shift [N] rad of each phase-shift pattern [N, Hp, Wp]: its profile along the projector `axis` (the
+    middle row for column codes, the middle column for row codes) fitted by least squares with
+    a + b cos(2 pi u / period - shift), u the projector px.
+
+    So any N-step convention decodes: slwarp's (shift 2 pi k / N), the NeSS authors' (their steps run the
+    other way, offset by pi), any offset. A pattern whose profile is not such a sinusoid (RMS residual above
+    `max_residual` of b, or b below `min_modulation`: a wrong period, the wrong axis, a binary pattern) raises
+    ValueError naming the frame; so do shifts that cannot determine a phase (fewer than 3 distinct ones)."""
+    pats = np.asarray(patterns, np.float64)
     prof = pats[:, pats.shape[1] // 2, :] if axis == "col" else pats[:, :, pats.shape[2] // 2]
-    u = np.arange(prof.shape[1], dtype=np.float64)
-    for k in range(steps):
-        expect = 0.5 + 0.5 * np.cos(2 * np.pi * u / period - 2 * np.pi * k / steps)
-        err = float(np.abs(prof[k] - expect).max())
-        if err > tol:
+    w = 2 * np.pi * np.arange(prof.shape[1]) / period
+    M = np.stack([np.ones_like(w), np.cos(w), np.sin(w)], 1)
+    coef, *_ = np.linalg.lstsq(M, prof.T, rcond=None)  # [3, N]
+    shifts = np.arctan2(coef[2], coef[1])
+    b = np.hypot(coef[1], coef[2])
+    rms = np.sqrt(((M @ coef - prof.T) ** 2).mean(0))
+    along = "columns" if axis == "col" else "rows"
+    for k, name in enumerate(names):
+        if b[k] < min_modulation or rms[k] > max_residual * b[k]:
             raise ValueError(
-                f"pattern of frame {scan.names[ids[k]]} does not follow the phase-shift contract "
-                f"0.5 + 0.5 cos(2 pi u / {period:g} - 2 pi {k} / {steps}) (max deviation {err:.3f})"
+                f"pattern of frame {name} is not a sinusoid of period {period:g} px along the projector {along} "
+                f"(fitted amplitude {b[k]:.3f}, RMS residual {rms[k]:.3f}): check the role's period and axis"
             )
+    D = np.stack([np.ones_like(shifts), np.cos(shifts), np.sin(shifts)], 1)
+    sv = np.linalg.svd(D, compute_uv=False)
+    if sv[-1] < 1e-3 * sv[0]:
+        raise ValueError(f"phase-shift frames {', '.join(names)}: their patterns' shifts "
+                         f"({', '.join(f'{np.degrees(s):.0f}' for s in shifts)} deg) cannot determine a phase")
+    return shifts

@@ -1,5 +1,5 @@
 """Gray code decoding: per camera pixel, the projector stripe (and its centre), with sub-pixel
-interpolation between stripe transitions (`gc-interp`).
+interpolation between stripe transitions (`gc-interp`) along the direction in which the code changes.
 
 The code -> position table is built from the pattern images themselves (`GrayTable.from_patterns`), not
 from a formula: each projector column (row, for row codes) of the bit patterns is thresholded at 0.5,
@@ -19,8 +19,8 @@ import numpy as np
 
 from .frames import DEFAULT_MIN_AMPLITUDE, GrayFrames
 
-__all__ = ["GrayTable", "Binarized", "binarize", "decode_stripes", "interpolate_transitions", "MAX_BITS",
-           "HOW_INVALID", "HOW_CENTER", "HOW_INTERPOLATED", "HOW_EXTRAPOLATED"]
+__all__ = ["GrayTable", "Binarized", "binarize", "decode_stripes", "interpolate_transitions", "code_gradient",
+           "interpolate_stripes", "MAX_BITS", "HOW_INVALID", "HOW_CENTER", "HOW_INTERPOLATED", "HOW_EXTRAPOLATED"]
 
 MAX_BITS = 24  # the lookup table has 2^bits entries
 
@@ -101,13 +101,15 @@ def binarize(frames: GrayFrames, min_amplitude: float = DEFAULT_MIN_AMPLITUDE, m
              reference: tuple[np.ndarray, np.ndarray] | None = None) -> Binarized:
     """Bits of each pixel from its Gray code images.
 
-    - With inverses: bit = image > inverse; amplitude = (white - black) / 2 when those frames exist,
-      else half the largest |image - inverse| over the bits.
-    - Without inverses, the per-pixel threshold is, in order of preference: (white + black) / 2;
-      `reference` = (offset, modulation) of a phase-shift set taken under the same illumination (its
-      offset A equals (white + black) / 2 in the image model, and its modulation B the half on/off
-      difference); else (max + min) / 2 over the bit images. The last cannot decode a pixel whose bits
-      are all equal (stripe 0 of a Gray code): its amplitude is 0 and it is invalid.
+    - With inverses: bit = image > inverse; amplitude = half the on/off difference from the scan's uniform
+      frames when it has them (`frames.lit`: (white - black) / 2), else half the largest |image - inverse|
+      over the bits.
+    - Without inverses, the per-pixel threshold is, in order of preference: the uniform frames' ((white +
+      black) / 2, or the level-0.5 image interpolated from two other uniform levels); `reference` =
+      (offset, modulation) of a phase-shift set taken under the same illumination (its offset A equals
+      (white + black) / 2 in the image model, and its modulation B the half on/off difference); else
+      (max + min) / 2 over the bit images. The last cannot decode a pixel whose bits are all equal (stripe 0
+      of a Gray code): its amplitude is 0 and it is invalid.
 
     Validity: amplitude >= `min_amplitude` (shadows and unlit pixels; images are in [0, 1]). With
     `min_bit_contrast` > 0, a pixel is also invalid when any bit's |signal| is below it. That is off by
@@ -115,17 +117,14 @@ def binarize(frames: GrayFrames, min_amplitude: float = DEFAULT_MIN_AMPLITUDE, m
     on a boundary and either answer is one of its two neighbouring stripes.
     """
     imgs = frames.images.astype(np.float64)
+    lit = frames.lit
     if frames.inverse_images is not None:
         diff = imgs - frames.inverse_images
-        if frames.white is not None:
-            amp = 0.5 * (frames.white.astype(np.float64) - frames.black)
-        else:
-            amp = 0.5 * np.abs(diff).max(axis=0)
+        amp = lit.amplitude if lit is not None else 0.5 * np.abs(diff).max(axis=0)
         signal = diff / (2.0 * np.maximum(amp, 1e-9))
     else:
-        if frames.white is not None:
-            thr = 0.5 * (frames.white.astype(np.float64) + frames.black)
-            amp = 0.5 * (frames.white.astype(np.float64) - frames.black)
+        if lit is not None:
+            thr, amp = lit.threshold, lit.amplitude
         elif reference is not None:
             thr, amp = (np.asarray(r, np.float64) for r in reference)
         else:
@@ -247,3 +246,92 @@ def interpolate_transitions(stripe: np.ndarray, signal: np.ndarray, table: GrayT
     if fallback == "nan":
         how[rest] = HOW_INVALID
     return pos.reshape(H, W), how.reshape(H, W)
+
+
+def _box_sum(a: np.ndarray, radius: int) -> np.ndarray:
+    """Sum of a [H, W] over the (2 radius + 1)^2 window around each pixel (clipped at the borders)."""
+    c = np.zeros((a.shape[0] + 1, a.shape[1] + 1))
+    c[1:, 1:] = np.cumsum(np.cumsum(a, 0), 1)
+    H, W = a.shape
+    y0 = np.clip(np.arange(H) - radius, 0, H)
+    y1 = np.clip(np.arange(H) + radius + 1, 0, H)
+    x0 = np.clip(np.arange(W) - radius, 0, W)
+    x1 = np.clip(np.arange(W) + radius + 1, 0, W)
+    return c[y1][:, x1] - c[y0][:, x1] - c[y1][:, x0] + c[y0][:, x0]
+
+
+def code_gradient(stripe: np.ndarray, radius: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Local direction in which the decoded stripe index grows, in camera px: (gx, gy) [H, W].
+
+    Signed stripe steps of +-1 between valid neighbours, summed over a window around each pixel: noise that
+    flickers across one stripe edge adds +1 and -1 and cancels, a real progression of stripes does not.
+    Jumps of several stripes (occlusions) are left out. The window's radius defaults to about one stripe
+    width in camera px (valid pixels per transition along the better axis, clipped to 4..32). Where the
+    window holds no net step, the whole image's gradient stands in (a rig's stripes keep their orientation
+    over the image, up to the surfaces' slant); with no step anywhere, both are 0.
+    """
+    valid = stripe >= 0
+    dx = np.zeros(stripe.shape)
+    dy = np.zeros(stripe.shape)
+    step_x = stripe[:, 1:] - stripe[:, :-1]
+    step_y = stripe[1:, :] - stripe[:-1, :]
+    ok_x = valid[:, 1:] & valid[:, :-1] & (np.abs(step_x) == 1)
+    ok_y = valid[1:, :] & valid[:-1, :] & (np.abs(step_y) == 1)
+    dx[:, :-1] = np.where(ok_x, step_x, 0)
+    dy[:-1, :] = np.where(ok_y, step_y, 0)
+    if radius is None:
+        n_valid = max(int(valid.sum()), 1)
+        crossings = max(int(ok_x.sum()), int(ok_y.sum()), 1)  # the better axis crosses the most edges
+        radius = int(np.clip(np.ceil(n_valid / crossings), 4, 32))
+    gx, gy = _box_sum(dx, radius), _box_sum(dy, radius)
+    none = (gx == 0) & (gy == 0)
+    gx[none], gy[none] = dx.sum(), dy.sum()
+    return gx, gy
+
+
+def interpolate_stripes(stripe: np.ndarray, signal: np.ndarray, table: GrayTable, fallback: str = "extrapolate",
+                        min_weight: float = 0.3) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Sub-pixel projector positions interpolated along the direction in which the code changes (gc-interp).
+
+    Linear interpolation between the two stripe edges that a line crosses gives the same position along any
+    line through the pixel (for straight, parallel edges), and its noise is about the same at any angle
+    between the line and the edges (a shallower crossing stretches both the edge's localisation error and
+    the distance between edges). What fails is a line nearly parallel to the stripes: it runs inside one
+    stripe for long stretches and meets noise flickering across an edge instead of the next edge. So each
+    pixel is interpolated along camera rows and along camera columns (`interpolate_transitions`) and the
+    two are weighted by how well each follows the local code gradient (`code_gradient`, (gx, gy)):
+    w_row = gx^4 / (gx^4 + gy^4), w_col = 1 - w_row (the fourth power keeps the better-aligned direction
+    alone except near 45 deg; squares, i.e. cos^2, let a direction 60 deg off the gradient add its noise:
+    +1 to 2% MAE on the default rig). A direction with weight below `min_weight` (0.3: more than ~51 deg from
+    the gradient) is not used. Among the usable ones, an interpolated position is preferred to an
+    extrapolated one and that to the stripe centre; two of the same kind are averaged with their weights
+    (at 45 deg the two estimates use different edge crossings, and their mean was 20 to 26% better than
+    either on a projector rolled 45 deg).
+    For column codes on a horizontal baseline this is interpolation along rows, for row codes along columns,
+    for a projector rolled 90 deg the other way round, and for stripes at 45 deg the mean of both.
+
+    stripe [H, W] int (-1 invalid); signal [n, H, W] (see `Binarized`) -> (position [H, W] float64 NaN
+    invalid, how [H, W] int8 (HOW_*), extra: {'weight_row': [H, W], 'gradient': (gx, gy)}).
+    """
+    pos_r, how_r = interpolate_transitions(stripe, signal, table, along=1, fallback=fallback)
+    pos_c, how_c = interpolate_transitions(stripe, signal, table, along=0, fallback=fallback)
+    gx, gy = code_gradient(stripe)
+    ax4, ay4 = gx**4, gy**4
+    w_r = np.divide(ax4, ax4 + ay4, out=np.full(gx.shape, 0.5), where=(ax4 + ay4) > 0)
+    w_c = 1.0 - w_r
+    # rank of each estimate: interpolated 3 > extrapolated 2 > centre 1 > invalid 0; unusable directions 0
+    rank = {HOW_INTERPOLATED: 3, HOW_EXTRAPOLATED: 2, HOW_CENTER: 1, HOW_INVALID: 0}
+    lut = np.zeros(4, np.int8)
+    for k, v in rank.items():
+        lut[k] = v
+    rank_r = np.where((w_r >= min_weight) & np.isfinite(pos_r), lut[how_r], 0)
+    rank_c = np.where((w_c >= min_weight) & np.isfinite(pos_c), lut[how_c], 0)
+    best = np.maximum(rank_r, rank_c)
+    use_r, use_c = (rank_r == best) & (best > 0), (rank_c == best) & (best > 0)
+    wr, wc = np.where(use_r, w_r, 0.0), np.where(use_c, w_c, 0.0)
+    wsum = wr + wc
+    with np.errstate(invalid="ignore", divide="ignore"):
+        pos = (wr * np.nan_to_num(pos_r) + wc * np.nan_to_num(pos_c)) / wsum
+    pos[best == 0] = np.nan
+    to_how = np.array([HOW_INVALID, HOW_CENTER, HOW_EXTRAPOLATED, HOW_INTERPOLATED], np.int8)
+    return pos, to_how[best], {"weight_row": w_r, "gradient": (gx, gy)}

@@ -3,8 +3,11 @@
     decode(scan, method, frames=None, **params) -> Decoding
     reconstruct_depth(scan, method, frames=None, triangulation='auto', **params) -> (depth, points, Decoding)
 
-Each method reads its frames by name (see `frames.py`), returns projector coordinates per camera pixel
+Each method reads its frames by role (see `frames.py`), returns projector coordinates per camera pixel
 (float64, continuous projector px, NaN where invalid) and raises `MissingFrames` when the scan lacks them.
+Gray code methods decode every axis the scan has codes for; the phase methods decode one axis, by default the
+one that carries depth on this rig (`triangulate.choose_plane_axis`) when the scan has its frames, else the
+other.
 Common parameters: min_amplitude (shadow threshold: half the on/off difference, or the phase modulation,
 in full-scale units; images are in [0, 1]), min_bit_contrast (Gray code, relative; off by default).
 """
@@ -17,10 +20,10 @@ import numpy as np
 
 from .cgc import decode_gray_phase
 from .frames import DEFAULT_MIN_AMPLITUDE, MissingFrames, PhaseSet, axis_size, gray_frames, phase_sets
-from .gray import GrayTable, binarize, decode_stripes, interpolate_transitions
+from .gray import GrayTable, binarize, decode_stripes, interpolate_stripes
 from .phase import (NumberTheoreticTable, coarse_position, unwrap_number_theoretic, unwrap_with_reference,
                     wrapped_phase, wrapped_position)
-from .triangulate import triangulate
+from .triangulate import choose_plane_axis, triangulate
 
 __all__ = ["Decoding", "Method", "METHODS", "decode", "reconstruct_depth", "finalize_positions"]
 
@@ -68,10 +71,10 @@ def _gc(scan, interp: bool, min_amplitude=DEFAULT_MIN_AMPLITUDE, min_bit_contras
         b = binarize(gf, min_amplitude, min_bit_contrast)
         stripe, center = decode_stripes(b, table)
         if interp:
-            # column codes along camera rows, row codes along camera columns (see interpolate_transitions)
-            u, how = interpolate_transitions(stripe, b.signal, table, along=1 if axis == "col" else 0,
-                                             fallback=fallback)
+            # along camera rows, columns or both, as the local code gradient runs (see interpolate_stripes)
+            u, how, info = interpolate_stripes(stripe, b.signal, table, fallback=fallback)
             extra[f"how_{axis}"] = how  # see slwarp.decode.gray.HOW_*
+            extra[f"weight_row_{axis}"] = info["weight_row"]
         else:
             u = center
         coords[axis] = finalize_positions(u, axis_size(scan, axis))
@@ -79,13 +82,11 @@ def _gc(scan, interp: bool, min_amplitude=DEFAULT_MIN_AMPLITUDE, min_bit_contras
         extra[f"amplitude_{axis}"] = b.amplitude
         extra[f"bits_{axis}"] = gf.bits
         extra[f"inverses_{axis}"] = gf.inverse_images is not None
-        used += gf.names + ([f"{n}_inv" for n in gf.names] if gf.inverse_images is not None else [])
-        if gf.white is not None:
-            used += ["white", "black"]
+        used += gf.used
     if not coords:
-        raise MissingFrames(name, "Gray code frames gc_col_b0, gc_col_b1, ... (most significant bit first; "
-                            "optionally their inverses gc_col_bK_inv, white and black; or the same for rows, gc_row_bK)",
-                            scan.names)
+        raise MissingFrames(name, "Gray code frames: roles gray:col:bit=0, bit=1, ... (most significant first; "
+                            "optionally their inverses gray:col:inv, and white and black), or the same for rows "
+                            "(slwarp names gc_col_b0, gc_col_b0_inv, ...)", scan)
     return coords.get("col"), coords.get("row"), used, extra
 
 
@@ -96,21 +97,21 @@ def _find_set(sets: list[PhaseSet], period: float, steps: int | None, rel: float
     return max(hits, key=lambda s: s.steps) if hits else None
 
 
-def _ps(scan, axis="col", min_amplitude=DEFAULT_MIN_AMPLITUDE, steps=None):
+def _ps(scan, axis, min_amplitude=DEFAULT_MIN_AMPLITUDE, steps=None):
     size = axis_size(scan, axis)
     sets = [s for s in phase_sets(scan, axis) if s.period >= size - 1e-6 and (steps is None or s.steps == steps)]
     if not sets:
-        raise MissingFrames("ps", f"an N-step phase shift ps_{axis}_p{size}_s0ofN..s(N-1)ofN whose period covers "
-                            f"the projector {'width' if axis == 'col' else 'height'} ({size} px), e.g. the set ps4",
-                            scan.names)
+        raise MissingFrames("ps", f"an N-step phase shift along {axis} whose period covers the projector "
+                            f"{'width' if axis == 'col' else 'height'} ({size} px): roles phase:{axis}:period={size}"
+                            f":steps=N, step 0..N-1 (slwarp names ps_{axis}_p{size}_s0ofN, ...; the set ps4)", scan)
     pset = max(sets, key=lambda s: (s.steps, -s.period))
-    phi, _, mod = wrapped_phase(pset.images)
+    phi, _, mod = wrapped_phase(pset.images, pset.shifts)
     u = np.where(mod >= min_amplitude, coarse_position(phi, pset.period), np.nan)
     u = finalize_positions(u, size)
     return u, pset.names, {"modulation": mod, "periods": [pset.period]}
 
 
-def _cgc(scan, axis="col", bits: int | None = None, steps: int | None = 3, min_amplitude=DEFAULT_MIN_AMPLITUDE,
+def _cgc(scan, axis, bits: int | None = None, steps: int | None = 3, min_amplitude=DEFAULT_MIN_AMPLITUDE,
          min_bit_contrast=0.0):
     size = axis_size(scan, axis)
     gf_all = gray_frames(scan, axis)
@@ -127,23 +128,23 @@ def _cgc(scan, axis="col", bits: int | None = None, steps: int | None = 3, min_a
     if choice is None:
         m = bits or 3
         W = "W" if axis == "col" else "H"
-        bitnames = ", ".join(f"gc_{axis}_b{k}" for k in range(m))
         raise MissingFrames(
             "cgc",
-            f"frames {bitnames} and a {steps or 'N'}-step phase shift ps_{axis}_p*_s*of{steps or 'N'} with period "
-            f"{W}/{1 << (m - 1)} = {size / (1 << (m - 1)):g} px (in general: n Gray code bits and period "
+            f"Gray code bits 0..{m - 1} along {axis} (gray:{axis}:bit=0-{m - 1}) and a {steps or 'N'}-step phase "
+            f"shift along {axis} with period {W}/{1 << (m - 1)} = {size / (1 << (m - 1)):g} px "
+            f"(phase:{axis}:period={size / (1 << (m - 1)):g}; in general: n Gray code bits and period "
             f"{W}/2^(n-1); cgc6 = 3 bits + {W}/4, cgc7 = 4 bits + {W}/8)",
-            scan.names,
+            scan,
         )
     m, pset = choice
     gf = gray_frames(scan, axis, m)
     u, extra = decode_gray_phase(gf, pset, min_amplitude, min_bit_contrast)
-    used = gf.names + ([f"{n}_inv" for n in gf.names] if gf.inverse_images is not None else []) + pset.names
+    used = gf.used + pset.names
     extra.update(bits=m, periods=[pset.period])
     return finalize_positions(u, size), used, extra
 
 
-def _gt(scan, axis="col", period: float = 40.0, steps: int | None = 4, bits: int | None = None,
+def _gt(scan, axis, period: float = 40.0, steps: int | None = 4, bits: int | None = None,
         min_amplitude=DEFAULT_MIN_AMPLITUDE, min_bit_contrast=0.0):
     size = axis_size(scan, axis)
     gf = gray_frames(scan, axis, bits)
@@ -151,15 +152,16 @@ def _gt(scan, axis="col", period: float = 40.0, steps: int | None = 4, bits: int
     if gf is None or pset is None:
         nb = bits or 7
         raise MissingFrames(
-            "gt", f"Gray code frames gc_{axis}_b0..gc_{axis}_b{nb - 1} with inverses (gc_{axis}_bK_inv) and a "
-            f"{steps or 'N'}-step phase shift ps_{axis}_p{period:g}_s0of{steps or 'N'}..; the set 'gt'", scan.names)
+            "gt", f"Gray code bits 0..{nb - 1} along {axis} with inverses (gray:{axis}:bit=0-{nb - 1}, slwarp names "
+            f"gc_{axis}_b0..gc_{axis}_b{nb - 1} and _inv) and a {steps or 'N'}-step phase shift along {axis} with "
+            f"period {period:g} px (phase:{axis}:period={period:g}); the set 'gt'", scan)
     u, extra = decode_gray_phase(gf, pset, min_amplitude, min_bit_contrast)
-    used = gf.names + ([f"{n}_inv" for n in gf.names] if gf.inverse_images is not None else []) + pset.names
+    used = gf.used + pset.names
     extra.update(bits=gf.bits, periods=[pset.period])
     return finalize_positions(u, size), used, extra
 
 
-def _hpmp(scan, axis="col", short_period: float = 80.0, steps: int | None = 3, min_amplitude=DEFAULT_MIN_AMPLITUDE):
+def _hpmp(scan, axis, short_period: float = 80.0, steps: int | None = 3, min_amplitude=DEFAULT_MIN_AMPLITUDE):
     size = axis_size(scan, axis)
     sets = phase_sets(scan, axis)
     coarse = [s for s in sets if s.period >= size - 1e-6]
@@ -170,10 +172,11 @@ def _hpmp(scan, axis="col", short_period: float = 80.0, steps: int | None = 3, m
     if coarse is None or fine is None:
         n = steps or "N"
         raise MissingFrames(
-            "hpmp", f"a {n}-step phase shift with one period across the axis (ps_{axis}_p{size}_s*of{n}) and a "
-            f"{n}-step one with the short period (ps_{axis}_p{short_period:g}_s*of{n}); the set 'hpmp6'", scan.names)
-    phi_c, _, mod_c = wrapped_phase(coarse.images)
-    phi_f, _, mod_f = wrapped_phase(fine.images)
+            "hpmp", f"a {n}-step phase shift along {axis} with one period across the axis "
+            f"(phase:{axis}:period={size}) and a {n}-step one with the short period "
+            f"(phase:{axis}:period={short_period:g}); the set 'hpmp6'", scan)
+    phi_c, _, mod_c = wrapped_phase(coarse.images, coarse.shifts)
+    phi_f, _, mod_f = wrapped_phase(fine.images, fine.shifts)
     u_c = coarse_position(phi_c, coarse.period)
     u = unwrap_with_reference(wrapped_position(phi_f, fine.period), u_c, fine.period)
     valid = (mod_c >= min_amplitude) & (mod_f >= min_amplitude)
@@ -182,7 +185,7 @@ def _hpmp(scan, axis="col", short_period: float = 80.0, steps: int | None = 3, m
                                           "periods": [coarse.period, fine.period]}
 
 
-def _npmp(scan, axis="col", periods=(48, 70), steps: int | None = 3, min_amplitude=DEFAULT_MIN_AMPLITUDE):
+def _npmp(scan, axis, periods=(48, 70), steps: int | None = 3, min_amplitude=DEFAULT_MIN_AMPLITUDE):
     size = axis_size(scan, axis)
     sets = phase_sets(scan, axis)
     p1, p2 = (float(p) for p in periods)
@@ -190,10 +193,10 @@ def _npmp(scan, axis="col", periods=(48, 70), steps: int | None = 3, min_amplitu
     if s1 is None or s2 is None:
         n = steps or "N"
         raise MissingFrames(
-            "npmp", f"two {n}-step phase shifts with co-prime periods ps_{axis}_p{p1:g}_s*of{n} and "
-            f"ps_{axis}_p{p2:g}_s*of{n}; the set 'npmp6'", scan.names)
-    phi1, _, m1 = wrapped_phase(s1.images)
-    phi2, _, m2 = wrapped_phase(s2.images)
+            "npmp", f"two {n}-step phase shifts along {axis} with co-prime periods (phase:{axis}:period={p1:g} "
+            f"and phase:{axis}:period={p2:g}); the set 'npmp6'", scan)
+    phi1, _, m1 = wrapped_phase(s1.images, s1.shifts)
+    phi2, _, m2 = wrapped_phase(s2.images, s2.shifts)
     table = NumberTheoreticTable(p1, p2, size)
     u, disagreement = unwrap_number_theoretic(wrapped_position(phi1, p1), wrapped_position(phi2, p2), p1, p2, size, table)
     valid = (m1 >= min_amplitude) & (m2 >= min_amplitude)
@@ -203,12 +206,26 @@ def _npmp(scan, axis="col", periods=(48, 70), steps: int | None = 3, min_amplitu
 
 
 def _axis_method(fn):
-    """Adapt a one-axis method (returning u, frames, extra) to the (col, row, frames, extra) form."""
+    """Adapt a one-axis method (returning u, frames, extra) to the (col, row, frames, extra) form.
 
-    def run(scan, axis="col", **kw):
+    axis=None (the default) decodes the axis that carries depth on this rig (`choose_plane_axis`) when the
+    scan has that method's frames for it, else the other axis; the error, when neither has them, is the one
+    of the depth-carrying axis."""
+
+    def run(scan, axis=None, **kw):
+        if axis is None:
+            first = choose_plane_axis(scan.projector)
+            try:
+                return run(scan, first, **kw)
+            except MissingFrames as e:
+                try:
+                    return run(scan, "row" if first == "col" else "col", **kw)
+                except MissingFrames:
+                    raise e from None
         if axis not in ("col", "row"):
             raise ValueError(f"axis must be 'col' or 'row', got {axis!r}")
         u, used, extra = fn(scan, axis=axis, **kw)
+        extra["axis"] = axis
         return (u, None, used, extra) if axis == "col" else (None, u, used, extra)
 
     return run
@@ -250,7 +267,8 @@ METHODS: dict[str, Method] = {
 def decode(scan, method: str, frames=None, **params) -> Decoding:
     """Decode a scan with one of `METHODS` (after selecting `frames`, see `Scan.select`).
 
-    params go to the method: min_amplitude, min_bit_contrast (Gray code), axis ('col'/'row', phase methods),
+    params go to the method: min_amplitude, min_bit_contrast (Gray code), axis ('col'/'row' or None: the
+    depth-carrying axis the scan has frames for; phase methods),
     bits (gc, gc-interp, cgc, gt), short_period (hpmp), periods (npmp), period and steps (gt), fallback
     (gc-interp: 'extrapolate', 'center' or 'nan'). Raises `MissingFrames` when the scan lacks the method's frames.
     """
@@ -272,7 +290,8 @@ def reconstruct_depth(scan, method: str, frames=None, triangulation: str = "auto
                       **params) -> tuple[np.ndarray, np.ndarray, Decoding]:
     """Decode and triangulate: (depth [H, W] float64 mm NaN invalid, points [H, W, 3] mm camera frame, Decoding).
 
-    triangulation: 'auto' (plane of the coordinate along the baseline), 'col', 'row' or 'midpoint'.
+    triangulation: 'auto' (from the rig and the coordinates decoded: `triangulate.choose_triangulation`),
+    'col', 'row', 'both' or 'midpoint'.
     depth_range: 'scan' (the scan's declared working range, when it has one), None, or (near, far) mm;
     points outside it are NaN.
     """
@@ -281,6 +300,7 @@ def reconstruct_depth(scan, method: str, frames=None, triangulation: str = "auto
     t0 = time.perf_counter()
     depth, points, info = triangulate(scan.camera, scan.projector, dec.col, dec.row, triangulation, dr)
     dec.extra["triangulation"] = info["mode"]
+    dec.extra["baseline_alignment"] = info["alignment"]
     if "gap" in info:
         dec.extra["ray_gap"] = info["gap"]
     dec.extra["triangulate_s"] = time.perf_counter() - t0

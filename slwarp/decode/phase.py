@@ -1,13 +1,15 @@
 """Phase shifting: wrapped phase and modulation, and the temporal unwrapping schemes of the baselines.
 
-Image model of step k of an N-step set with period P (projector px), shift d_k = 2 pi k / N:
+Image model of step k of an N-step set with period P (projector px) and shift d_k:
 
     I_k = A + B cos(phi - d_k),   phi = 2 pi u / P
 
-(the patterns are 0.5 + 0.5 cos(2 pi u / P - d_k), see `slwarp.scans.patterns`). With S = sum_k I_k sin d_k and
-C = sum_k I_k cos d_k: phi = atan2(S, C) (mod 2 pi), B = (2 / N) sqrt(S^2 + C^2), A = mean_k I_k. The
-wrapped position is u_w = P phi / (2 pi) in [0, P); the absolute one is u = u_w + m P for an integer
-period order m that the unwrapping finds.
+where the pattern of step k is a + b cos(2 pi u / P - d_k). slwarp's patterns have d_k = 2 pi k / N
+(`slwarp.scans.patterns`); other conventions decode too, since the decoders measure each d_k from its pattern
+(`slwarp.decode.frames.measure_phase_shifts`). A, B cos phi and B sin phi are the least-squares solution of the
+N equations (for equally spaced shifts: S = sum_k I_k sin d_k, C = sum_k I_k cos d_k, phi = atan2(S, C),
+B = (2 / N) sqrt(S^2 + C^2), A = mean_k I_k). The wrapped position is u_w = P phi / (2 pi) in [0, P); the
+absolute one is u = u_w + m P for an integer period order m that the unwrapping finds.
 """
 from __future__ import annotations
 
@@ -25,17 +27,23 @@ __all__ = [
 ]
 
 
-def wrapped_phase(images: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """images [N, H, W] of steps 0..N-1 -> (phi [H, W] in [0, 2 pi), offset A [H, W], modulation B [H, W])."""
+def wrapped_phase(images: np.ndarray, shifts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """images [N, H, W] -> (phi [H, W] in [0, 2 pi), offset A [H, W], modulation B [H, W]).
+
+    shifts [N] rad: the shift d_k of each step (I_k = A + B cos(phi - d_k)); default 2 pi k / N. The three
+    unknowns A, B cos phi, B sin phi are the least-squares solution of the N equations; for equally spaced
+    shifts that is the classical S = sum I_k sin d_k, C = sum I_k cos d_k, phi = atan2(S, C)."""
     imgs = np.asarray(images, np.float64)
     n = imgs.shape[0]
     if n < 3:
         raise ValueError(f"phase shifting needs at least 3 steps, got {n}")
-    d = 2 * np.pi * np.arange(n) / n
-    S = np.tensordot(np.sin(d), imgs, axes=1)
-    C = np.tensordot(np.cos(d), imgs, axes=1)
+    d = 2 * np.pi * np.arange(n) / n if shifts is None else np.asarray(shifts, np.float64)
+    if d.shape != (n,):
+        raise ValueError(f"{n} phase-shift images need {n} shifts, got {d.shape}")
+    M = np.stack([np.ones(n), np.cos(d), np.sin(d)], 1)  # [N, 3]
+    A, C, S = np.tensordot(np.linalg.pinv(M), imgs, axes=1)
     phi = np.mod(np.arctan2(S, C), 2 * np.pi)
-    return phi, imgs.mean(axis=0), (2.0 / n) * np.hypot(S, C)
+    return phi, A, np.hypot(S, C)
 
 
 def wrapped_position(phi: np.ndarray, period: float) -> np.ndarray:

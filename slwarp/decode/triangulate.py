@@ -7,36 +7,86 @@
   plane of (u_p, v_guess), project the 3-D point into the projector to update v_guess, repeat. We start
   like that (v_guess = principal row) and then solve the same fixed point by Newton's method on the ray
   parameter, which needs projections only (no undistortion per step) and converges quadratically.
+- Both coordinates ('both'): the point on the camera ray whose projection best matches the decoded column
+  and row, least squares in projector px (Gauss-Newton on the same ray parameter). Each coordinate counts
+  by how fast it changes along the ray, so on an oblique baseline both codes carry depth and their errors
+  average, and a coordinate that barely changes along the ray barely counts.
 - Midpoint method: when both projector coordinates are decoded, the point halfway between the closest
   points of the camera ray and the projector ray.
+
+Which surface carries depth is a property of the rig: the projector coordinate that changes along the
+baseline (`baseline_alignment`). `triangulate(mode='auto')` picks the plane of the best-aligned coordinate,
+or both coordinates when the baseline is oblique (22.5 to 67.5 deg from the projector's axes) and both were
+decoded.
 
 The camera's distortion is handled by `Camera.pixel_to_ray`. All arithmetic is float64 numpy.
 Conventions: mm, camera frame (OpenCV axes), X_p = R X_c + T; outputs NaN where invalid.
 """
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from ..scans.scanner import Camera, Projector
 
-__all__ = ["choose_plane_axis", "camera_rays", "triangulate_plane", "triangulate_midpoint", "triangulate",
-           "write_ply"]
+__all__ = ["baseline_alignment", "choose_plane_axis", "choose_triangulation", "camera_rays", "triangulate_plane",
+           "triangulate_rays", "triangulate_midpoint", "triangulate"]
 
-TRIANGULATION_MODES = ("auto", "col", "row", "midpoint")
+TRIANGULATION_MODES = ("auto", "col", "row", "both", "midpoint")
+# on a baseline this far (deg) from both projector axes, both coordinates carry depth and 'auto' uses both
+OBLIQUE_DEG = 22.5
+
+
+def baseline_alignment(projector: Projector) -> dict[str, float]:
+    """How much of the baseline each projector coordinate sees: {'col': |cos a|, 'row': |sin a|}, where a is
+    the angle of the baseline in the projector's image plane (the camera centre in the projector frame is T;
+    its (x, y) part runs along the projector's columns axis x and rows axis y). The coordinate with the
+    larger share changes the most with depth; one with a share near 0 carries (almost) no depth."""
+    tx, ty = abs(float(projector.T[0])), abs(float(projector.T[1]))
+    n = np.hypot(tx, ty)
+    if n == 0:
+        return {"col": 0.0, "row": 0.0}  # camera and projector on one optical axis: no stereo baseline
+    return {"col": tx / n, "row": ty / n}
 
 
 def choose_plane_axis(projector: Projector) -> str:
-    """'col' when the baseline (the camera centre in the projector frame, T) runs mostly along the
-    projector's x axis (|T_x| >= |T_y|), else 'row': the coordinate that changes with depth the most."""
-    return "col" if abs(projector.T[0]) >= abs(projector.T[1]) else "row"
+    """'col' when the baseline runs mostly along the projector's x axis (|T_x| >= |T_y|), else 'row': the
+    coordinate that changes with depth the most."""
+    a = baseline_alignment(projector)
+    return "col" if a["col"] >= a["row"] else "row"
+
+
+def choose_triangulation(projector: Projector, has_col: bool, has_row: bool) -> str:
+    """The triangulation for the codes at hand: 'both' on an oblique baseline (more than OBLIQUE_DEG from
+    either projector axis) when both coordinates are decoded, else the plane of the best-aligned decoded
+    coordinate ('col' or 'row'); the other one only when it alone was decoded."""
+    if not (has_col or has_row):
+        raise ValueError("triangulation needs a decoded projector column or row")
+    a = baseline_alignment(projector)
+    oblique = min(a["col"], a["row"]) >= np.sin(np.radians(OBLIQUE_DEG))
+    if has_col and has_row and oblique:
+        return "both"
+    best = choose_plane_axis(projector)
+    if best == "col":
+        return "col" if has_col else "row"
+    return "row" if has_row else "col"
+
+
+_RAYS_CACHE: dict = {}
 
 
 def camera_rays(camera: Camera, uv: np.ndarray | None = None) -> np.ndarray:
-    """Unit ray directions [..., 3] (camera frame) of pixels uv [..., 2] (default: every pixel, [H, W, 3])."""
-    uv = camera.pixel_grid() if uv is None else np.asarray(uv, np.float64)
-    return camera.pixel_to_ray(uv)
+    """Unit ray directions [..., 3] (camera frame) of pixels uv [..., 2] (default: every pixel, [H, W, 3]; the
+    last few cameras' grids are cached, read-only: undistorting every pixel costs more than a triangulation)."""
+    if uv is not None:
+        return camera.pixel_to_ray(np.asarray(uv, np.float64))
+    key = (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes())
+    rays = _RAYS_CACHE.get(key)
+    if rays is None:
+        if len(_RAYS_CACHE) >= 4:
+            _RAYS_CACHE.clear()
+        rays = _RAYS_CACHE[key] = camera.pixel_to_ray(camera.pixel_grid())
+        rays.flags.writeable = False
+    return rays
 
 
 def _plane_intersection(d: np.ndarray, projector: Projector, n_coord: np.ndarray, axis: str) -> np.ndarray:
@@ -67,6 +117,69 @@ def _distort_with_jacobian(x, y, dist):
     return xd, yd, jxx, jxy, jyy
 
 
+def _solve_along_rays(camera: Camera, projector: Projector, col, row, iterations: int, rays, tol_px: float):
+    """Points [H, W, 3] on the camera rays whose projections best match the decoded coordinates given
+    (col and/or row [H, W], NaN invalid), least squares in projector px, and the remaining residual [H, W]
+    (px, RMS over the coordinates used). Start: the plane of the better-aligned given coordinate through its
+    undistorted ray (at the principal row or column when only one is given); then Gauss-Newton on the ray
+    parameter t with the analytic derivative of the projection, distortion included (Newton's method when
+    one coordinate is given). A point whose remaining correction exceeds `tol_px` in projector px is NaN
+    (no solution on this ray: e.g. beyond the trusted radius of the distortion polynomial)."""
+    given = {a: np.asarray(c, np.float64) for a, c in (("col", col), ("row", row)) if c is not None}
+    shape = next(iter(given.values())).shape
+    H, W = shape
+    out = np.full((H, W, 3), np.nan)
+    residual = np.full((H, W), np.nan)
+    sel = np.ones(shape, bool)
+    for c in given.values():
+        sel &= np.isfinite(c)
+    if not sel.any():
+        return out, residual
+    d = (camera_rays(camera) if rays is None else rays)[sel]
+    c_col = given["col"][sel] if "col" in given else None
+    c_row = given["row"][sel] if "row" in given else None
+    start_axis = choose_plane_axis(projector) if len(given) == 2 else next(iter(given))
+    uv = np.empty((d.shape[0], 2))
+    uv[:, 0] = c_col if c_col is not None else projector.cx
+    uv[:, 1] = c_row if c_row is not None else projector.cy
+    a0 = 0 if start_axis == "col" else 1
+    t = _plane_intersection(d, projector, projector.pixel_to_normalized(uv)[:, a0], start_axis)
+    Rd = d @ projector.R.T  # ray directions in the projector frame
+    T = projector.T
+    r2_max = projector.max_normalized_r2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for it in range(max(0, iterations) + 1):
+            Xp = t[:, None] * Rd + T
+            Z = Xp[:, 2]
+            x, y = Xp[:, 0] / Z, Xp[:, 1] / Z
+            dx = (Rd[:, 0] * Z - Xp[:, 0] * Rd[:, 2]) / (Z * Z)  # d x / d t
+            dy = (Rd[:, 1] * Z - Xp[:, 1] * Rd[:, 2]) / (Z * Z)
+            xd, yd, jxx, jxy, jyy = _distort_with_jacobian(x, y, projector.dist)
+            # outside the trusted radius the distortion polynomial can fold back: no solution there
+            trusted = (Z > 0) & (x * x + y * y <= r2_max)
+            num = np.zeros_like(t)  # sum of residual * derivative
+            den = np.zeros_like(t)  # sum of derivative^2
+            sq = np.zeros_like(t)
+            if c_col is not None:
+                r, j = projector.fx * xd + projector.cx - c_col, projector.fx * (jxx * dx + jxy * dy)
+                num, den, sq = num + r * j, den + j * j, sq + r * r
+            if c_row is not None:
+                r, j = projector.fy * yd + projector.cy - c_row, projector.fy * (jxy * dx + jyy * dy)
+                num, den, sq = num + r * j, den + j * j, sq + r * r
+            step = np.where(trusted, num / den, np.nan)
+            # converged everywhere (the start is within a few px; Newton halves the digits' error each step)
+            if it == iterations or not (np.abs(step) * np.sqrt(den) > 1e-6 * tol_px).any():
+                break
+            t = t - step
+            t = np.where(t > 0, t, np.nan)
+    X = d * t[:, None]
+    # |num| / sqrt(den): the residual's component that moving along the ray could still remove (px)
+    X[~(np.abs(step) * np.sqrt(den) <= tol_px)] = np.nan
+    out[sel] = X
+    residual[sel] = np.where(np.isfinite(X[:, 2]), np.sqrt(sq / len(given)), np.nan)
+    return out, residual
+
+
 def triangulate_plane(camera: Camera, projector: Projector, coord: np.ndarray, axis: str = "col",
                       iterations: int = 6, rays: np.ndarray | None = None, tol_px: float = 1e-3) -> np.ndarray:
     """Points [H, W, 3] (mm, camera frame; NaN invalid) from a decoded projector column (axis='col') or
@@ -81,46 +194,16 @@ def triangulate_plane(camera: Camera, projector: Projector, coord: np.ndarray, a
     """
     if axis not in ("col", "row"):
         raise ValueError(f"axis must be 'col' or 'row', got {axis!r}")
-    coord = np.asarray(coord, np.float64)
-    H, W = coord.shape
-    out = np.full((H, W, 3), np.nan)
-    sel = np.isfinite(coord)
-    if not sel.any():
-        return out
-    d = (camera_rays(camera) if rays is None else rays)[sel]
-    c = coord[sel]
-    a = 0 if axis == "col" else 1  # the decoded coordinate
-    uv = np.empty((c.size, 2))
-    uv[:, a], uv[:, 1 - a] = c, (projector.cy if axis == "col" else projector.cx)
-    t = _plane_intersection(d, projector, projector.pixel_to_normalized(uv)[:, a], axis)
-    Rd = d @ projector.R.T  # ray directions in the projector frame
-    T = projector.T
-    f = projector.fx if a == 0 else projector.fy
-    pc = projector.cx if a == 0 else projector.cy
-    r2_max = projector.max_normalized_r2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        for _ in range(max(0, iterations) + 1):
-            Xp = t[:, None] * Rd + T
-            Z = Xp[:, 2]
-            x, y = Xp[:, 0] / Z, Xp[:, 1] / Z
-            dx = (Rd[:, 0] * Z - Xp[:, 0] * Rd[:, 2]) / (Z * Z)  # d x / d t
-            dy = (Rd[:, 1] * Z - Xp[:, 1] * Rd[:, 2]) / (Z * Z)
-            xd, yd, jxx, jxy, jyy = _distort_with_jacobian(x, y, projector.dist)
-            if a == 0:
-                val, der = f * xd + pc, f * (jxx * dx + jxy * dy)
-            else:
-                val, der = f * yd + pc, f * (jxy * dx + jyy * dy)
-            # outside the trusted radius the distortion polynomial can fold back: no solution there
-            trusted = (Z > 0) & (x * x + y * y <= r2_max)
-            resid = np.where(trusted, val - c, np.nan)
-            if _ == iterations:
-                break
-            t = t - resid / der
-            t = np.where(t > 0, t, np.nan)
-    X = d * t[:, None]
-    X[~(np.abs(resid) <= tol_px)] = np.nan
-    out[sel] = X
-    return out
+    col, row = (coord, None) if axis == "col" else (None, coord)
+    return _solve_along_rays(camera, projector, col, row, iterations, rays, tol_px)[0]
+
+
+def triangulate_rays(camera: Camera, projector: Projector, col: np.ndarray, row: np.ndarray, iterations: int = 8,
+                     rays: np.ndarray | None = None, tol_px: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+    """Points [H, W, 3] on the camera rays that best match both decoded coordinates col, row [H, W] (least
+    squares in projector px; NaN where either is NaN) and the remaining residual [H, W] (px RMS over the two
+    coordinates: large where the decodings disagree)."""
+    return _solve_along_rays(camera, projector, col, row, iterations, rays, tol_px)
 
 
 def triangulate_midpoint(camera: Camera, projector: Projector, col: np.ndarray, row: np.ndarray,
@@ -161,11 +244,14 @@ def triangulate(camera: Camera, projector: Projector, col: np.ndarray | None = N
                 mode: str = "auto", depth_range=None) -> tuple[np.ndarray, np.ndarray, dict]:
     """Depth [H, W] (z, mm, NaN invalid) and points [H, W, 3] from decoded projector coordinates.
 
-    mode: 'col' or 'row' (plane method), 'midpoint' (needs both), or 'auto': the plane of the coordinate
-    along the baseline (`choose_plane_axis`), or the other one when only that was decoded.
+    mode: 'col' or 'row' (plane method), 'both' (least squares on both coordinates along the camera ray),
+    'midpoint' (ray-ray midpoint; needs both), or 'auto' (`choose_triangulation`: from the rig's baseline
+    and the coordinates decoded).
     depth_range: (near, far) mm or None; points outside it become NaN (a wrongly decoded coordinate
     triangulates far from the working volume).
-    Returns (depth, points, info) with info['mode'] the method used (and 'gap' [H, W] for the midpoint).
+    Returns (depth, points, info): info['mode'] the method used, info['alignment'] the share of the baseline
+    that the coordinate(s) used see (1: along it; near 0: the surface nearly contains the camera rays and
+    depth is ill-conditioned), 'gap' [H, W] for the midpoint, 'residual' [H, W] for 'both'.
     """
     if mode not in TRIANGULATION_MODES:
         raise ValueError(f"triangulation must be one of {', '.join(TRIANGULATION_MODES)}, got {mode!r}")
@@ -173,22 +259,23 @@ def triangulate(camera: Camera, projector: Projector, col: np.ndarray | None = N
         raise ValueError("triangulation needs a decoded projector column or row")
     info: dict = {}
     if mode == "auto":
-        mode = choose_plane_axis(projector)
-        if mode == "col" and col is None:
-            mode = "row"
-        elif mode == "row" and row is None:
-            mode = "col"
+        mode = choose_triangulation(projector, col is not None, row is not None)
     rays = camera_rays(camera)
-    if mode == "midpoint":
+    if mode in ("midpoint", "both"):
         if col is None or row is None:
-            raise ValueError("midpoint triangulation needs both projector coordinates (column and row codes)")
-        pts, info["gap"] = triangulate_midpoint(camera, projector, col, row, rays)
+            raise ValueError(f"{mode} triangulation needs both projector coordinates (column and row codes)")
+        if mode == "midpoint":
+            pts, info["gap"] = triangulate_midpoint(camera, projector, col, row, rays)
+        else:
+            pts, info["residual"] = triangulate_rays(camera, projector, col, row, rays=rays)
     else:
         coord = col if mode == "col" else row
         if coord is None:
             raise ValueError(f"triangulation with projector {mode}s needs decoded projector {mode}s")
         pts = triangulate_plane(camera, projector, coord, mode, rays=rays)
     info["mode"] = mode
+    a = baseline_alignment(projector)
+    info["alignment"] = a[mode] if mode in a else 1.0 if a["col"] + a["row"] > 0 else 0.0
     depth = pts[..., 2].copy()
     if depth_range is not None:
         near, far = depth_range
@@ -197,37 +284,3 @@ def triangulate(camera: Camera, projector: Projector, col: np.ndarray | None = N
         depth[out] = np.nan
         pts[out] = np.nan
     return depth, pts, info
-
-
-def write_ply(path, points: np.ndarray, colors: np.ndarray | None = None) -> int:
-    """Write the finite points of points [..., 3] (mm) as a binary little-endian PLY; colors [...] gray
-    or [..., 3] RGB, in [0, 1] or uint8, optional. Returns the number of points written."""
-    pts = np.asarray(points, np.float64).reshape(-1, 3)
-    keep = np.isfinite(pts).all(1)
-    pts = pts[keep].astype("<f4")
-    rgb = None
-    if colors is not None:
-        c = np.asarray(colors)
-        c = c.reshape(-1, 3) if c.ndim >= 2 and c.shape[-1] == 3 and c.size == 3 * keep.size else c.reshape(-1, 1)
-        if c.shape[0] != keep.size:
-            raise ValueError(f"colors hold {c.shape[0]} entries for {keep.size} points")
-        if c.dtype != np.uint8:
-            c = np.clip(np.rint(np.asarray(c, np.float64) * 255), 0, 255).astype(np.uint8)
-        rgb = np.repeat(c, 3, axis=1) if c.shape[1] == 1 else c
-        rgb = rgb[keep]
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(pts)}",
-              "property float x", "property float y", "property float z"]
-    if rgb is not None:
-        header += ["property uchar red", "property uchar green", "property uchar blue"]
-    header.append("end_header")
-    if rgb is None:
-        body = pts.tobytes()
-    else:
-        rec = np.empty(len(pts), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
-        rec["x"], rec["y"], rec["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
-        rec["r"], rec["g"], rec["b"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
-        body = rec.tobytes()
-    with open(Path(path), "wb") as f:
-        f.write(("\n".join(header) + "\n").encode("ascii"))
-        f.write(body)
-    return len(pts)

@@ -15,15 +15,17 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..devices import warp_device
 from .field import Volume
+from .progress import Progress
+from slwarp.kernels import runtime
+from slwarp.kernels.simulate import first_hit_depth, mesh_hits
 
 
 @torch.no_grad()
 def sdf_grid(field, volume: Volume, resolution: int, device, chunk: int = 1 << 18, progress: bool = False):
     """SDF values [nx, ny, nz] (float32 numpy, mm) on a grid with `resolution` cells along the volume's
     largest side; returns (values, origin [3] mm, spacing mm)."""
-    from tqdm import tqdm
-
     lo, hi = np.asarray(volume.lo), np.asarray(volume.hi)
     h = float((hi - lo).max() / resolution)
     n = np.maximum(np.ceil((hi - lo) / h).astype(int) + 1, 2)
@@ -32,10 +34,12 @@ def sdf_grid(field, volume: Volume, resolution: int, device, chunk: int = 1 << 1
     plane = n[1] * n[2]
     yz = torch.stack(torch.meshgrid(axes[1], axes[2], indexing="ij"), -1).reshape(-1, 2)
     step = max(1, chunk // plane)
-    for i0 in tqdm(range(0, n[0], step), desc="SDF grid", unit="slab", disable=not progress, leave=False):
-        xs = axes[0][i0 : i0 + step]
-        pts = torch.cat([xs[:, None, None].expand(-1, plane, 1), yz[None].expand(len(xs), -1, -1)], -1)
-        out[i0 : i0 + len(xs)] = field(pts.reshape(-1, 3)).reshape(len(xs), n[1], n[2]).float().cpu().numpy()
+    with Progress(len(range(0, n[0], step)), "SDF grid", unit="slab", enabled=progress, leave=False) as bar:
+        for i0 in range(0, n[0], step):
+            xs = axes[0][i0 : i0 + step]
+            pts = torch.cat([xs[:, None, None].expand(-1, plane, 1), yz[None].expand(len(xs), -1, -1)], -1)
+            out[i0 : i0 + len(xs)] = field(pts.reshape(-1, 3)).reshape(len(xs), n[1], n[2]).float().cpu().numpy()
+            bar.update()
     return out, lo, h
 
 
@@ -58,15 +62,12 @@ def camera_ray_grid(camera) -> np.ndarray:
     return camera.pixel_to_ray(camera.pixel_grid())
 
 
-def mesh_depth(mesh, camera, device: str | None = None, hits: int = 1, eps_mm: float = 1.0) -> np.ndarray:
+def mesh_depth(mesh, camera, device=None, hits: int = 1, eps_mm: float = 1.0) -> np.ndarray:
     """Depth [H, W] (camera z, mm) of the first hit of each pixel's ray on `mesh` (NaN where none), or
     with hits = K > 1 the first K hits [H, W, K] (NaN past the last), `eps_mm` apart at least (for
-    users who want every surface along a ray)."""
-    from slwarp.kernels import runtime
-    from slwarp.kernels.simulate import first_hit_depth, mesh_hits
-
+    users who want every surface along a ray). device: a torch device or device string (None: auto)."""
     wp = runtime.init()
-    device = device or ("cuda:0" if torch.cuda.is_available() else "cpu")
+    device = warp_device(device)
     H, W = camera.height, camera.width
     shape = (H, W) if hits == 1 else (H, W, hits)
     if mesh is None or len(mesh.faces) == 0:
@@ -162,61 +163,3 @@ def depth_to_points(depth: np.ndarray, camera) -> np.ndarray:
     d = camera_ray_grid(camera)
     ok = np.isfinite(depth)
     return (d[ok] / d[ok][:, 2:3] * depth[ok][:, None]).astype(np.float32)
-
-
-def save_points_ply(path, points: np.ndarray, intensity: np.ndarray | None = None) -> None:
-    import trimesh
-
-    colors = None
-    if intensity is not None:
-        g = (np.clip(intensity, 0, 1) * 255).astype(np.uint8)
-        colors = np.stack([g, g, g, np.full_like(g, 255)], -1)
-    trimesh.PointCloud(points, colors=colors).export(path)
-
-
-def projector_coords(depth: np.ndarray, camera, projector) -> np.ndarray:
-    """[H, W, 2] float32 projector pixel where each pixel's depth point projects (-10, off the image, where
-    depth is NaN)."""
-    rays = camera.pixel_to_ray(camera.pixel_grid())
-    with np.errstate(invalid="ignore"):
-        X = rays * (np.asarray(depth, np.float64) / rays[..., 2])[..., None]
-        uv = np.asarray(projector.project_camera_points(X.reshape(-1, 3)), np.float64).reshape(camera.height, camera.width, 2)
-    return np.where(np.isfinite(uv), uv, -10.0).astype(np.float32)
-
-
-def sample_patterns(patterns: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """[N, H, W]: each pattern [N, Hp, Wp] sampled bilinearly at projector pixels uv [H, W, 2] (0 outside)."""
-    import cv2
-
-    return np.stack([cv2.remap(np.asarray(p, np.float32), uv[..., 0], uv[..., 1], cv2.INTER_LINEAR,
-                               borderMode=cv2.BORDER_CONSTANT, borderValue=0.0) for p in patterns])
-
-
-def predicted_intensities(depth: np.ndarray, camera, projector, patterns: np.ndarray) -> np.ndarray:
-    """[N, H, W]: each pattern sampled bilinearly where each pixel's depth point projects into the projector
-    (0 outside the projector image or where depth is NaN). patterns [N, Hp, Wp], already blurred as rendered."""
-    return sample_patterns(patterns, projector_coords(depth, camera, projector))
-
-
-def photometric_residual(depth: np.ndarray, camera, projector, images: np.ndarray, patterns: np.ndarray) -> np.ndarray:
-    """[H, W]: RMS over the frames of I - (a + b P(pi(x))), relative to the pixel's modulation b (a, b: min and
-    max - min over the images, as in training); NaN where depth is NaN. patterns as rendered (blurred)."""
-    images = np.asarray(images, np.float32)
-    a = images.min(0)
-    b = images.max(0) - a
-    pred = predicted_intensities(depth, camera, projector, patterns)
-    r = np.sqrt(np.mean((images - a - b * pred) ** 2, axis=0)) / np.maximum(b, 1e-3)
-    return np.where(np.isfinite(depth), r, np.nan).astype(np.float32)
-
-
-def photometric_filter(depth: np.ndarray, camera, projector, images: np.ndarray, patterns: np.ndarray,
-                       threshold: float = 0.4) -> np.ndarray:
-    """Depth with the pixels whose rendered intensities disagree with the images removed (NaN).
-
-    At an occlusion edge a smooth field can leave a pixel or two on the wrong side's surface; there the
-    random binary codes predicted from the depth do not match what the pixel saw. Pixels whose relative RMS
-    residual (`photometric_residual`) is at or above `threshold` are dropped (measured on the small-rig
-    bunny: correct pixels have a 99th percentile of 0.39, pixels off by more than 20 mm a 10th of 0.47).
-    """
-    r = photometric_residual(depth, camera, projector, images, patterns)
-    return np.where(r < threshold, depth, np.nan).astype(np.float32)

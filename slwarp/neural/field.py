@@ -200,6 +200,14 @@ class NeuSField(nn.Module):
         return f
 
 
+def make_field(config, volume: Volume, *, init: str = "sphere", far: float | None = None) -> nn.Module:
+    """The SDF network a TrainConfig.field section describes, sized to the working volume (mm in, mm out).
+    init and far as NeuSField takes them. The one place that turns a field config into a network: a new
+    kind of field is added here (and its options in slwarp.neural.config.FieldConfig)."""
+    return NeuSField(volume, hidden=config.hidden, layers=config.layers, skip=config.skip, n_freqs=config.n_freqs,
+                     init=init, far=far)
+
+
 class LearnedVariance(nn.Module):
     """NeuS's learned inverse standard deviation: inv_s = exp(10 v) / length_scale (1/mm), v starts at 0.3.
 

@@ -5,8 +5,9 @@
     result.metrics    # when the scan has ground truth
 
 Outputs written to out_dir: depth.npy, depth.png (uint16, 0.1 mm), depth_color.png, mesh.ply,
-points.ply, history.json + loss.png, timings.json, and metrics.json + error_map.png when the scan
-has ground truth; train/checkpoint.pt holds the resumable training state.
+points.ply, history.json + loss.png, timings.json, config.yaml (the run's TrainConfig and the values it
+fitted; `--config` reads it back), and metrics.json + error_map.png when the scan has ground truth;
+train/checkpoint.pt holds the resumable training state.
 """
 from __future__ import annotations
 
@@ -18,10 +19,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .extract import (depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, photometric_filter, save_points_ply,
-                      sphere_trace_depth)
-from ..scans.scan import write_depth_png
-from .train import TrainConfig, Trainer
+from ..evaluation.outputs import write_depth, write_mesh_ply, write_points_ply
+from .extract import depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, sphere_trace_depth
+from .pattern_model import photometric_filter
+from .config import TrainConfig, save_config
+from .train import Trainer
 
 
 @dataclass
@@ -37,31 +39,30 @@ class Reconstruction:
     trainer: Trainer | None = None
 
 
-def extract_depth(trainer: Trainer, config: TrainConfig, valid: np.ndarray | None = None, progress: bool = False):
-    """(depth [H, W], mesh, timings) from a trained field: marching cubes, then the mesh ray-cast (or
-    sphere tracing when config.depth_method == 'sphere'); depth is kept only inside `valid`."""
+def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: bool = False):
+    """(depth [H, W], mesh, timings) from a trained field as its config's extraction section says: marching
+    cubes, then the mesh ray-cast (or sphere tracing when depth_method is 'sphere'), the depth range, the
+    flying-pixel and the photometric filters; depth is kept only inside `valid`."""
+    ex = trainer.cfg.extraction
     t0 = time.perf_counter()
     cam = trainer.scan.camera
     field_ = trainer.field.eval()
-    mesh = extract_mesh(field_, trainer.volume, config.mc_resolution, trainer.device, progress=progress)
+    mesh = extract_mesh(field_, trainer.volume, ex.mc_resolution, trainer.device, progress=progress)
     t1 = time.perf_counter()
-    if config.depth_method == "sphere":
+    if ex.depth_method == "sphere":
         depth = sphere_trace_depth(field_, cam, trainer.depth_range, trainer.device, valid=valid)
-    elif config.depth_method == "mesh":
-        wdev = f"cuda:{trainer.device.index or 0}" if trainer.device.type == "cuda" else "cpu"
-        depth = mesh_depth(mesh, cam, wdev)
     else:
-        raise ValueError(f"depth_method must be 'mesh' or 'sphere', got {config.depth_method!r}")
+        depth = mesh_depth(mesh, cam, trainer.device)
     if valid is not None:
         depth = np.where(valid, depth, np.nan).astype(np.float32)
     near, far = trainer.depth_range
     depth[(depth < near) | (depth > far)] = np.nan
-    if config.edge_filter > 0:
-        depth = flying_pixel_filter(depth, cam, config.edge_filter)
-    if config.photometric_filter > 0:
+    if ex.edge_filter > 0:
+        depth = flying_pixel_filter(depth, cam, ex.edge_filter)
+    if ex.photometric_filter > 0:
         patterns = trainer.renderer.rendered_patterns.cpu().numpy()
         depth = photometric_filter(depth, cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames], patterns,
-                                   config.photometric_filter)
+                                   ex.photometric_filter)
     field_.train()
     return depth, mesh, {"marching_cubes_s": t1 - t0, "depth_s": time.perf_counter() - t1}
 
@@ -71,7 +72,8 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
     """Train the neural SDF on `scan` and extract its depth map (see module docstring).
 
     use_mask: also restrict the depth map to the scan's mask (by default only to the pixels lit with
-    enough contrast in the images, the same information the classical decoders use).
+    enough contrast in the images, the same information the classical decoders use). progress: a bar on a
+    terminal, else a line every few seconds; log_every_s: progress lines every this many seconds in any case.
     """
     from ..evaluation.metrics import depth_metrics, error_map
     from ..evaluation.viz import save_depth_color, save_map_with_colorbar
@@ -81,26 +83,16 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
         out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     trainer = Trainer(scan, config, out_dir=out / "train" if out is not None else None, resume=resume,
-                      depth_range=depth_range, progress=progress)
+                      depth_range=depth_range, progress=progress or bool(log_every_s), progress_interval_s=log_every_s)
     t1 = time.perf_counter()
-    callback = None
-    if log_every_s:  # plain log lines (no progress bar) for logs and batch runs
-        last = [time.perf_counter()]
-
-        def callback(tr):
-            if time.perf_counter() - last[0] >= log_every_s:
-                last[0] = time.perf_counter()
-                h = tr.history
-                print(f"  it {tr.iteration}: loss {h.loss[-1]:.4f} rc {h.color[-1]:.4f} sc {h.surface[-1]:.4f} "
-                      f"eik {h.eikonal[-1]:.3f} inv_s {h.inv_s[-1]:.3g} ({time.perf_counter() - t1:.0f} s)", flush=True)
-    trainer.train(callback=callback)
+    trainer.train()
     if trainer.device.type == "cuda":
         torch.cuda.synchronize(trainer.device)
     t2 = time.perf_counter()
     valid = trainer.renderer.valid_map.cpu().numpy()
     if use_mask and scan.mask is not None:
         valid &= scan.mask
-    depth, mesh, ext_t = extract_depth(trainer, config, valid, progress=progress)
+    depth, mesh, ext_t = extract_depth(trainer, valid, progress=progress)
     points = depth_to_points(depth, scan.camera)
     metrics = None
     if scan.gt_depth is not None:
@@ -108,14 +100,12 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
     timings = {"setup_s": t1 - t0, "train_s": t2 - t1, "train_wall_s_total": trainer.elapsed,
                "iterations": trainer.iteration, **ext_t, "total_s": time.perf_counter() - t0}
     if out is not None:
-        np.save(out / "depth.npy", depth.astype(np.float32))
-        write_depth_png(out / "depth.png", depth)
+        write_depth(out, depth)
         rng = (np.nanpercentile(scan.gt_depth, 1), np.nanpercentile(scan.gt_depth, 99)) if scan.gt_depth is not None and np.isfinite(scan.gt_depth).any() else None
         save_depth_color(out / "depth_color.png", depth, rng)
         if mesh is not None:
-            mesh.export(out / "mesh.ply")
-        inten = scan.images.max(0)[np.isfinite(depth)]
-        save_points_ply(out / "points.ply", points, inten)
+            write_mesh_ply(out / "mesh.ply", mesh)
+        write_points_ply(out / "points.ply", points, scan.images.max(0)[np.isfinite(depth)])
         trainer.save_history(out)
         if metrics is not None:
             doc = {"method": "neural-sdf", "frames": list(scan.names), "mask": "scan mask", "metrics": metrics}
@@ -125,5 +115,5 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
         (out / "timings.json").write_text(json.dumps(timings, indent=1))
         fitted = {"pattern_blur_px": trainer.renderer.pattern_blur, "pattern_blur_fit_mse": trainer.blur_fit,
                   "depth_search": {k: v for k, v in (trainer.search_info or {}).items() if k != "pattern_blur_fit"}}
-        (out / "config.json").write_text(json.dumps({**config.to_dict(), "fitted": fitted}, indent=1, default=float))
+        save_config(out / "config.yaml", config, fitted)
     return Reconstruction(depth, mesh, points, metrics, timings, trainer)

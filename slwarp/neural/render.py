@@ -14,8 +14,8 @@ samples; the fused render; and the losses
     L_rc  = mean |I'_i(r) - I_i(r)|            rendered colour, over valid pixels and patterns
     L_sc  = mean |a + b P_i(pi(s(r))) - I_i(r)| surface colour
     L_reg = mean (|grad f| - 1)^2               Eikonal, over samples inside the working volume
-with a(r) = min_i I_i(r), b(r) = max_i I_i(r) - a(r); a pixel is valid (used by L_rc and L_sc) when it is
-lit with enough contrast: b(r) > contrast_threshold.
+with a(r) = min_i I_i(r), b(r) = max_i I_i(r) - a(r) (the pattern model, slwarp.neural.pattern_model); a pixel
+is valid (used by L_rc and L_sc) when it is lit with enough contrast: b(r) > contrast_threshold.
 """
 from __future__ import annotations
 
@@ -27,6 +27,7 @@ import torch.nn as nn
 
 from . import ops
 from .field import LearnedVariance, Volume, sdf_and_gradient
+from .pattern_model import CONTRAST_THRESHOLD, blur_patterns, lit_with_contrast, offset_and_modulation
 
 
 class RenderLosses(NamedTuple):
@@ -53,26 +54,6 @@ class PixelBatch(NamedTuple):
     valid: torch.Tensor
 
 
-def offset_and_modulation(images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """a = min_i I_i, b = max_i I_i - a over the frames [N, ...]."""
-    lo = images.min(dim=0).values
-    return lo, images.max(dim=0).values - lo
-
-
-def blur_patterns(patterns: torch.Tensor, sigma: float) -> torch.Tensor:
-    """patterns [N, Hp, Wp] Gaussian-blurred by `sigma` projector px (separable, edge values replicated)."""
-    if sigma <= 0:
-        return patterns
-    r = int(np.ceil(3.0 * sigma))
-    x = torch.arange(-r, r + 1, dtype=torch.float32, device=patterns.device)
-    k = torch.exp(-0.5 * (x / sigma) ** 2)
-    k = k / k.sum()
-    p = patterns[:, None]
-    p = torch.nn.functional.conv2d(torch.nn.functional.pad(p, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
-    p = torch.nn.functional.conv2d(torch.nn.functional.pad(p, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1))
-    return p[:, 0].contiguous()
-
-
 class StructuredLightRenderer(nn.Module):
     """Sampling, field evaluation and the fused renderer for one rig and its captured frames.
 
@@ -88,7 +69,7 @@ class StructuredLightRenderer(nn.Module):
 
     def __init__(self, sdf: nn.Module, camera, projector, patterns, images, *, depth_range, volume: Volume | None = None,
                  variance: nn.Module | None = None, n_samples: int = 32, n_importance: int = 32, up_sample_steps: int = 4,
-                 contrast_threshold: float = 0.05, backend: str = "warp", device=None, compile_field: bool = False,
+                 contrast_threshold: float = CONTRAST_THRESHOLD, backend: str = "warp", device=None, compile_field: bool = False,
                  pattern_blur: float = 0.0):
         super().__init__()
         if not pattern_blur >= 0:
@@ -107,7 +88,8 @@ class StructuredLightRenderer(nn.Module):
         self.backend = backend
         self.compile_field = compile_field
         self._compiled = {}
-        self.phase_hook = None  # callable(name) told when each phase of a render starts (benchmarks)
+        self.phase_hook = None  # callable(name) told when each phase of a step starts (see mark_phase)
+        self._frames_version = 0
         device = torch.device(device) if device is not None else next(sdf.parameters(), torch.empty(0)).device
         self._projector_packed = ops.pack_projector(projector)
         self.set_frames(images, patterns, device=device)
@@ -142,12 +124,12 @@ class StructuredLightRenderer(nn.Module):
             raise ValueError(f"images are {tuple(images.shape[1:])}, camera is {self.camera.height}x{self.camera.width}")
         if tuple(patterns.shape[1:]) != (self.projector.height, self.projector.width):
             raise ValueError(f"patterns are {tuple(patterns.shape[1:])}, projector is {self.projector.height}x{self.projector.width}")
-        self.frames_version = getattr(self, "frames_version", 0) + 1  # tells captured steps the inputs changed
+        self._frames_version += 1
         a, b = offset_and_modulation(images)
         self.images_flat = images.reshape(images.shape[0], -1).t().contiguous()  # [H*W, N]: one gather per batch
         self.a_flat, self.b_flat = a.reshape(-1), b.reshape(-1)
-        self.valid_map = (b > self.contrast_threshold)
-        self.valid_index = torch.nonzero(self.valid_map.reshape(-1)).squeeze(1)
+        self.valid_map = lit_with_contrast(b, self.contrast_threshold)
+        self._valid_index = torch.nonzero(self.valid_map.reshape(-1)).squeeze(1)  # flat indices of the valid pixels
         self.patterns = patterns
         self.patterns_hwn = ops.pack_patterns(blur_patterns(patterns, self.pattern_blur))
 
@@ -156,8 +138,14 @@ class StructuredLightRenderer(nn.Module):
         if not sigma >= 0:
             raise ValueError(f"pattern_blur must be >= 0 projector px, got {sigma}")
         self.pattern_blur = float(sigma)
-        self.frames_version += 1
+        self._frames_version += 1
         self.patterns_hwn = ops.pack_patterns(blur_patterns(self.patterns, self.pattern_blur))
+
+    @property
+    def frames_version(self) -> int:
+        """A number that changes whenever the frames or the pattern blur change, i.e. whenever the tensors a
+        render reads are replaced: a captured CUDA graph of a step is stale once it differs."""
+        return self._frames_version
 
     @property
     def rendered_patterns(self) -> torch.Tensor:
@@ -177,14 +165,25 @@ class StructuredLightRenderer(nn.Module):
 
     def sample_pixels(self, n: int, generator: torch.Generator | None = None) -> PixelBatch:
         """n random valid pixels (uniform, with replacement)."""
-        if self.valid_index.numel() == 0:
-            raise ValueError("no valid pixel (lit with enough contrast) in the frames")
-        return self.batch(self.valid_index[self.draw_pick(n, generator).to(self.valid_index.device)])
+        return self.valid_batch(self.draw_valid(n, generator))
 
-    def draw_pick(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
-        """n random positions [n] (long) in valid_index, on the generator's device."""
+    @property
+    def n_valid(self) -> int:
+        """The number of valid pixels (lit with contrast)."""
+        return int(self._valid_index.numel())
+
+    def draw_valid(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
+        """n random positions [n] (long) in the list of valid pixels (uniform, with replacement), on the
+        generator's device: what `valid_batch` takes. Drawing and gathering apart lets a captured step gather
+        on the device what was drawn on the host."""
+        if self.n_valid == 0:
+            raise ValueError("no valid pixel (lit with enough contrast) in the frames")
         dev = generator.device if generator is not None else "cpu"
-        return torch.randint(0, self.valid_index.numel(), (n,), generator=generator, device=dev)
+        return torch.randint(0, self.n_valid, (n,), generator=generator, device=dev)
+
+    def valid_batch(self, positions: torch.Tensor) -> PixelBatch:
+        """The batch of the valid pixels at `positions` [R] (long, from `draw_valid`; any device)."""
+        return self.batch(self._valid_index[positions.to(self._valid_index.device)])
 
     # --- sampling -----------------------------------------------------------------------------
     def inv_s(self) -> torch.Tensor:
@@ -200,8 +199,9 @@ class StructuredLightRenderer(nn.Module):
             self._compiled[kind] = fn
         return fn
 
-    def _phase(self, name: str) -> None:
-        """Report the start of a phase of the step to `phase_hook` (benchmarks time the phases with it)."""
+    def mark_phase(self, name: str) -> None:
+        """Tell `phase_hook` (when set) that a phase of a training step starts: the renderer marks "rays",
+        "field" and "render"; the trainer its own phases around them. Benchmarks time the phases with it."""
         if self.phase_hook is not None:
             self.phase_hook(name)
 
@@ -215,7 +215,7 @@ class StructuredLightRenderer(nn.Module):
                     jitter: torch.Tensor | None = None):
         """(rays_o, rays_d, z_vals [R, n_samples + n_importance]) with NeuS up-sampling. jitter [R]: the
         stratification offsets to use (default: drawn from `generator` when perturb, else 0)."""
-        self._phase("rays")
+        self.mark_phase("rays")
         be = self.backend
         o, d, near, far = ops.camera_rays(batch.uv, self.camera, self.depth_range, backend=be)
         R = batch.uv.shape[0]
@@ -239,13 +239,13 @@ class StructuredLightRenderer(nn.Module):
                generator: torch.Generator | None = None, jitter: torch.Tensor | None = None) -> tuple[ops.RenderOutput, torch.Tensor]:
         """(RenderOutput, z_vals) for a batch: gradients reach the SDF module and the variance."""
         o, d, z = self.sample_rays(batch, perturb, generator, jitter)
-        self._phase("field")
+        self.mark_phase("field")
         # sample-major memory ([S, R] viewed as [R, S]): consecutive rays are adjacent, so the kernels'
         # one-thread-per-ray loads coalesce; the field does not care about the order of its points
         z_sr = z.t().contiguous()
         x = o[None, :, :] + z_sr[..., None] * d[None, :, :]
         sdf, grad = self._field_fn("grad")(x)
-        self._phase("render")
+        self.mark_phase("render")
         out = ops.render_structured_light(
             sdf.t(), grad.transpose(0, 1), z_sr.t(), o, d, batch.a, batch.b, self.patterns_hwn, self._projector_packed, self.inv_s(),
             cos_anneal_ratio=cos_anneal_ratio, backend=self.backend, bounds=self.volume.as_bounds(),

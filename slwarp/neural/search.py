@@ -14,31 +14,32 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import torch
+
+from ..devices import warp_device
+from .pattern_model import lit_with_contrast, offset_and_modulation
+from slwarp.kernels import runtime
+from slwarp.kernels.geometry import projector_params
+from slwarp.kernels.search import search_kernel
 
 
 def search_depth(camera, projector, images, patterns, depth_range, *, valid=None, step_mm: float = 1.0,
                  max_hypotheses: int = 1024, radius: int = 2, stride: int = 2, ratio: float = 0.8,
-                 exclude_mm: float = 6.0, device: str | None = None) -> tuple[np.ndarray, dict]:
+                 exclude_mm: float = 6.0, device=None) -> tuple[np.ndarray, dict]:
     """Depth map [H, W] (camera z, mm; NaN where not confident) and info (timings, counts).
 
-    images [N, H, W], patterns [N, Hp, Wp] in [0, 1]; valid [H, W]: pixels lit with contrast (default: b
-    above 0.05). Hypotheses every `step_mm` (at most `max_hypotheses`) between the near and far depth.
+    images [N, H, W], patterns [N, Hp, Wp] in [0, 1]; valid [H, W]: the pixels to search (default: those lit
+    with contrast, `pattern_model.lit_with_contrast`). Hypotheses every `step_mm` (at most `max_hypotheses`) between the near and far depth.
     A pixel is confident when its best cost < `ratio` x the best cost farther than `exclude_mm` away.
+    device: a torch device or device string (None: auto).
     """
-    from slwarp.kernels import runtime
-    from slwarp.kernels.geometry import projector_params
-    from slwarp.kernels.search import search_kernel
-
     wp = runtime.init()
-    device = device or ("cuda:0" if torch.cuda.is_available() else "cpu")
+    device = warp_device(device)
     t0 = time.perf_counter()
     images = np.asarray(images, np.float32)
     N, H, W = images.shape
-    a = images.min(0)
-    b = images.max(0) - a
+    a, b = offset_and_modulation(images)
     if valid is None:
-        valid = b > 0.05
+        valid = lit_with_contrast(b)
     near, far = (float(x) for x in depth_range)
     n_hyp = int(min(max_hypotheses, max(16, np.ceil((far - near) / step_mm))))
     rays = camera.pixel_to_ray(camera.pixel_grid()).astype(np.float32)
@@ -82,41 +83,3 @@ def _median3(x: np.ndarray) -> np.ndarray:
     # a value far from its neighbourhood's median is an outlier
     out = np.where(np.abs(x - med) < 10.0, x, np.nan)
     return out
-
-
-def estimate_pattern_blur(camera, projector, images, patterns, depth, sigmas=None, max_pixels: int = 200_000,
-                          seed: int = 0) -> tuple[float, dict]:
-    """The Gaussian pattern blur (projector px) that best explains the images at a depth map.
-
-    For each candidate sigma the patterns are blurred as the renderer would blur them, sampled where each
-    pixel's depth point projects, and compared with the images (a + b P, a and b the per-pixel min and
-    max - min); the sigma with the lowest mean squared residual wins
-    (refined by a parabola through the best grid value and its neighbours). Depth errors of the search map (a
-    fraction of a projector pixel) barely move the optimum. Returns (sigma, {sigma: mse}).
-    """
-    from .extract import projector_coords, sample_patterns
-    from .render import blur_patterns
-
-    sigmas = np.round(np.arange(0.0, 2.51, 0.25), 2) if sigmas is None else np.asarray(sigmas, float)
-    images = np.asarray(images, np.float32)
-    a = images.min(0)
-    b = images.max(0) - a
-    ok = np.isfinite(depth) & (b > 0.05)
-    if ok.sum() < 100:
-        raise ValueError(f"estimate_pattern_blur: only {int(ok.sum())} pixels with depth and contrast")
-    pats = torch.as_tensor(np.asarray(patterns, np.float32))
-    uv = projector_coords(np.where(ok, depth, np.nan), camera, projector)  # the same for every sigma
-    mse = {}
-    for s in sigmas:
-        pred = sample_patterns(blur_patterns(pats, float(s)).numpy(), uv)
-        mse[float(s)] = float(np.mean(((images - a - b * pred) ** 2)[:, ok]))
-    keys = sorted(mse)
-    j = keys.index(min(mse, key=mse.get))
-    best = keys[j]
-    if 0 < j < len(keys) - 1:  # parabola through the best grid point and its neighbours (evenly spaced grid)
-        y0, y1, y2 = mse[keys[j - 1]], mse[keys[j]], mse[keys[j + 1]]
-        h = keys[j + 1] - keys[j]
-        den = y0 - 2.0 * y1 + y2
-        if den > 0 and abs((keys[j] - keys[j - 1]) - h) < 1e-9:
-            best = float(keys[j] + 0.5 * h * (y0 - y2) / den)
-    return round(best, 3), mse

@@ -1,19 +1,20 @@
 """Training the neural SDF on a scan: the paper's schedule, incremental mode, checkpoints, progress.
 
-    trainer = Trainer(scan, preset("paper"), out_dir="run")
+    trainer = Trainer(scan, preset("paper"), out_dir="run")     # preset: slwarp.neural.config
     trainer.train()                 # resumable: Trainer(..., resume=True) continues from run/checkpoint.pt
     field = trainer.field           # x [..., 3] mm -> sdf mm
 
-Schedule (paper): lambda_sc = 0 for the first `sc_start` iterations, then `lambda_sc`; lambda_reg
-throughout; Adam at a constant learning rate. Before it (init="search", the default), `init_iters`
-warm-up iterations pull the volume-rendered depth onto a depth-search map (slwarp.neural.search): the
-photometric loss is not convex in depth, and NeuS's sphere initialisation leaves surfaces hundreds of
-mm from the truth stuck in other minima (measured: 232 mm MAE on the small-rig bunny without it). Incremental mode (paper Fig. 8): start with
-`start_frames` frames and add the next one every `add_every` iterations without restarting;
-`Trainer.add_frames` lets a caller add captured frames to a running optimisation.
+Schedule (paper; TrainConfig.schedule): lambda_sc = 0 for the first `sc_start` iterations, then `lambda_sc`;
+lambda_reg throughout; Adam at a constant learning rate (or cosine decay). Before it (init.method "search", the
+default), `init.iters` warm-up iterations pull the volume-rendered depth onto a depth-search map
+(slwarp.neural.search): the photometric loss is not convex in depth, and NeuS's sphere initialisation leaves
+surfaces hundreds of mm from the truth stuck in other minima (measured: 232 mm MAE on the small-rig bunny
+without it). Incremental mode (paper Fig. 8): start with `start_frames` frames and add the next one every
+`add_every` iterations without restarting; `Trainer.add_frames` lets a caller add captured frames to a
+running optimisation.
 
 Repeatability: every random draw (pixel batches, ray jitter) comes from one torch.Generator seeded by
-`seed` and saved in checkpoints, so a resumed run continues exactly as an uninterrupted one would.
+`runtime.seed` and saved in checkpoints, so a resumed run continues exactly as an uninterrupted one would.
 """
 from __future__ import annotations
 
@@ -29,109 +30,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .field import NeuSField, Volume
-from .render import StructuredLightRenderer, blur_patterns
+from ..devices import torch_device
+from ..scans.scan import ScanError
+from .config import TrainConfig
+from .field import Volume, make_field
+from .pattern_model import blur_patterns, estimate_pattern_blur, lit_with_contrast, offset_and_modulation
+from .progress import Progress
+from .render import StructuredLightRenderer
+from .search import search_depth
 
-__all__ = ["TrainConfig", "preset", "PRESETS", "Trainer", "TrainingDiverged", "resolve_device"]
-
-
-@dataclass
-class TrainConfig:
-    """Everything that defines a training run (see PRESETS)."""
-
-    iters: int = 4000
-    rays: int = 2048
-    n_samples: int = 32
-    n_importance: int = 32
-    up_sample_steps: int = 4
-    lr: float = 1e-4
-    lr_decay: str = "none"  # "none" (paper: constant) | "cosine" (NeuS: cosine decay to lr_final of lr)
-    lr_final: float = 0.05
-    lambda_rc: float = 1.0  # rendered-colour loss weight (0 only for the loss ablation)
-    lambda_sc: float = 1.0
-    sc_start: int = 1000
-    lambda_reg: float = 0.1
-    anneal_end: int = 0  # NeuS cos-anneal over this many iterations (0: no annealing)
-    contrast_threshold: float = 0.05
-    # Gaussian sigma (projector px) of the patterns as the renderer samples them (projector defocus and the
-    # camera pixel's footprint; see StructuredLightRenderer): a number, or "auto" = fitted to the images at the
-    # depth-search map (1.0 px when there is none)
-    pattern_blur: float | str = "auto"
-    photometric_filter: float = 0.4  # drop depth pixels whose relative RMS residual reaches this (0: off)
-    hidden: int = 256
-    layers: int = 8
-    skip: int | None = 4
-    n_freqs: int = 6
-    # initialisation: "search" (default: the depth-search map, then a warm-up pulling the rendered depth onto
-    # it), "sphere" (NeuS's geometric initialisation only, as in the paper), "camera" (a surface at the far
-    # depth around the camera)
-    init: str = "search"
-    init_iters: int = 300  # warm-up iterations (with init="search" or a given init_depth)
-    search_step_mm: float = 1.0  # depth-search hypothesis spacing
-    search_stride: int = 2  # depth search on every `stride`-th pixel
-    seed: int = 0
-    backend: str = "warp"
-    device: str = "auto"
-    matmul: str = "fp32"  # "fp32" | "tf32" (CUDA matrix units in float32 mode)
-    compile: bool = True  # torch.compile the field on CUDA (ignored on the CPU)
-    # CUDA: capture the whole training step (render, losses, backward, Adam) once as a CUDA graph and replay
-    # it every iteration, so no Python, launch or allocation cost remains per step; falls back to plain
-    # launches (with a warning) if capture fails. Same random draws and results as without it.
-    cuda_graph: bool = True
-    incremental: bool = False
-    start_frames: int = 3
-    add_every: int = 500
-    checkpoint_every: int = 500
-    log_every: int = 50
-    # extraction
-    mc_resolution: int = 384  # marching-cubes cells along the volume's largest side
-    depth_method: str = "mesh"  # "mesh" (ray casting the marching-cubes mesh) | "sphere" (sphere tracing)
-    edge_filter: float = 10.0  # drop depth-edge ("flying") pixels: jumps above this many pixel footprints (0: off)
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-
-PRESETS = {
-    # the paper: 4000 iterations, 2048 rays, 32 + 32 samples, NeuS MLP 8 x 256, Adam 1e-4 constant,
-    # lambda_sc 0 then 1 after 1000 iterations, lambda_reg 0.1 (plus our depth-search start; TF32 on CUDA,
-    # which changed the bunny's MAE by 3% against full float32)
-    "paper": TrainConfig(matmul="tf32"),
-    # measured better on the virtual scanner (default-rig bunny: MAE 0.77 mm against 2.0 mm for "paper"):
-    # NeuS's learning rate 5e-4 with cosine decay, and no surface-colour loss (it samples the sharp pattern
-    # at one point and disagrees with the blurred edges the camera sees)
-    "tuned": TrainConfig(matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0),
-    # CPU: the tuned recipe with a smaller field and batch, minutes on two cores (small rig)
-    "cpu": TrainConfig(iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, lr=5e-4,
-                       lr_decay="cosine", lambda_sc=0.0, hidden=64, layers=4, skip=2, n_freqs=6, search_step_mm=2.0,
-                       mc_resolution=192, checkpoint_every=250, log_every=25),
-    # tests: a few hundred iterations of the CPU field
-    "tiny": TrainConfig(iters=300, rays=256, n_samples=16, n_importance=8, up_sample_steps=1, lr=5e-4, lr_decay="cosine",
-                        sc_start=100, hidden=48, layers=3, skip=None, n_freqs=4, init_iters=100, search_step_mm=2.0,
-                        search_stride=3, mc_resolution=128, checkpoint_every=100, log_every=25),
-}
-
-
-def preset(name: str, **overrides) -> TrainConfig:
-    if name not in PRESETS:
-        raise ValueError(f"unknown preset {name!r}; presets: {', '.join(PRESETS)}")
-    cfg = dataclasses.replace(PRESETS[name])
-    for k, v in overrides.items():
-        if v is None:
-            continue
-        if not hasattr(cfg, k):
-            raise ValueError(f"unknown training option {k!r}")
-        setattr(cfg, k, v)
-    return cfg
-
-
-def resolve_device(device: str) -> torch.device:
-    if device in (None, "auto"):
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    dev = torch.device(device)
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError("CUDA was requested but no CUDA device is available")
-    return dev
+__all__ = ["Trainer", "TrainingDiverged", "History"]
 
 
 class TrainingDiverged(RuntimeError):
@@ -152,57 +60,59 @@ class History:
 class Trainer:
     """Trains a NeuSField (or a given SDF module) on a scan with the structured-light renderer.
 
-    scan: a slwarp.Scan (its depth_range is required). out_dir: where checkpoints and logs go (None: no
-    checkpoints). resume: continue from out_dir/checkpoint.pt when it exists. sdf: an optional SDF module
-    to train instead of a fresh NeuSField.
+    scan: a slwarp.Scan (its depth_range is required unless depth_range (near, far) mm is given); config: a
+    TrainConfig (validated here). out_dir: where checkpoints go (None: no checkpoints). resume: continue from
+    out_dir/checkpoint.pt. sdf: an SDF module to train instead of the config's field. init_depth [H, W] (mm):
+    a starting depth map for the warm-up instead of the depth search. progress: a bar on a terminal, else a
+    line every progress_interval_s seconds (default 10; given: lines in any case).
     """
 
     def __init__(self, scan, config: TrainConfig, out_dir: str | os.PathLike | None = None, resume: bool = False,
-                 sdf: torch.nn.Module | None = None, depth_range=None, progress: bool = True, init_depth=None):
+                 sdf: torch.nn.Module | None = None, depth_range=None, progress: bool = True, init_depth=None,
+                 progress_interval_s: float | None = None):
         self.scan = scan
-        self.cfg = config
-        self.device = resolve_device(config.device)
+        self.cfg = config.validate()
+        self.device = torch_device(config.runtime.device)
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self.progress = progress
+        self.progress_interval_s = progress_interval_s
         depth_range = depth_range or scan.depth_range
         if depth_range is None:
-            raise ValueError(f"{scan.source or 'scan'}: no depth range in the scan: give one (near, far) in mm "
-                             "(CLI: --depth-range NEAR,FAR)")
+            raise ScanError(f"{scan.source or 'scan'}: no depth range in the scan: give one (near, far) in mm "
+                            "(CLI: --depth-range NEAR,FAR)")
         self.depth_range = tuple(float(x) for x in depth_range)
         if self.device.type == "cpu":
             # transmittance products and sigmoids of a sharpening SDF underflow into denormal floats, which
             # x86 CPUs process ~100x slower (measured: 50 iterations in 46 s instead of 1.4 s)
             torch.set_flush_denormal(True)
-        if config.matmul == "tf32":
+        if config.runtime.matmul == "tf32":
             torch.backends.cuda.matmul.allow_tf32 = True
             torch.backends.cudnn.allow_tf32 = True
-        elif config.matmul != "fp32":
-            raise ValueError(f"matmul must be 'fp32' or 'tf32', got {config.matmul!r}")
-        torch.manual_seed(config.seed)
-        self.generator = torch.Generator(device="cpu").manual_seed(config.seed)
+        torch.manual_seed(config.runtime.seed)
+        self.generator = torch.Generator(device="cpu").manual_seed(config.runtime.seed)
         n_all = len(scan)
-        self.n_frames = min(config.start_frames, n_all) if config.incremental else n_all
-        placeholder = torch.nn.Identity()  # the renderer picks the volume before the field exists
+        self.n_frames = min(config.schedule.start_frames, n_all) if config.schedule.incremental else n_all
+        # the working volume (the frustum box of the pixels lit with contrast) sizes the field, which the
+        # renderer then samples
+        images = scan.images[: self.n_frames]
+        lit = lit_with_contrast(offset_and_modulation(images)[1], config.sampling.contrast_threshold)
+        if not lit.any():
+            raise ScanError(f"{scan.source or 'scan'}: no pixel is lit with contrast (modulation above "
+                            f"{config.sampling.contrast_threshold}) in the frames used")
+        self.volume = Volume.from_frustum(scan.camera, lit, self.depth_range)
+        self.field = sdf if sdf is not None else make_field(
+            config.field, self.volume, init="camera" if config.init.method == "camera" else "sphere", far=self.depth_range[1])
         self.renderer = StructuredLightRenderer(
-            placeholder, scan.camera, scan.projector, scan.patterns[: self.n_frames], scan.images[: self.n_frames],
-            depth_range=self.depth_range, n_samples=config.n_samples, n_importance=config.n_importance,
-            up_sample_steps=config.up_sample_steps, contrast_threshold=config.contrast_threshold,
-            backend=config.backend, device=self.device, compile_field=config.compile and self.device.type == "cuda",
-            pattern_blur=0.0 if config.pattern_blur == "auto" else float(config.pattern_blur),
+            self.field, scan.camera, scan.projector, scan.patterns[: self.n_frames], images, depth_range=self.depth_range,
+            volume=self.volume, n_samples=config.sampling.n_samples, n_importance=config.sampling.n_importance,
+            up_sample_steps=config.sampling.up_sample_steps, contrast_threshold=config.sampling.contrast_threshold,
+            backend=config.runtime.backend, device=self.device, compile_field=config.runtime.compile and self.device.type == "cuda",
+            pattern_blur=0.0 if config.sampling.pattern_blur == "auto" else float(config.sampling.pattern_blur),
         )
-        self.volume: Volume = self.renderer.volume
-        if config.init not in ("search", "sphere", "camera"):
-            raise ValueError(f"init must be 'search', 'sphere' or 'camera', got {config.init!r}")
-        self.field = sdf if sdf is not None else NeuSField(self.volume, hidden=config.hidden, layers=config.layers,
-                                                            skip=config.skip, n_freqs=config.n_freqs,
-                                                            init="camera" if config.init == "camera" else "sphere",
-                                                            far=self.depth_range[1])
-        self.renderer.sdf = self.field.to(self.device)
-        self.renderer.to(self.device)
         # a captured step reads the learning rate from a device tensor and keeps Adam's step count on the GPU
-        self.use_graph = bool(config.cuda_graph) and self.device.type == "cuda"
+        self.use_graph = bool(config.runtime.cuda_graph) and self.device.type == "cuda"
         self.optimizer = torch.optim.Adam(list(self.field.parameters()) + list(self.renderer.variance.parameters()),
-                                          lr=config.lr)
+                                          lr=config.schedule.lr)
         self._configure_optimizer()
         self._graph = None  # the captured step (see _graph_step)
         self._eager_since_change = 0  # plain steps since the frames changed (capture needs warm kernels)
@@ -210,24 +120,22 @@ class Trainer:
         self.init_depth = None
         self.search_info = None
         self.blur_fit = None
-        if init_depth is None and config.init == "search" and config.init_iters > 0 and not resume:
-            from .search import search_depth
-
-            wdev = f"cuda:{self.device.index or 0}" if self.device.type == "cuda" else "cpu"
-            search_blur = 1.0 if config.pattern_blur == "auto" else float(config.pattern_blur)
+        if init_depth is None and config.init.method == "search" and config.init.iters > 0 and not resume:
+            search_blur = 1.0 if config.sampling.pattern_blur == "auto" else float(config.sampling.pattern_blur)
             init_depth, self.search_info = search_depth(
-                scan.camera, scan.projector, scan.images[: self.n_frames],
+                scan.camera, scan.projector, images,
                 blur_patterns(torch.as_tensor(scan.patterns[: self.n_frames]), search_blur).numpy(), self.depth_range,
-                valid=self.renderer.valid_map.cpu().numpy(), step_mm=config.search_step_mm, stride=config.search_stride,
-                device=wdev)
-        if config.pattern_blur == "auto" and not resume:
+                valid=lit, step_mm=config.init.search_step_mm, stride=config.init.search_stride, device=self.device)
+        if config.sampling.pattern_blur == "auto" and not resume:
             sigma, fit = 1.0, None
             if init_depth is not None:
-                from .search import estimate_pattern_blur
-
-                sigma, fit = estimate_pattern_blur(scan.camera, scan.projector, scan.images[: self.n_frames],
-                                                   scan.patterns[: self.n_frames], np.asarray(init_depth, np.float32).reshape(
-                                                       scan.camera.height, scan.camera.width))
+                try:
+                    sigma, fit = estimate_pattern_blur(scan.camera, scan.projector, images, scan.patterns[: self.n_frames],
+                                                       np.asarray(init_depth, np.float32).reshape(scan.camera.height,
+                                                                                                  scan.camera.width))
+                except ValueError as e:  # too few pixels with a starting depth: the scan does not fit its model
+                    raise ScanError(f"{scan.source or 'scan'}: cannot fit the pattern blur ({e}); check the depth range "
+                                    "and the patterns, or give a fixed pattern_blur (--pattern-blur)") from None
             self.renderer.set_pattern_blur(sigma)
             self.blur_fit = fit
         if init_depth is not None:
@@ -263,17 +171,17 @@ class Trainer:
 
     # --- schedule -----------------------------------------------------------------------------
     def lambda_sc(self, it: int) -> float:
-        return self.cfg.lambda_sc if it >= self.cfg.sc_start else 0.0
+        return self.cfg.schedule.lambda_sc if it >= self.cfg.schedule.sc_start else 0.0
 
     def learning_rate(self, it: int) -> float:
-        if self.cfg.lr_decay == "none":
-            return self.cfg.lr
-        total = max(1, self.cfg.iters + self.warmup_iters)
+        if self.cfg.schedule.lr_decay == "none":
+            return self.cfg.schedule.lr
+        total = max(1, self.cfg.schedule.iters + self.warmup_iters)
         progress = min(1.0, it / total)
-        return self.cfg.lr * (self.cfg.lr_final + (1.0 - self.cfg.lr_final) * 0.5 * (1.0 + math.cos(math.pi * progress)))
+        return self.cfg.schedule.lr * (self.cfg.schedule.lr_final + (1.0 - self.cfg.schedule.lr_final) * 0.5 * (1.0 + math.cos(math.pi * progress)))
 
     def cos_anneal(self, it: int) -> float:
-        return 1.0 if self.cfg.anneal_end <= 0 else min(1.0, it / self.cfg.anneal_end)
+        return 1.0 if self.cfg.schedule.anneal_end <= 0 else min(1.0, it / self.cfg.schedule.anneal_end)
 
     # --- checkpoints --------------------------------------------------------------------------
     def state(self) -> dict:
@@ -306,9 +214,11 @@ class Trainer:
 
     def load_checkpoint(self, path):
         ck = torch.load(path, map_location=self.device, weights_only=False)
-        if ck["config"].get("hidden") != self.cfg.hidden or ck["config"].get("layers") != self.cfg.layers:
-            raise ValueError(f"{path}: checkpoint was trained with a different field ({ck['config']['hidden']}x"
-                             f"{ck['config']['layers']}); use the same preset/options to resume")
+        saved = ck["config"].get("field", ck["config"])  # flat in checkpoints written before the config had sections
+        field_now = dataclasses.asdict(self.cfg.field)
+        if {k: saved.get(k) for k in field_now} != field_now:
+            raise ValueError(f"{path}: checkpoint was trained with a different field ({saved.get('hidden')}x"
+                             f"{saved.get('layers')}); use the same preset/options to resume")
         if ck["n_frames"] != self.n_frames:
             self.n_frames = ck["n_frames"]
             self.renderer.set_frames(self.scan.images[: self.n_frames], self.scan.patterns[: self.n_frames])
@@ -326,7 +236,7 @@ class Trainer:
     # --- training -----------------------------------------------------------------------------
     @property
     def warmup_iters(self) -> int:
-        return self.cfg.init_iters if self.init_depth is not None else 0
+        return self.cfg.init.iters if self.init_depth is not None else 0
 
     def in_warmup(self, it: int) -> bool:
         return it < self.warmup_iters
@@ -354,8 +264,8 @@ class Trainer:
         it = self.iteration
         # the random draws come from the CPU generator in the same order with or without a CUDA graph, so
         # both give the same run and a resumed run continues an interrupted one exactly
-        pick = self.renderer.draw_pick(self.cfg.rays, self.generator)
-        jitter = self.renderer.draw_jitter(self.cfg.rays, self.generator)
+        pick = self.renderer.draw_valid(self.cfg.sampling.rays, self.generator)
+        jitter = self.renderer.draw_jitter(self.cfg.sampling.rays, self.generator)
         weights = {"warmup": 1.0 if self.in_warmup(it) else 0.0,
                    "lambda_sc": 0.0 if self.in_warmup(it) else self.lambda_sc(it - self.warmup_iters)}
         self._set_lr(self.learning_rate(it))
@@ -379,12 +289,12 @@ class Trainer:
         jitter [R] on the device; weights "warmup" (1 in the depth-search warm-up, else 0) and "lambda_sc":
         floats, or 0-d device tensors inside a captured graph (then every term is computed, weighted)."""
         r = self.renderer
-        r._phase("batch")
-        batch = r.batch(r.valid_index[pick])
+        r.mark_phase("batch")
+        batch = r.valid_batch(pick)
         losses = r(batch, cos_anneal_ratio=cos_anneal_ratio, jitter=jitter)
         warm, w_sc = weights["warmup"], weights["lambda_sc"]
         captured = torch.is_tensor(warm)
-        loss = self.cfg.lambda_reg * losses.eikonal
+        loss = self.cfg.schedule.lambda_reg * losses.eikonal
         if self.init_depth is not None and (captured or warm != 0.0):
             # warm-up: pull the rendered depth (and full opacity) onto the initial depth map
             target = self.init_depth[batch.index]
@@ -394,16 +304,16 @@ class Trainer:
             opacity = ((1.0 - losses.output.weight_sum).abs() * ok).sum() / n
             loss = loss + warm * (depth_err / self.volume.scale + opacity)
         if captured or warm != 1.0:
-            photometric = self.cfg.lambda_rc * losses.color
+            photometric = self.cfg.schedule.lambda_rc * losses.color
             if captured or w_sc != 0.0:
                 photometric = photometric + w_sc * losses.surface
             loss = loss + (1.0 - warm) * photometric
-        r._phase("backward")
+        r.mark_phase("backward")
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        r._phase("optimizer")
+        r.mark_phase("optimizer")
         self.optimizer.step()
-        r._phase("end")
+        r.mark_phase("end")
         return {"loss": loss.detach(), "color": losses.color.detach(), "surface": losses.surface.detach(),
                 "eikonal": losses.eikonal.detach()}
 
@@ -414,7 +324,7 @@ class Trainer:
         r = self.renderer
         key = (r.frames_version, self.init_depth is not None)
         g = self._graph
-        if g is not None and g["key"] != key:
+        if g is not None and g["key"] != key:  # new frames or blur: recapture after plain steps warm them up
             self._graph = g = None
             self._eager_since_change = 0
         if g is None:
@@ -434,10 +344,20 @@ class Trainer:
         torch.cuda.current_stream(self.device).wait_stream(self._stream)
         return vals
 
+    @property
+    def graph_captured(self) -> bool:
+        """Whether the step is held as a captured CUDA graph now (see TrainConfig.runtime.cuda_graph)."""
+        return self._graph is not None
+
+    def reset_graph(self) -> None:
+        """Drop the captured step; the next step captures it again (e.g. after setting the renderer's
+        phase_hook, so that the hook's work is part of the graph)."""
+        self._graph = None
+
     def _capture(self, key) -> dict | None:
         import warnings
 
-        R, dev = self.cfg.rays, self.device
+        R, dev = self.cfg.sampling.rays, self.device
         g = {"key": key, "pick": torch.zeros(R, dtype=torch.long, device=dev), "jitter": torch.zeros(R, device=dev),
              "warmup": torch.zeros((), device=dev), "lambda_sc": torch.zeros((), device=dev),
              "graph": torch.cuda.CUDAGraph()}
@@ -459,19 +379,17 @@ class Trainer:
         """Run to `iters` (default: the config's) iterations, checkpointing as configured.
 
         Raises TrainingDiverged on a non-finite loss, keeping the last good checkpoint."""
-        from tqdm import tqdm
-
-        total = iters if iters is not None else self.cfg.iters + self.warmup_iters
-        bar = tqdm(total=total, initial=self.iteration, desc="training", unit="it", disable=not self.progress,
-                   dynamic_ncols=True, leave=True)
+        total = iters if iters is not None else self.cfg.schedule.iters + self.warmup_iters
+        bar = Progress(total, "training", initial=self.iteration, enabled=self.progress,
+                       interval_s=self.progress_interval_s)
         t_start = time.perf_counter() - self.elapsed
         try:
             while self.iteration < total:
-                if (self.cfg.incremental and self.iteration > 0 and self.iteration % self.cfg.add_every == 0
+                if (self.cfg.schedule.incremental and self.iteration > 0 and self.iteration % self.cfg.schedule.add_every == 0
                         and self.n_frames < len(self.scan)):
                     self.add_frames(count=1)
                 vals = self.step()
-                log_now = self.iteration % self.cfg.log_every == 0 or self.iteration == total
+                log_now = self.iteration % self.cfg.runtime.log_every == 0 or self.iteration == total
                 if log_now:
                     v = {k: float(x) for k, x in vals.items()}
                     if not all(math.isfinite(x) for x in v.values()):
@@ -489,11 +407,11 @@ class Trainer:
                     h.inv_s.append(float(self.renderer.inv_s().detach()))
                     h.frames.append(self.n_frames)
                     bar.set_postfix(loss=f"{v['loss']:.4f}", rc=f"{v['color']:.4f}", sc=f"{v['surface']:.4f}",
-                                    eik=f"{v['eikonal']:.3f}", inv_s=f"{h.inv_s[-1]:.3g}", frames=self.n_frames, refresh=False)
+                                    eik=f"{v['eikonal']:.3f}", inv_s=f"{h.inv_s[-1]:.3g}", frames=self.n_frames)
                     if callback is not None:
                         callback(self)
-                bar.update(1)
-                if self.out_dir is not None and self.iteration % self.cfg.checkpoint_every == 0:
+                bar.update()
+                if self.out_dir is not None and self.iteration % self.cfg.runtime.checkpoint_every == 0:
                     self.elapsed = time.perf_counter() - t_start
                     self.save_checkpoint()
         finally:

@@ -1,53 +1,47 @@
-"""Pure-torch twins of the Warp ops: the same signatures and semantics, any dtype and device.
+"""Pure-torch twins of the Warp ops, named after the ops in slwarp.neural.ops they mirror: the same semantics,
+any dtype and device.
 
 They are the reference in tests (compared with the Warp kernels forward and backward, and checked by
 float64 gradcheck), the fallback backend (`backend="torch"`), and what torch.compile sees in benchmarks.
-Formulas: see kernels/render.py and kernels/sampling.py.
+Formulas: see kernels/render.py and kernels/sampling.py; the constants are the kernels' own.
 """
 from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
 
-from ..scans.scanner import const_like
-
-ALPHA_EPS = 1.0e-5
-TRANS_EPS = 1.0e-7
-NORM_EPS = 1.0e-12
-WSUM_EPS = 1.0e-6
-FAR_AWAY = -1.0e6  # projector pixel used for points that do not project (zero taps)
+from ..scans.scanner import PackedProjector, const_like, distort_normalized
+from slwarp.kernels.geometry import ALPHA_EPS, FAR_AWAY_PX, MIN_PROJECTOR_Z, TRANS_EPS
+from slwarp.kernels.render import NORM_EPS, WSUM_EPS
+from slwarp.kernels.sampling import CDF_EPS, MIN_SLOPE, PDF_EPS, SLOPE_EPS
 
 
 # ----------------------------------------------------------------------------------------------
 # projection and bilinear sampling
 
 
-def project_to_projector(x: torch.Tensor, proj: list[float]) -> tuple[torch.Tensor, torch.Tensor]:
+def project_to_projector(x: torch.Tensor, proj: PackedProjector) -> tuple[torch.Tensor, torch.Tensor]:
     """Camera-frame points [..., 3] -> projector pixels [..., 2] and ok mask [...].
 
-    `proj` is the packed projector (see slwarp.neural.ops.pack_projector). Points behind the lens or beyond the
-    trusted distortion radius are not ok; their pixel is far outside the image (so they sample zero).
+    Points behind the lens or beyond the trusted distortion radius (proj.max_r2) are not ok; their pixel is
+    far outside the image (so they sample zero).
     """
-    R = const_like(proj[0:9], x).reshape(3, 3)
-    T = const_like(proj[9:12], x)
-    fx, fy, cx, cy, k1, k2, k3, p1, p2, _, _, max_r2 = proj[12:24]
+    R = const_like(proj.R, x).reshape(3, 3)
+    T = const_like(proj.T, x)
     xp = (x[..., None, :] * R).sum(-1) + T  # x R^T, written out: a matmul would run in TF32 when that is on
     zp = xp[..., 2]
-    in_front = zp > 1.0e-6
+    in_front = zp > MIN_PROJECTOR_Z
     zs = torch.where(in_front, zp, torch.ones_like(zp))  # safe: no inf/NaN in either branch's gradient
     xn = xp[..., 0] / zs
     yn = xp[..., 1] / zs
     r2 = xn * xn + yn * yn
-    ok = in_front & (r2 <= max_r2)
+    ok = in_front & (r2 <= proj.max_r2)
     xn = torch.where(ok, xn, torch.zeros_like(xn))
     yn = torch.where(ok, yn, torch.zeros_like(yn))
-    r2 = xn * xn + yn * yn
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
-    yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
-    far = torch.full_like(xd, FAR_AWAY)
-    u = torch.where(ok, fx * xd + cx, far)
-    v = torch.where(ok, fy * yd + cy, far)
+    xd, yd = distort_normalized(xn, yn, proj.dist)
+    far = torch.full_like(xd, FAR_AWAY_PX)
+    u = torch.where(ok, proj.fx * xd + proj.cx, far)
+    v = torch.where(ok, proj.fy * yd + proj.cy, far)
     return torch.stack([u, v], dim=-1), ok
 
 
@@ -103,9 +97,9 @@ def sample_intervals(z_vals: torch.Tensor, last_delta: float) -> torch.Tensor:
 
 
 def transmittance_weights(alpha: torch.Tensor) -> torch.Tensor:
-    """w_k = alpha_k prod_{j<k} (1 - alpha_j + 1e-7)."""
+    """w_k = alpha_k prod_{j<k} (1 - alpha_j + TRANS_EPS)."""
     # the product as exp(cumsum(log)): torch's cumprod backward checks the input for zeros on the host (a
-    # synchronisation per step, and no CUDA graph capture); 1 - alpha + 1e-7 > 0, so the log is finite
+    # synchronisation per step, and no CUDA graph capture); 1 - alpha + TRANS_EPS > 0, so the log is finite
     log_keep = torch.log(1.0 - alpha + TRANS_EPS)
     trans = torch.exp(torch.cumsum(torch.cat([torch.zeros_like(log_keep[:, :1]), log_keep[:, :-1]], dim=1), dim=1))
     return alpha * trans
@@ -117,12 +111,11 @@ def inside_box(x: torch.Tensor, bounds: list[float]) -> torch.Tensor:
     return ((x >= lo) & (x <= hi)).all(dim=-1)
 
 
-def render(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns, projector: list[float], inv_s,
-           cos_anneal_ratio: float, last_delta: float, bounds: list[float]):
-    """The fused render in torch. Returns (weights [R,S], rendered [R,N], surface [R,3],
+def render_structured_light(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns, projector: PackedProjector, inv_s,
+                            cos_anneal_ratio: float, last_delta: float, bounds: list[float]):
+    """The fused render in torch, on the inputs of ops.RenderInputs (any dtype) with patterns [N, H, W] and inv_s a
+    tensor broadcastable to a scalar (differentiable). Returns (weights [R,S], rendered [R,N], surface [R,3],
     surface_rendered [R,N], depth [R], weight_sum [R], eikonal [R,S], eikonal_sum [R], eikonal_count [R]).
-
-    patterns: [N, H, W]. inv_s: tensor broadcastable to a scalar (differentiable).
     """
     dz = sample_intervals(z_vals, last_delta)
     true_cos = (sdf_grad * rays_d[:, None, :]).sum(-1)
@@ -153,27 +146,27 @@ def camera_rays(pixels: torch.Tensor, camera, z_near: float, z_far: float):
     return d, z_near / d[:, 2], z_far / d[:, 2]
 
 
-def stratified(near: torch.Tensor, far: torch.Tensor, n: int, jitter: torch.Tensor) -> torch.Tensor:
+def stratified_samples(near: torch.Tensor, far: torch.Tensor, n: int, jitter: torch.Tensor) -> torch.Tensor:
     """z [R, n] = near + (far - near) (k + 0.5 + jitter_r) / n."""
     k = torch.arange(n, dtype=near.dtype, device=near.device)
     return near[:, None] + (far - near)[:, None] * (k[None, :] + 0.5 + jitter[:, None]) / n
 
 
-def upsample(z: torch.Tensor, sdf: torch.Tensor, rays_o, rays_d, n_new: int, inv_s: float, bounds: list[float]) -> torch.Tensor:
+def upsample_samples(z: torch.Tensor, sdf: torch.Tensor, rays_o, rays_d, n_new: int, inv_s: float, bounds: list[float]) -> torch.Tensor:
     """One NeuS up-sampling step: n_new new sample distances [R, n_new] (sorted)."""
     R, S = z.shape
     x = rays_o[:, None, :] + z[..., None] * rays_d[:, None, :]
     inside = inside_box(x, bounds)
     inside_iv = inside[:, :-1] | inside[:, 1:]
     dist = z[:, 1:] - z[:, :-1]
-    cos = (sdf[:, 1:] - sdf[:, :-1]) / (dist + 1.0e-5)
+    cos = (sdf[:, 1:] - sdf[:, :-1]) / (dist + SLOPE_EPS)
     prev_cos = torch.cat([torch.zeros_like(cos[:, :1]), cos[:, :-1]], dim=1)
-    c = torch.minimum(prev_cos, cos).clamp(-1.0e3, 0.0) * inside_iv
+    c = torch.minimum(prev_cos, cos).clamp(MIN_SLOPE, 0.0) * inside_iv
     mid = (sdf[:, 1:] + sdf[:, :-1]) * 0.5
     prev_cdf = torch.sigmoid((mid - c * dist * 0.5) * inv_s)
     next_cdf = torch.sigmoid((mid + c * dist * 0.5) * inv_s)
-    alpha = (prev_cdf - next_cdf + 1.0e-5) / (prev_cdf + 1.0e-5)
-    w = transmittance_weights(alpha) + 1.0e-5
+    alpha = (prev_cdf - next_cdf + ALPHA_EPS) / (prev_cdf + ALPHA_EPS)
+    w = transmittance_weights(alpha) + PDF_EPS
     pdf = w / w.sum(1, keepdim=True)
     cdf = torch.cat([torch.zeros_like(pdf[:, :1]), torch.cumsum(pdf, 1)], dim=1)  # [R, S]
     u = (torch.arange(n_new, dtype=z.dtype, device=z.device) + 0.5) / n_new
@@ -184,11 +177,11 @@ def upsample(z: torch.Tensor, sdf: torch.Tensor, rays_o, rays_d, n_new: int, inv
     c0, c1 = cdf.gather(1, below), cdf.gather(1, above)
     z0, z1 = z.gather(1, below), z.gather(1, above)
     denom = c1 - c0
-    denom = torch.where(denom < 1.0e-5, torch.ones_like(denom), denom)
+    denom = torch.where(denom < CDF_EPS, torch.ones_like(denom), denom)
     return z0 + (u - c0) / denom * (z1 - z0)
 
 
-def merge_sorted(z_a, f_a, z_b, f_b):
+def merge_samples(z_a, f_a, z_b, f_b):
     """Merge two per-ray sorted lists (stable: ties keep a before b)."""
     z = torch.cat([z_a, z_b], dim=1)
     f = torch.cat([f_a, f_b], dim=1)

@@ -1,8 +1,9 @@
 """Projector pattern sets: the paper's random multi-scale binary squares and the classical codes.
 
 Every generator returns a `PatternSet`: `patterns` [N, H, W] float32 in [0, 1] in projector pixels
-(pixel (u, v) = column, row; centre of pixel (0, 0) at (0, 0)) and one frame name per pattern.
-Frame names are the contract between patterns, scans and decoders:
+(pixel (u, v) = column, row; centre of pixel (0, 0) at (0, 0)) and one frame name per pattern. The names are
+slwarp's role names (`slwarp.scans.roles.FrameRole.name`), so a simulated scan knows each frame's role, and
+writes it to scan.yaml:
 
     rand{size}_{i}          random binary squares of `size` px, i-th pattern of that scale
     gc_{col|row}_b{k}       Gray code bit k, k = 0 the most significant bit
@@ -22,6 +23,8 @@ import re
 from dataclasses import dataclass
 
 import numpy as np
+
+from .roles import FrameRole
 
 __all__ = [
     "PatternSet",
@@ -89,7 +92,7 @@ def random_binary(width: int, height: int, scales=(20, 10, 5), per_scale: int = 
             cells = rng.integers(0, 2, size=(math.ceil(height / s), math.ceil(width / s)))
             img = np.repeat(np.repeat(cells, s, axis=0), s, axis=1)[:height, :width]
             pats.append(img.astype(np.float32))
-            names.append(f"rand{s}_{i}")
+            names.append(FrameRole("random", size=float(s), index=i).name)
     return PatternSet(np.stack(pats), names)
 
 
@@ -128,19 +131,16 @@ def gray_code(width: int, height: int, bits: int, axis: str = "col", inverse: bo
         bit = ((g >> (bits - 1 - k)) & 1).astype(np.float32)
         img = np.broadcast_to(bit[None, :], (height, width)) if axis == "col" else np.broadcast_to(bit[:, None], (height, width))
         pats.append(np.array(img))
-        names.append(f"gc_{axis}_b{k}")
+        names.append(FrameRole("gray", axis=axis, bit=k).name)
         if inverse:
             pats.append(1.0 - pats[-1])
-            names.append(f"gc_{axis}_b{k}_inv")
+            names.append(FrameRole("gray", axis=axis, bit=k, inverse=True).name)
     return PatternSet(np.stack(pats), names)
 
 
 def white_black(width: int, height: int) -> PatternSet:
-    return PatternSet(np.stack([np.ones((height, width), np.float32), np.zeros((height, width), np.float32)]), ["white", "black"])
-
-
-def _fmt_period(period: float) -> str:
-    return f"{period:g}"
+    return PatternSet(np.stack([np.ones((height, width), np.float32), np.zeros((height, width), np.float32)]),
+                      [FrameRole("white").name, FrameRole("black").name])
 
 
 def phase_shift(width: int, height: int, period: float, steps: int, axis: str = "col") -> PatternSet:
@@ -156,40 +156,49 @@ def phase_shift(width: int, height: int, period: float, steps: int, axis: str = 
         prof = 0.5 + 0.5 * np.cos(2 * np.pi * coord / period - 2 * np.pi * k / steps)
         img = np.broadcast_to(prof[None, :], (height, width)) if axis == "col" else np.broadcast_to(prof[:, None], (height, width))
         pats.append(np.array(img, dtype=np.float32))
-        names.append(f"ps_{axis}_p{_fmt_period(period)}_s{k}of{steps}")
+        names.append(FrameRole("phase", axis=axis, period=float(period), step=k, steps=steps).name)
     return PatternSet(np.stack(pats), names)
 
 
-def complementary_gray_code(width: int, height: int, gray_bits: int = 3, steps: int = 3) -> PatternSet:
-    """CGC: `gray_bits` Gray code patterns + `steps`-step phase shift with period W / 2^(gray_bits - 1).
+def _axis_size(width: int, height: int, axis: str) -> int:
+    if axis not in ("col", "row"):
+        raise ValueError(f"axis must be 'col' or 'row', got {axis!r}")
+    return width if axis == "col" else height
+
+
+def complementary_gray_code(width: int, height: int, gray_bits: int = 3, steps: int = 3, axis: str = "col") -> PatternSet:
+    """CGC: `gray_bits` Gray code patterns + `steps`-step phase shift with period S / 2^(gray_bits - 1), S the
+    projector width (axis 'col') or height ('row').
 
     The Gray code's last bit splits each phase period in half; it corrects the period-edge jumps.
     The paper's 6-pattern set is (3, 3), the 7-pattern set (4, 3).
     """
-    period = width / (1 << (gray_bits - 1))
-    return gray_code(width, height, gray_bits) + phase_shift(width, height, period, steps)
+    period = _axis_size(width, height, axis) / (1 << (gray_bits - 1))
+    return gray_code(width, height, gray_bits, axis) + phase_shift(width, height, period, steps, axis)
 
 
-def hierarchical_pmp(width: int, height: int, short_period: float = 80.0, steps: int = 3) -> PatternSet:
-    """H-PMP: one `steps`-step set with a single period across the width, one with a short period."""
-    return phase_shift(width, height, float(width), steps) + phase_shift(width, height, short_period, steps)
+def hierarchical_pmp(width: int, height: int, short_period: float = 80.0, steps: int = 3, axis: str = "col") -> PatternSet:
+    """H-PMP: one `steps`-step set with a single period across the axis, one with a short period."""
+    size = float(_axis_size(width, height, axis))
+    return phase_shift(width, height, size, steps, axis) + phase_shift(width, height, short_period, steps, axis)
 
 
-def number_theoretic_pmp(width: int, height: int, periods=(48, 70), steps: int = 3) -> PatternSet:
+def number_theoretic_pmp(width: int, height: int, periods=(48, 70), steps: int = 3, axis: str = "col") -> PatternSet:
     """N-PMP: two `steps`-step sets with integer periods, co-prime in units of their greatest common
-    divisor, whose least common multiple (the unambiguous range) covers the width: 48 and 70 px -> 1680 px."""
+    divisor, whose least common multiple (the unambiguous range) covers the axis: 48 and 70 px -> 1680 px."""
     p1, p2 = (int(p) for p in periods)
     g = math.gcd(p1, p2)
+    size = _axis_size(width, height, axis)
     if g in (p1, p2):
         raise ValueError(f"N-PMP periods must be co-prime (in units of their gcd), got {p1} and {p2}")
-    if p1 * p2 // g < width:
-        raise ValueError(f"N-PMP periods {p1}, {p2} are unambiguous over only {p1 * p2 // g} px < width {width}")
-    return phase_shift(width, height, p1, steps) + phase_shift(width, height, p2, steps)
+    if p1 * p2 // g < size:
+        raise ValueError(f"N-PMP periods {p1}, {p2} are unambiguous over only {p1 * p2 // g} px < {size} px")
+    return phase_shift(width, height, p1, steps, axis) + phase_shift(width, height, p2, steps, axis)
 
 
-def ground_truth_set(width: int, height: int) -> PatternSet:
+def ground_truth_set(width: int, height: int, axis: str = "col") -> PatternSet:
     """7 Gray code patterns with inverses + 4-step phase shift with a 40 px period (18 patterns)."""
-    return gray_code(width, height, 7, inverse=True) + phase_shift(width, height, 40.0, 4)
+    return gray_code(width, height, 7, axis, inverse=True) + phase_shift(width, height, 40.0, 4, axis)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -206,10 +215,17 @@ NAMED_SETS = {
     "hpmp6": "hierarchical PMP: 3-step at period W + 3-step at 80 px",
     "npmp6": "number-theoretic PMP: 3-step at 48 px + 3-step at 70 px",
     "gt": "ground truth set: gray7inv + 4-step phase shift, period 40 px (18 patterns)",
+    "NAME_row": "any of these codes over the projector rows instead of its columns (gt_row, npmp6_row, cgc7_row; "
+                "periods W become H)",
 }
 
 
 def _one_named(name: str, width: int, height: int, seed: int) -> PatternSet:
+    axis = "col"
+    if name.endswith("_row"):
+        name, axis = name[: -len("_row")], "row"
+        if name.startswith(("random", "whiteblack", "grayrow")):
+            raise ValueError(f"pattern set {name}_row: '_row' applies to the coded sets (gray, ps, cgc, hpmp, npmp, gt)")
     m = re.fullmatch(r"random(\d+)", name)
     if m:
         n = int(m.group(1))
@@ -218,17 +234,17 @@ def _one_named(name: str, width: int, height: int, seed: int) -> PatternSet:
         return random_binary(width, height, per_scale=n // 3, seed=seed)
     m = re.fullmatch(r"gray(row)?(\d+)(inv)?", name)
     if m:
-        return gray_code(width, height, int(m.group(2)), axis="row" if m.group(1) else "col", inverse=bool(m.group(3)))
+        return gray_code(width, height, int(m.group(2)), axis="row" if m.group(1) else axis, inverse=bool(m.group(3)))
     m = re.fullmatch(r"ps(\d+)", name)
     if m:
-        return phase_shift(width, height, float(width), int(m.group(1)))
+        return phase_shift(width, height, float(_axis_size(width, height, axis)), int(m.group(1)), axis)
     fixed = {
         "whiteblack": lambda: white_black(width, height),
-        "cgc6": lambda: complementary_gray_code(width, height, 3),
-        "cgc7": lambda: complementary_gray_code(width, height, 4),
-        "hpmp6": lambda: hierarchical_pmp(width, height),
-        "npmp6": lambda: number_theoretic_pmp(width, height),
-        "gt": lambda: ground_truth_set(width, height),
+        "cgc6": lambda: complementary_gray_code(width, height, 3, axis=axis),
+        "cgc7": lambda: complementary_gray_code(width, height, 4, axis=axis),
+        "hpmp6": lambda: hierarchical_pmp(width, height, axis=axis),
+        "npmp6": lambda: number_theoretic_pmp(width, height, axis=axis),
+        "gt": lambda: ground_truth_set(width, height, axis=axis),
     }
     if name in fixed:
         return fixed[name]()

@@ -6,7 +6,9 @@ PNG in 0.1 mm, 0 = invalid) and `mask`. `load_scan` also imports the authors' Ne
 and the procam-calibration layout (calibration_result.xml + capture_N/ + graycode_pattern/).
 
 In memory: images [N, H, W] and patterns [N, Hp, Wp] float32 in [0, 1]; gt_depth [H, W] float32 mm with
-NaN where invalid; mask [H, W] bool. Bad input raises `ScanError` naming the file and the problem.
+NaN where invalid; mask [H, W] bool. Each frame has a role (`slwarp.scans.roles`: declared in scan.yaml,
+mapped from the NeSS tags, or read from slwarp's frame names), resolved once when the Scan is built; the
+decoders read roles, never names. Bad input raises `ScanError` naming the file and the problem.
 """
 from __future__ import annotations
 
@@ -20,9 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ..evaluation.outputs import write_depth_png
+from .roles import FrameRole, RoleError, parse_role, parse_selector, resolve_roles, role_groups
 from .scanner import CalibrationError, Camera, Projector, check_rotation
 
-__all__ = ["Scan", "ScanError", "load_scan", "read_image", "read_depth", "write_depth_png"]
+__all__ = ["Scan", "ScanError", "load_scan", "read_image", "read_depth"]
 
 SCAN_FILE = "scan.yaml"
 
@@ -103,16 +107,6 @@ def read_depth(path: str | os.PathLike, what: str = "depth") -> np.ndarray:
     return d
 
 
-def write_depth_png(path: str | os.PathLike, depth: np.ndarray) -> None:
-    """Write depth (mm, NaN invalid) as a 16-bit PNG in 0.1 mm units, 0 = invalid."""
-    import cv2
-
-    d = np.asarray(depth, np.float64)
-    q = np.where(np.isfinite(d) & (d > 0), np.clip(np.rint(d * 10.0), 1, 65535), 0).astype(np.uint16)
-    if not cv2.imwrite(str(path), q):
-        raise ScanError(f"could not write depth PNG: {path}")
-
-
 def _read_mask(path: Path) -> np.ndarray:
     return read_image(path, "mask") > 0.5
 
@@ -125,8 +119,11 @@ class Scan:
     """A calibrated rig and its frames.
 
     camera, projector: the rig (X_p = R X_c + T, mm); images [N, H, W] and patterns [N, Hp, Wp] float32 in
-    [0, 1]; names: one frame name per pair (see `slwarp.scans.patterns`); depth_range: (near, far) mm or None;
-    gt_depth [H, W] mm (NaN invalid) or None; mask [H, W] bool or None; source: where it was loaded from.
+    [0, 1]; names: one frame name per pair; depth_range: (near, far) mm or None; gt_depth [H, W] mm (NaN
+    invalid) or None; mask [H, W] bool or None; source: where it was loaded from.
+    declared_roles: frame name -> declared role (a FrameRole, a scan.yaml mapping or a role string; see
+    `slwarp.scans.roles`); frames not in it take the role their name gives (or none).
+    roles: [N] the resolved FrameRole of each frame (None: no role), set on construction.
     """
 
     camera: Camera
@@ -139,12 +136,18 @@ class Scan:
     mask: np.ndarray | None = None
     source: str | None = None
     meta: dict = field(default_factory=dict)
+    declared_roles: dict | None = None
+    roles: list = field(init=False, repr=False, compare=False)
 
     def __post_init__(self):
         self.images = np.asarray(self.images, np.float32)
         self.patterns = np.asarray(self.patterns, np.float32)
         self.names = [str(n) for n in self.names]
         self.validate()
+        try:
+            self.roles = resolve_roles(self.names, self.declared_roles)
+        except RoleError as e:
+            raise ScanError(f"{self.source or 'scan'}: {e}") from None
 
     # --- validation ---------------------------------------------------------------------------
     def validate(self) -> None:
@@ -185,8 +188,10 @@ class Scan:
     def frame_indices(self, frames) -> list[int]:
         """Resolve a frame selection to indices.
 
-        `frames`: an int, a name, or a list of them, or a comma-separated string of tokens; a token is an
-        index, a slice `a:b`, a frame name or a glob (`gc_col_b*`). Order is kept, duplicates dropped.
+        `frames`: an int, a name, or a list of them, or a comma-separated string of tokens; a token is a
+        frame name, an index, a slice `a:b`, a role selector (`gray:col:bit=0-6`, `phase:row`, `white`; see
+        `slwarp.scans.roles`) or a glob of names (`gc_col_b*`), tried in that order. Order is kept (a role
+        selector or glob adds its frames in scan order), duplicates dropped.
         """
         if isinstance(frames, (int, np.integer)):
             tokens = [int(frames)]
@@ -196,27 +201,36 @@ class Scan:
             tokens = list(frames)
         out: list[int] = []
         n = len(self.names)
+        where = self.source or "scan"
         for tok in tokens:
             hits: list[int]
-            if isinstance(tok, (int, np.integer)) or (isinstance(tok, str) and re.fullmatch(r"-?\d+", tok)):
+            if isinstance(tok, str) and tok in self.names:  # a frame's own name first (NeSS tags may be digits)
+                hits = [self.names.index(tok)]
+            elif isinstance(tok, (int, np.integer)) or (isinstance(tok, str) and re.fullmatch(r"-?\d+", tok)):
                 i = int(tok)
                 if not -n <= i < n:
-                    raise ScanError(f"{self.source or 'scan'}: frame index {i} out of range (0..{n - 1})")
+                    raise ScanError(f"{where}: frame index {i} out of range (0..{n - 1})")
                 hits = [i % n]
             elif isinstance(tok, str) and re.fullmatch(r"-?\d*:-?\d*", tok):
                 a, b = tok.split(":")
                 hits = list(range(n))[slice(int(a) if a else None, int(b) if b else None)]
-            elif tok in self.names:
-                hits = [self.names.index(tok)]
             else:
-                hits = [i for i, nm in enumerate(self.names) if fnmatch.fnmatchcase(nm, str(tok))]
-                if not hits:
-                    raise ScanError(
-                        f"{self.source or 'scan'}: no frame matches {tok!r}; frames are: {', '.join(self.names)}"
-                    )
+                try:
+                    sel = parse_selector(str(tok))
+                except RoleError as e:
+                    raise ScanError(f"{where}: {e}") from None
+                if sel is not None:
+                    hits = [i for i, r in enumerate(self.roles) if sel.matches(r)]
+                    if not hits:
+                        raise ScanError(f"{where}: no frame has a role matching {tok!r}; the frames by role: "
+                                        + "; ".join(lab for lab, _ in role_groups(self.names, self.roles)))
+                else:
+                    hits = [i for i, nm in enumerate(self.names) if fnmatch.fnmatchcase(nm, str(tok))]
+                    if not hits:
+                        raise ScanError(f"{where}: no frame matches {tok!r}; frames are: {', '.join(self.names)}")
             out.extend(h for h in hits if h not in out)
         if not out:
-            raise ScanError(f"{self.source or 'scan'}: the frame selection {frames!r} is empty")
+            raise ScanError(f"{where}: the frame selection {frames!r} is empty")
         return out
 
     def select(self, frames) -> "Scan":
@@ -227,6 +241,19 @@ class Scan:
     def has(self, *names: str) -> bool:
         return all(n in self.names for n in names)
 
+    def frames_with(self, kind: str, **fields) -> list[int]:
+        """Indices of the frames whose role is of `kind` with these field values (e.g. axis='col', bit=0,
+        inverse=False), in scan order."""
+        return [i for i, r in enumerate(self.roles)
+                if r is not None and r.kind == kind and all(getattr(r, k) == v for k, v in fields.items())]
+
+    def frame_with(self, kind: str, **fields) -> int | None:
+        """Index of the one frame with this role (see `frames_with`), or None. ValueError when several match."""
+        hits = self.frames_with(kind, **fields)
+        if len(hits) > 1:
+            raise ValueError(f"{len(hits)} frames match role {kind} {fields}: {[self.names[i] for i in hits]}")
+        return hits[0] if hits else None
+
     def frame(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """(image, pattern) of the frame called `name`."""
         i = self.names.index(name)
@@ -236,16 +263,22 @@ class Scan:
         return self.images[self.names.index(name)]
 
     # --- summary ------------------------------------------------------------------------------
-    def summary(self) -> str:
+    def summary(self, each_frame: bool = False) -> str:
+        """Rig, depth range, frames grouped by role (a selector per group: see `slwarp.scans.roles`), ground
+        truth; with `each_frame`, one line per frame with its role."""
         lines = [
             f"scan: {self.source or '(in memory)'}",
             f"  camera:    {self.camera.describe()}",
             f"  projector: {self.projector.describe()}",
             f"  depth range: {self.depth_range[0]:.1f} .. {self.depth_range[1]:.1f} mm" if self.depth_range else "  depth range: not given",
-            f"  frames: {len(self.names)}",
+            f"  frames: {len(self.names)}, by role (selectors for --frames):",
         ]
-        for group, members in _group_names(self.names):
-            lines.append(f"    {group}: {members}")
+        groups = role_groups(self.names, self.roles)
+        width = max(len(label) for label, _ in groups)
+        for label, members in groups:
+            shown = ", ".join(members) if len(members) <= 6 else f"{', '.join(members[:3])}, ... {members[-1]}"
+            count = f"{len(members)} frame{'s' if len(members) > 1 else ''}"
+            lines.append(f"    {label:{width}s}  {count}: {shown}")
         if self.gt_depth is not None:
             valid = np.isfinite(self.gt_depth)
             if valid.any():
@@ -256,6 +289,11 @@ class Scan:
         else:
             lines.append("  ground truth depth: no")
         lines.append(f"  mask: {'yes (%.1f%% set)' % (self.mask.mean() * 100) if self.mask is not None else 'no'}")
+        if each_frame:
+            lines.append("  frame roles:")
+            width = max(len(n) for n in self.names)
+            for i, (n, r) in enumerate(zip(self.names, self.roles)):
+                lines.append(f"    {i:3d}  {n:{width}s}  {r.label() if r is not None else '(no role)'}")
         return "\n".join(lines)
 
     # --- saving -------------------------------------------------------------------------------
@@ -277,7 +315,10 @@ class Scan:
             pat = self.patterns[i]
             binary = bool(np.all((pat == 0) | (pat == 1)))
             write_image(folder / pat_rel, pat, 8 if binary else 16)
-            frames.append({"name": name, "image": img_rel, "pattern": pat_rel})
+            entry = {"name": name, "image": img_rel, "pattern": pat_rel}
+            if self.roles[i] is not None:
+                entry["role"] = self.roles[i].to_yaml()
+            frames.append(entry)
         doc = {
             "units": "mm",
             "camera": self.camera.to_dict(),
@@ -299,25 +340,6 @@ class Scan:
         with open(folder / SCAN_FILE, "w") as f:
             yaml.safe_dump(doc, f, sort_keys=False, default_flow_style=None, width=120)
         return folder
-
-
-def _group_names(names: list[str]) -> list[tuple[str, str]]:
-    """Frame names grouped by family for the summary, e.g. ('gray code, columns', 'gc_col_b0..b9 (+inv)')."""
-    groups: dict[str, list[str]] = {}
-    for n in names:
-        m = re.match(r"(rand|gc_col|gc_row|ps_col_p[\d.]+|ps_row_p[\d.]+)", n)
-        key = m.group(1) if m else n
-        groups.setdefault(key, []).append(n)
-    label = {"rand": "random squares", "gc_col": "Gray code, columns", "gc_row": "Gray code, rows"}
-    out = []
-    for key, members in groups.items():
-        if key.startswith("ps_"):
-            lab = f"phase shift {key[3:6]}s, period {key.split('_p')[1]} px"
-        else:
-            lab = label.get(key, "frame")
-        shown = ", ".join(members) if len(members) <= 6 else f"{', '.join(members[:3])}, ... {members[-1]}"
-        out.append((lab, f"{len(members)}: {shown}"))
-    return out
 
 
 # ----------------------------------------------------------------------------------------------
@@ -393,13 +415,17 @@ def _load_native(folder: Path) -> Scan:
     frames = doc["frames"]
     if not isinstance(frames, list) or not frames:
         raise ScanError(f"{f}: the frame list is empty")
-    img_files, pat_files, names = [], [], []
+    img_files, pat_files, names, declared = [], [], [], {}
     for i, fr in enumerate(frames):
         if not isinstance(fr, dict) or "image" not in fr or "pattern" not in fr:
             raise ScanError(f"{f}: frame {i} needs 'image' and 'pattern' entries, got {fr!r}")
         img_files.append((folder / fr["image"], f"image of frame {i}"))
         pat_files.append((folder / fr["pattern"], f"pattern of frame {i}"))
         names.append(str(fr.get("name", f"frame{i}")))
+        if "role" in fr:
+            if fr["role"] is None:
+                raise ScanError(f"{f}: frame {i} ({names[-1]!r}) has an empty role (give a role or leave the key out)")
+            declared[names[-1]] = fr["role"]
     images = _load_stack(img_files, (camera.height, camera.width), "image", "camera")
     patterns = _load_stack(pat_files, (projector.height, projector.width), "pattern", "projector")
     gt = read_depth(folder / doc["gt_depth"], "gt_depth") if doc.get("gt_depth") else None
@@ -413,7 +439,7 @@ def _load_native(folder: Path) -> Scan:
         raise ScanError(f"{f}: depth_range must be [near, far] in mm, got {dr!r}")
     try:
         return Scan(camera, projector, images, patterns, names, depth_range=tuple(dr) if dr else None,
-                    gt_depth=gt, mask=mask, source=str(folder), meta=doc.get("meta") or {})
+                    gt_depth=gt, mask=mask, source=str(folder), meta=doc.get("meta") or {}, declared_roles=declared)
     except ScanError as e:
         raise ScanError(f"{f}: {e}") from None
 
@@ -435,6 +461,54 @@ def _floats(cfg_file: Path, section, key: str, count: int | None) -> np.ndarray:
 
 def _natural_key(s: str):
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", s)]
+
+
+# The authors' frame tags (pat/pat_<tag>.png, img/img_<tag>.png; grammar from their experiment scripts):
+#   arr{size}r{i}[inv]      i-th random pattern of size-px squares (and its inverse)
+#   gc{k}[inv]              Gray code bit k over the projector columns, 0 = most significant (and its inverse)
+#   pm{P}n{N}i{k}           step k of an N-step phase shift over the columns with period P px
+#   uni{L}                  uniform frame at level L of 255 (uni255: white, uni0: black)
+_NESS_TAGS = [
+    (re.compile(r"arr(\d+(?:\.\d+)?)r(\d+)(inv)?"),
+     lambda m: FrameRole("random", size=float(m[1]), index=int(m[2]), inverse=bool(m[3]))),
+    (re.compile(r"gc(\d+)(inv)?"), lambda m: FrameRole("gray", axis="col", bit=int(m[1]), inverse=bool(m[2]))),
+    (re.compile(r"pm(\d+(?:\.\d+)?)n(\d+)i(\d+)"),
+     lambda m: FrameRole("phase", axis="col", period=float(m[1]), steps=int(m[2]), step=int(m[3]))),
+    (re.compile(r"uni(\d+)"),
+     lambda m: FrameRole("white") if int(m[1]) == 255 else FrameRole("black") if int(m[1]) == 0
+     else FrameRole("uniform", level=int(m[1]) / 255.0)),
+]
+
+
+def ness_role(tag: str) -> FrameRole | None:
+    """The role of a NeSS frame tag (see the grammar above), or None for a tag outside it (kept, no role).
+    A tag that fits the grammar with impossible values (pm40n3i5) is a ScanError naming it."""
+    for pattern, make in _NESS_TAGS:
+        m = pattern.fullmatch(tag)
+        if m:
+            try:
+                return parse_role(make(m))
+            except RoleError as e:
+                raise ScanError(f"NeSS frame tag {tag!r}: {e}") from None
+    return None
+
+
+def ness_order_key(tag: str):
+    """Sort key giving the authors' frame order (as their experiment scripts list the frames): random patterns
+    coarse to fine (arr20r0, arr20r1, ..., arr10r0, ..., arr5r0), each inverse right after its pattern; then
+    the Gray code bits, most significant first, each inverse after its bit; the phase-shift sets, the longest
+    period first, steps in order; uniform frames, brightest first; other tags last, in natural order."""
+    r = ness_role(tag)
+    if r is None:
+        return (5, _natural_key(tag))
+    if r.kind == "random":
+        return (0, -r.size, r.index, r.inverse)
+    if r.kind == "gray":
+        return (1, r.bit, r.inverse)
+    if r.kind == "phase":
+        return (2, -r.period, r.steps, r.step)
+    level = {"white": 1.0, "black": 0.0}.get(r.kind, r.level)
+    return (3, -level)
 
 
 def _load_ness(folder: Path) -> Scan:
@@ -466,14 +540,15 @@ def _load_ness(folder: Path) -> Scan:
     missing = sorted(set(pats) - set(imgs), key=_natural_key)
     if missing:
         raise ScanError(f"{folder / 'img'}: image count != pattern count: no img_<tag>.png for tags {missing}")
-    tags = sorted(pats, key=_natural_key)
+    tags = sorted(pats, key=ness_order_key)
     images = _load_stack([(imgs[t], f"image img_{t}") for t in tags], (img_h, img_w), "image", "camera")
     patterns = _load_stack([(pats[t], f"pattern pat_{t}") for t in tags], (pat_h, pat_w), "pattern", "projector")
     gt = read_depth(folder / "gt" / "depth.png", "gt/depth.png") if (folder / "gt" / "depth.png").is_file() else None
     mask = _read_mask(folder / "gt" / "mask_occ.png") if (folder / "gt" / "mask_occ.png").is_file() else None
     try:
-        return Scan(camera, projector, images, patterns, [f"ness_{t}" for t in tags],
-                    depth_range=tuple(zr) if zr is not None else None, gt_depth=gt, mask=mask, source=str(folder))
+        return Scan(camera, projector, images, patterns, tags, depth_range=tuple(zr) if zr is not None else None,
+                    gt_depth=gt, mask=mask, source=str(folder),
+                    declared_roles={t: r for t in tags if (r := ness_role(t)) is not None})
     except ScanError as e:
         raise ScanError(f"{folder}: {e}") from None
 

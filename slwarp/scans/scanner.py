@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import NamedTuple
 
 import numpy as np
 
@@ -336,12 +337,7 @@ class Projector(Camera):
         self.T = np.asarray(self.T, dtype=np.float64).ravel()
         if self.T.size != 3 or not np.all(np.isfinite(self.T)):
             raise CalibrationError(f"projector extrinsics T: need 3 finite values, got {self.T}")
-        d = self.dist
-        # flat description for kernels and twins (plain floats: torch.compile reads it as a constant):
-        # R (9, row-major), T (3), fx, fy, cx, cy, k1, k2, k3, p1, p2, width, height, max_r2
-        self.flat_params = tuple(float(x) for x in self.R.ravel()) + tuple(float(x) for x in self.T) + (
-            self.fx, self.fy, self.cx, self.cy, float(d[0]), float(d[1]), float(d[4]), float(d[2]), float(d[3]),
-            float(self.width), float(self.height), float(self.max_normalized_r2))
+        self.packed = PackedProjector.of(self)
 
     @property
     def center(self) -> np.ndarray:
@@ -372,9 +368,6 @@ class Projector(Camera):
         d.update(kw)
         return type(self)(**d)
 
-    def to_dict(self) -> dict:
-        return super().to_dict()
-
     def extrinsics_dict(self) -> dict:
         return {"R": self.R.tolist(), "T": self.T.tolist()}
 
@@ -389,6 +382,58 @@ class Projector(Camera):
 
     def describe(self) -> str:
         return super().describe() + f", baseline={self.baseline:.1f} mm"
+
+
+class PackedProjector(NamedTuple):
+    """A projector as 24 plain floats: the one layout that the Warp kernels (slwarp.kernels.geometry
+    .projector_params), the torch ops (a custom op takes it as list[float]; torch.compile reads the tuple as a
+    constant) and the torch twin share. Fields by name; `R`, `T` and `dist` regroup them."""
+
+    r00: float
+    r01: float
+    r02: float
+    r10: float
+    r11: float
+    r12: float
+    r20: float
+    r21: float
+    r22: float
+    tx: float  # mm
+    ty: float
+    tz: float
+    fx: float  # px
+    fy: float
+    cx: float
+    cy: float
+    k1: float
+    k2: float
+    k3: float
+    p1: float
+    p2: float
+    width: float  # px
+    height: float
+    max_r2: float  # trusted squared normalised radius of the distortion model (Camera.max_normalized_r2)
+
+    @classmethod
+    def of(cls, projector: "Projector") -> "PackedProjector":
+        d = projector.dist
+        return cls(*(float(x) for x in projector.R.ravel()), *(float(x) for x in projector.T), projector.fx, projector.fy,
+                   projector.cx, projector.cy, float(d[0]), float(d[1]), float(d[4]), float(d[2]), float(d[3]),
+                   float(projector.width), float(projector.height), float(projector.max_normalized_r2))
+
+    @property
+    def R(self) -> tuple:
+        """X_p = R X_c + T: the rotation as 9 floats, row-major."""
+        return tuple(self[0:9])
+
+    @property
+    def T(self) -> tuple:
+        return (self.tx, self.ty, self.tz)
+
+    @property
+    def dist(self) -> tuple:
+        """(k1, k2, p1, p2, k3): OpenCV's order, as `distort_normalized` takes it."""
+        return (self.k1, self.k2, self.p1, self.p2, self.k3)
 
 
 def look_at_rotation(position: np.ndarray, target: np.ndarray, up=(0.0, -1.0, 0.0)) -> np.ndarray:

@@ -24,6 +24,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from ..devices import warp_device
 from ..scans.patterns import PatternSet, named_set
 from .rigs import DEPTH_RANGE_MM, make_rig
 from ..scans.scan import Scan
@@ -75,12 +76,6 @@ class SimOptions:
         if self.bits not in (0, 8, 16):
             raise ValueError(f"SimOptions.bits must be 0, 8 or 16, got {self.bits}")
 
-    def ideal(self) -> "SimOptions":
-        """The same settings with noise, defocus, gamma, camera blur and quantisation off (one ray per pixel,
-        linear response)."""
-        return SimOptions(**{**asdict(self), "noise": False, "defocus": False, "gamma": 1.0, "response": "gamma",
-                             "bits": 0, "supersample": 1, "camera_blur": 0.0})
-
 
 # Named camera models: one sweep dimension of the benchmarks. "linear" is the scanner the six-scene
 # results were measured with (one ray per pixel, linear response); the others add what real cameras do.
@@ -130,12 +125,6 @@ def _merge_objects(objects: list[SceneObject]):
     return np.concatenate(verts), np.concatenate(faces), np.concatenate(face_obj), np.concatenate(normals)
 
 
-def _default_device() -> str:
-    import torch
-
-    return "cuda:0" if torch.cuda.is_available() else "cpu"
-
-
 def render_geometry(objects: list[SceneObject], camera: Camera, projector: Projector, options: SimOptions,
                     device: str | None = None) -> RenderedGeometry:
     """Ray-cast the scene for every camera pixel (see module docstring)."""
@@ -144,7 +133,7 @@ def render_geometry(objects: list[SceneObject], camera: Camera, projector: Proje
     from slwarp.kernels.simulate import TEXTURE_CHECKER, TEXTURE_SINE, cast_camera_rays
 
     wp = runtime.init()
-    device = device or _default_device()
+    device = warp_device(device)
     t0 = time.perf_counter()
     verts, faces, face_obj, vnormals = _merge_objects(objects)
     with wp.ScopedDevice(device):
@@ -201,7 +190,7 @@ def sample_projected_patterns(geom: RenderedGeometry, patterns: np.ndarray, opti
     from slwarp.kernels.simulate import sample_patterns
 
     wp = runtime.init()
-    device = device or _default_device()
+    device = warp_device(device)
     if options.defocus:
         zl = geom.z_proj[geom.lit]
         rel = np.abs(zl - options.focus_dist).max() / options.focus_dist if zl.size else 0.0

@@ -1,0 +1,243 @@
+"""Multiresolution hash-grid encoding (Instant-NGP) with its spatial gradient, in Warp (CPU and CUDA).
+
+Grid: L levels over the unit cube, level l with res_l cells per side (vertices 0..res_l per axis) and a
+table slice of `size_l` entries at `offset_l` in one table T [E, F] (F features per entry). The per-level
+description is meta [L, 4] int32 = (res, offset, size, hashed). A point x in [0, 1]^3 at level l:
+    u = x res_l, clamped to [0, res_l] (a clamped coordinate has zero derivative: the features are
+        constant outside the cube; NaN counts as clamped to 0, so no input indexes out of bounds)
+    cell i = min(floor(u), res_l - 1) per axis, t = u - i in [0, 1]
+    vertex v = i + c for the 8 corners c in {0, 1}^3, weight w_c = prod_d (c_d ? t_d : 1 - t_d)
+    entry(v) = offset + v_x + (res+1) (v_y + (res+1) v_z)                     dense level (hashed = 0)
+             = offset + (v_x ^ v_y 2654435761 ^ v_z 805459861) mod size        hashed level (uint32
+               arithmetic, size a power of two: Instant-NGP's xor-of-primes spatial hash)
+    feat_l = sum_c w_c T[entry(v_c)]  (trilinear interpolation)
+The spatial derivative of a weight is closed form: d w_c / d x_d = res m_d s_d prod_{e != d} w_e with
+s_d = +1 for an upper corner (c_d = 1) and -1 for a lower one, m_d = 0 where the coordinate is clamped;
+its second derivatives are d2 w_c / dx_d dx_e = res^2 m_d m_e s_d s_e w_k (k the third axis) for d != e,
+and zero on the diagonal (trilinear is linear along each axis).
+
+Kernels (launched with dim (L, P): one thread per level and point, consecutive threads on consecutive
+points of one level; levels l >= active[0] are switched off: zero features, zero gradients):
+    encode             feat [P, L F]:  feat[p, l F + f] = sum_c w_c T[e_c, f]
+    encode_backward    dT [E, F] +=    w_c g[p, l F + f]                                    (atomic)
+    gradient           out [P, 3] +=   sum_c (sum_f g[p, l F + f] T[e_c, f]) grad w_c      (atomic over l)
+                       = sum_j g_j d feat_j / dx: the feature Jacobian contracted with a cotangent g,
+                       never materialising [P, L F, 3]
+    gradient_backward  given H = dL/d out [P, 3]:
+                       dg[p, l F + f] = sum_c T[e_c, f] (H . grad w_c)
+                       dT[e_c, f]    += g[p, l F + f] (H . grad w_c)                          (atomic)
+                       dx[p]         += sum_c (sum_f g T[e_c]) Hess(w_c) H   (only when need_x; atomic)
+`gradient` is also the encoding's backward into x. The table gradients are atomic adds (many points hit
+one entry; hash collisions add up by construction).
+
+Kernels are specialised on F (a compile-time constant: a table row is one vector load).
+"""
+
+import functools
+
+import warp as wp
+
+PRIME_Y = wp.constant(wp.uint32(2654435761))
+PRIME_Z = wp.constant(wp.uint32(805459861))
+
+
+@wp.func
+def axis_coord(x: float, res: int):
+    """(cell, t, m) of one coordinate at a level of `res` cells: the lower vertex index, the fraction in
+    [0, 1] and 1.0 where the coordinate is inside [0, 1] (0.0 where it is clamped or NaN)."""
+    r = float(res)
+    u = x * r
+    m = float(1.0)
+    if u >= 0.0:
+        if u > r:
+            u = r
+            m = 0.0
+    else:  # below zero, or NaN
+        u = 0.0
+        m = 0.0
+    cell = wp.min(int(wp.floor(u)), res - 1)
+    return cell, u - float(cell), m
+
+
+@wp.func
+def vertex_entry(vx: int, vy: int, vz: int, res: int, offset: int, size: int, hashed: int) -> int:
+    """Row of the table holding vertex (vx, vy, vz) of a level."""
+    if hashed != 0:
+        h = wp.uint32(vx) ^ (wp.uint32(vy) * PRIME_Y) ^ (wp.uint32(vz) * PRIME_Z)
+        return offset + int(h & wp.uint32(size - 1))
+    n = res + 1
+    return offset + vx + n * (vy + n * vz)
+
+
+@wp.func
+def corner_factors(bit: int, t: float):
+    """(weight factor, its derivative sign) of one axis for the lower (bit 0) or upper (bit 1) corner."""
+    if bit == 1:
+        return t, 1.0
+    return 1.0 - t, -1.0
+
+
+@functools.lru_cache(maxsize=None)
+def hashgrid_kernels(F: int):
+    """(encode, encode_backward, gradient, gradient_backward) for F features per entry (see module doc)."""
+    vecF = wp.types.vector(length=F, dtype=wp.float32)
+
+    @wp.func
+    def load_cotangent(g: wp.array2d(dtype=float), p: int, l: int) -> vecF:
+        out = vecF()
+        for f in range(F):
+            out[f] = g[p, l * F + f]
+        return out
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def encode(
+        x: wp.array(dtype=wp.vec3),
+        table: wp.array(dtype=vecF),
+        meta: wp.array2d(dtype=int),
+        active: wp.array(dtype=int),
+        feat: wp.array2d(dtype=float),
+    ):
+        l, p = wp.tid()
+        acc = vecF()
+        if l < active[0]:
+            res = meta[l, 0]
+            offset = meta[l, 1]
+            size = meta[l, 2]
+            hashed = meta[l, 3]
+            xp = x[p]
+            ix, tx, mx = axis_coord(xp[0], res)
+            iy, ty, my = axis_coord(xp[1], res)
+            iz, tz, mz = axis_coord(xp[2], res)
+            for c in range(8):
+                bx = c & 1
+                by = (c >> 1) & 1
+                bz = (c >> 2) & 1
+                wx, sx = corner_factors(bx, tx)
+                wy, sy = corner_factors(by, ty)
+                wz, sz = corner_factors(bz, tz)
+                e = vertex_entry(ix + bx, iy + by, iz + bz, res, offset, size, hashed)
+                acc += (wx * wy * wz) * table[e]
+        for f in range(F):
+            feat[p, l * F + f] = acc[f]
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def encode_backward(
+        x: wp.array(dtype=wp.vec3),
+        meta: wp.array2d(dtype=int),
+        active: wp.array(dtype=int),
+        g_feat: wp.array2d(dtype=float),
+        d_table: wp.array(dtype=vecF),
+    ):
+        l, p = wp.tid()
+        if l >= active[0]:
+            return
+        gv = load_cotangent(g_feat, p, l)
+        res = meta[l, 0]
+        offset = meta[l, 1]
+        size = meta[l, 2]
+        hashed = meta[l, 3]
+        xp = x[p]
+        ix, tx, mx = axis_coord(xp[0], res)
+        iy, ty, my = axis_coord(xp[1], res)
+        iz, tz, mz = axis_coord(xp[2], res)
+        for c in range(8):
+            bx = c & 1
+            by = (c >> 1) & 1
+            bz = (c >> 2) & 1
+            wx, sx = corner_factors(bx, tx)
+            wy, sy = corner_factors(by, ty)
+            wz, sz = corner_factors(bz, tz)
+            e = vertex_entry(ix + bx, iy + by, iz + bz, res, offset, size, hashed)
+            wp.atomic_add(d_table, e, (wx * wy * wz) * gv)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def gradient(
+        x: wp.array(dtype=wp.vec3),
+        table: wp.array(dtype=vecF),
+        meta: wp.array2d(dtype=int),
+        active: wp.array(dtype=int),
+        g: wp.array2d(dtype=float),
+        out: wp.array(dtype=wp.vec3),
+    ):
+        l, p = wp.tid()
+        if l >= active[0]:
+            return
+        gv = load_cotangent(g, p, l)
+        res = meta[l, 0]
+        offset = meta[l, 1]
+        size = meta[l, 2]
+        hashed = meta[l, 3]
+        xp = x[p]
+        ix, tx, mx = axis_coord(xp[0], res)
+        iy, ty, my = axis_coord(xp[1], res)
+        iz, tz, mz = axis_coord(xp[2], res)
+        acc = wp.vec3(0.0, 0.0, 0.0)
+        for c in range(8):
+            bx = c & 1
+            by = (c >> 1) & 1
+            bz = (c >> 2) & 1
+            wx, sx = corner_factors(bx, tx)
+            wy, sy = corner_factors(by, ty)
+            wz, sz = corner_factors(bz, tz)
+            e = vertex_entry(ix + bx, iy + by, iz + bz, res, offset, size, hashed)
+            a = wp.dot(gv, table[e])
+            acc += a * wp.vec3(sx * wy * wz, wx * sy * wz, wx * wy * sz)
+        r = float(res)
+        wp.atomic_add(out, p, wp.vec3(acc[0] * mx * r, acc[1] * my * r, acc[2] * mz * r))
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def gradient_backward(
+        x: wp.array(dtype=wp.vec3),
+        table: wp.array(dtype=vecF),
+        meta: wp.array2d(dtype=int),
+        active: wp.array(dtype=int),
+        g: wp.array2d(dtype=float),
+        h_out: wp.array(dtype=wp.vec3),
+        need_x: int,
+        d_table: wp.array(dtype=vecF),
+        d_g: wp.array2d(dtype=float),
+        d_x: wp.array(dtype=wp.vec3),
+    ):
+        l, p = wp.tid()
+        dg = vecF()
+        if l < active[0]:
+            gv = load_cotangent(g, p, l)
+            res = meta[l, 0]
+            offset = meta[l, 1]
+            size = meta[l, 2]
+            hashed = meta[l, 3]
+            r = float(res)
+            xp = x[p]
+            ix, tx, mx = axis_coord(xp[0], res)
+            iy, ty, my = axis_coord(xp[1], res)
+            iz, tz, mz = axis_coord(xp[2], res)
+            hp = h_out[p]
+            # H with the chain factors res m_d folded in: H . grad w_c = hm . (s_x w_y w_z, w_x s_y w_z, w_x w_y s_z)
+            hm = wp.vec3(hp[0] * mx * r, hp[1] * my * r, hp[2] * mz * r)
+            dx = wp.vec3(0.0, 0.0, 0.0)
+            for c in range(8):
+                bx = c & 1
+                by = (c >> 1) & 1
+                bz = (c >> 2) & 1
+                wx, sx = corner_factors(bx, tx)
+                wy, sy = corner_factors(by, ty)
+                wz, sz = corner_factors(bz, tz)
+                e = vertex_entry(ix + bx, iy + by, iz + bz, res, offset, size, hashed)
+                tv = table[e]
+                hdot = wp.dot(hm, wp.vec3(sx * wy * wz, wx * sy * wz, wx * wy * sz))
+                dg += hdot * tv
+                wp.atomic_add(d_table, e, hdot * gv)
+                if need_x != 0:
+                    a = wp.dot(gv, tv)
+                    # Hess(w_c) H with the res m factors of both axes: (hm_y s_x s_y w_z + hm_z s_x s_z w_y, ...)
+                    hxy = sx * sy * wz
+                    hxz = sx * sz * wy
+                    hyz = sy * sz * wx
+                    dx += a * wp.vec3((hxy * hm[1] + hxz * hm[2]) * mx * r, (hxy * hm[0] + hyz * hm[2]) * my * r,
+                                      (hxz * hm[0] + hyz * hm[1]) * mz * r)
+            if need_x != 0:
+                wp.atomic_add(d_x, p, dx)
+        for f in range(F):
+            d_g[p, l * F + f] = dg[f]
+
+    return encode, encode_backward, gradient, gradient_backward

@@ -1,0 +1,53 @@
+"""Devices in one place: the torch device a run uses and the Warp device its kernels launch on.
+
+    torch_device("auto")      -> cuda (the current CUDA device) when one is present, else cpu
+    torch_device("cuda:1")    -> torch.device("cuda:1"), or DeviceError when CUDA is absent
+    warp_device(tensor.device) -> "cuda:1" / "cpu": the Warp name of a torch device ("auto" and None too)
+"""
+from __future__ import annotations
+
+import re
+
+import torch
+
+__all__ = ["DeviceError", "torch_device", "warp_device", "DEVICE_PATTERN"]
+
+# the device names a user may give (CLI --device, TrainConfig.runtime.device)
+DEVICE_PATTERN = re.compile(r"auto|cpu|cuda(:\d+)?")
+
+
+class DeviceError(ValueError):
+    """A device that is malformed or not present on this machine."""
+
+
+def torch_device(spec: str | torch.device | None = "auto") -> torch.device:
+    """The torch device for 'auto' (CUDA when present, else the CPU), 'cpu', 'cuda' or 'cuda:N'."""
+    if isinstance(spec, torch.device):
+        dev = spec
+    elif spec is None or spec == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    elif isinstance(spec, str) and DEVICE_PATTERN.fullmatch(spec):
+        dev = torch.device(spec)
+    else:
+        raise DeviceError(f"device must be 'auto', 'cpu', 'cuda' or 'cuda:N', got {spec!r}")
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise DeviceError(f"device {spec}: CUDA was requested but no CUDA device is available")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise DeviceError(f"device {spec}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+    elif dev.type != "cpu":
+        raise DeviceError(f"slwarp runs on the CPU or CUDA devices, got {dev}")
+    return dev
+
+
+def warp_device(device: str | torch.device | None = "auto") -> str:
+    """The Warp device name ('cpu', 'cuda:0', ...) of a torch device or device string; 'auto' and None
+    pick as `torch_device` does. A CUDA device without an index is torch's current CUDA device."""
+    if device is None or device == "auto":
+        device = torch_device("auto")
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        return f"cuda:{dev.index if dev.index is not None else torch.cuda.current_device()}"
+    if dev.type != "cpu":
+        raise DeviceError(f"Warp kernels run on CPU or CUDA devices, got {dev}")
+    return "cpu"

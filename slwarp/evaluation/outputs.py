@@ -1,0 +1,64 @@
+"""Output writers: depth maps and point clouds/meshes, the files every reconstruction method leaves.
+
+    write_depth(folder, depth)           depth.npy (float32 mm, NaN invalid) + depth.png (uint16, 0.1 mm, 0 invalid)
+    write_depth_png(path, depth)         the 16-bit PNG alone (the authors' depth format; read back by
+                                         slwarp.scans.scan.read_depth)
+    write_points_ply(path, points, ...)  the finite points of a point map as a binary PLY (trimesh), gray or RGB
+    write_mesh_ply(path, mesh)           a trimesh mesh as a binary PLY
+
+Colour pictures (depth, error maps, previews) are in slwarp.evaluation.viz.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["write_depth", "write_depth_png", "write_points_ply", "write_mesh_ply"]
+
+DEPTH_PNG_PER_MM = 10.0  # depth PNG counts per mm: one count is 0.1 mm (max 6553.5 mm); 0 marks an invalid pixel
+
+
+def write_depth_png(path: str | os.PathLike, depth: np.ndarray) -> None:
+    """Write depth (mm, NaN invalid) as a 16-bit PNG in 0.1 mm units, 0 = invalid."""
+    import cv2
+
+    d = np.asarray(depth, np.float64)
+    q = np.where(np.isfinite(d) & (d > 0), np.clip(np.rint(d * DEPTH_PNG_PER_MM), 1, 65535), 0).astype(np.uint16)
+    if not cv2.imwrite(str(path), q):
+        raise OSError(f"could not write depth PNG: {path}")
+
+
+def write_depth(folder: str | os.PathLike, depth: np.ndarray) -> None:
+    """depth.npy (float32 mm, NaN invalid) and depth.png (uint16, 0.1 mm, 0 invalid) in `folder`."""
+    folder = Path(folder)
+    np.save(folder / "depth.npy", np.asarray(depth).astype(np.float32))
+    write_depth_png(folder / "depth.png", depth)
+
+
+def write_points_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | None = None) -> int:
+    """Write the finite points of points [..., 3] (mm) as a binary little-endian PLY (float32 x, y, z); colors
+    [...] gray or [..., 3] RGB, in [0, 1] (rounded to 8 bits) or uint8, optional (written as RGBA, alpha 255).
+    Returns the number of points written."""
+    import trimesh
+
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    keep = np.isfinite(pts).all(1)
+    rgba = None
+    if colors is not None:
+        c = np.asarray(colors)
+        c = c.reshape(-1, 3) if c.ndim >= 2 and c.shape[-1] == 3 and c.size == 3 * keep.size else c.reshape(-1, 1)
+        if c.shape[0] != keep.size:
+            raise ValueError(f"colors hold {c.shape[0]} entries for {keep.size} points")
+        if c.dtype != np.uint8:
+            c = np.clip(np.rint(np.asarray(c, np.float64) * 255), 0, 255).astype(np.uint8)
+        rgb = np.repeat(c, 3, axis=1) if c.shape[1] == 1 else c
+        rgba = np.concatenate([rgb, np.full((len(rgb), 1), 255, np.uint8)], 1)[keep]
+    trimesh.PointCloud(pts[keep], colors=rgba).export(str(path), file_type="ply")
+    return int(keep.sum())
+
+
+def write_mesh_ply(path: str | os.PathLike, mesh) -> None:
+    """Write a trimesh mesh (mm) as a binary PLY."""
+    mesh.export(str(path), file_type="ply")

@@ -1,0 +1,467 @@
+"""TrainConfig: everything that defines a neural reconstruction run, in six typed sections.
+
+    field       the SDF network (NeuS's MLP: width, depth, skip, encoding)
+    sampling    what a training step renders: rays, samples per ray, pixels with contrast, pattern blur
+    schedule    iterations, Adam's learning rate and its decay, loss weights, incremental mode
+    init        where the field starts: depth-search map + warm-up, NeuS's sphere, or a far surface
+    runtime     how and where it runs (seed, backend, device, precision, compile, CUDA graph, logs)
+    extraction  from the trained field to a depth map (marching cubes, ray casting, filters)
+
+Every option has one flat name, unique across sections (`OPTIONS`): the CLI flag (--name with dashes, generated
+from this module with its type, choices and help), the keyword of `preset(name, **options)` and
+`TrainConfig.with_options`, and the key of bench specs (key=value). On disk a config is YAML with the sections
+as mappings (`load_config`, `save_config`). `TrainConfig.validate` checks every value against its type and
+range and raises ConfigError naming the option, the value and what is allowed.
+
+PRESETS: paper, tuned, cpu, tiny (`PRESET_SUMMARIES` says what each is for); `default_preset_name(device)`
+picks paper on CUDA and cpu otherwise.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import typing
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from ..devices import DEVICE_PATTERN
+from .pattern_model import CONTRAST_THRESHOLD
+
+__all__ = [
+    "ConfigError",
+    "FieldConfig",
+    "SamplingConfig",
+    "ScheduleConfig",
+    "InitConfig",
+    "RuntimeConfig",
+    "ExtractionConfig",
+    "TrainConfig",
+    "Option",
+    "OPTIONS",
+    "SECTIONS",
+    "PRESETS",
+    "PRESET_SUMMARIES",
+    "preset",
+    "default_preset_name",
+    "load_config",
+    "save_config",
+]
+
+
+class ConfigError(ValueError):
+    """An unknown option or a value an option cannot take; the message names the option, the value and
+    what is allowed."""
+
+
+def option(default, help: str, *, min=None, max=None, above=None, name: str | None = None):
+    """A config field: its default, a one-line help (CLI --help and docs), the allowed range (min <= value <=
+    max, value > above) and its flat name when it differs from the field's (it must be unique across
+    sections)."""
+    return dataclasses.field(default=default, metadata={"help": help, "min": min, "max": max, "above": above, "name": name})
+
+
+@dataclass
+class FieldConfig:
+    """The SDF network.
+
+    NeuS's MLP: positional encoding, Softplus(beta=100), weight normalisation, geometric initialisation."""
+
+    hidden: int = option(256, "width of the field MLP's hidden layers", min=1)
+    layers: int = option(8, "hidden layers of the field MLP", min=1)
+    skip: int | None = option(4, "hidden layer that re-receives the encoded input (none: no skip; below layers)", min=1)
+    n_freqs: int = option(6, "positional-encoding frequencies (0: raw coordinates)", min=0)
+
+
+@dataclass
+class SamplingConfig:
+    """What one training step renders."""
+
+    rays: int = option(2048, "rays (camera pixels) per iteration", min=1)
+    n_samples: int = option(32, "coarse samples per ray", min=1)
+    n_importance: int = option(32, "NeuS up-sampled samples per ray (a multiple of up_sample_steps)", min=0)
+    up_sample_steps: int = option(4, "NeuS up-sampling steps", min=0)
+    contrast_threshold: float = option(CONTRAST_THRESHOLD, "minimum modulation b (full scale) of a pixel the losses use",
+                                       min=0.0, max=1.0)
+    # the camera sees the projected pattern blurred (projector defocus, the pixel's footprint): the renderer
+    # samples it blurred too; "auto" fits the sigma to the images at the depth-search map (1.0 px without one)
+    pattern_blur: float | Literal["auto"] = option("auto", "Gaussian blur of the patterns as rendered, projector px, or "
+                                                   "auto (fitted to the images at the depth-search map)", min=0.0)
+
+
+@dataclass
+class ScheduleConfig:
+    """Iterations, learning rate, loss weights, incremental mode."""
+
+    iters: int = option(4000, "training iterations (after the warm-up)", min=0)
+    lr: float = option(1e-4, "Adam learning rate", above=0.0)
+    lr_decay: Literal["none", "cosine"] = option("none", "learning-rate schedule: none (paper: constant) or cosine "
+                                                 "(NeuS: decay to lr_final x lr)")
+    lr_final: float = option(0.05, "cosine decay: the final learning rate as a fraction of lr", min=0.0, max=1.0)
+    lambda_rc: float = option(1.0, "weight of the rendered-colour loss L_rc (0 only for the loss ablation)", min=0.0)
+    lambda_sc: float = option(1.0, "weight of the surface-colour loss L_sc, from sc_start on", min=0.0)
+    sc_start: int = option(1000, "iteration where L_sc starts", min=0)
+    lambda_reg: float = option(0.1, "weight of the Eikonal loss L_reg", min=0.0)
+    anneal_end: int = option(0, "NeuS cos-anneal over this many iterations (0: none)", min=0)
+    incremental: bool = option(False, "start with start_frames frames and add one every add_every iterations")
+    start_frames: int = option(3, "incremental: frames at the start", min=1)
+    add_every: int = option(500, "incremental: iterations between added frames", min=1)
+
+
+@dataclass
+class InitConfig:
+    """Where the field starts.
+
+    The photometric loss is far from convex in depth: NeuS's sphere leaves surfaces hundreds of mm off in
+    other minima (232 mm MAE on the small-rig bunny), so by default a depth search gives a starting map that a
+    warm-up pulls the rendered depth onto."""
+
+    method: Literal["search", "sphere", "camera"] = option(
+        "search", "search: depth-search map + warm-up; sphere: NeuS's geometric initialisation (the paper); "
+        "camera: a surface at the far depth around the camera", name="init")
+    iters: int = option(300, "warm-up iterations pulling the rendered depth onto the initial depth map", min=0,
+                        name="init_iters")
+    search_step_mm: float = option(1.0, "depth-search hypothesis spacing (mm)", above=0.0)
+    search_stride: int = option(2, "depth search on every stride-th pixel", min=1)
+
+
+@dataclass
+class RuntimeConfig:
+    """How and where the run executes (none of it changes the method)."""
+
+    seed: int = option(0, "random seed (field initialisation, pixel batches, ray jitter)", min=0)
+    backend: Literal["warp", "torch"] = option("warp", "fused Warp kernels or their pure-torch twin")
+    device: str = option("auto", "auto (CUDA when present), cpu, cuda or cuda:N")
+    matmul: Literal["fp32", "tf32"] = option("fp32", "CUDA matrix precision of the field MLP")
+    compile: bool = option(True, "torch.compile the field (CUDA only)")
+    # the whole step (render, losses, backward, Adam) captured once and replayed: no Python, launch or
+    # allocation cost per step; the same draws and results as plain launches; falls back (with a warning)
+    # to plain launches if the capture fails
+    cuda_graph: bool = option(True, "CUDA: capture the training step once as a CUDA graph and replay it")
+    checkpoint_every: int = option(500, "iterations between checkpoints", min=1)
+    log_every: int = option(50, "iterations between logged losses", min=1)
+
+
+@dataclass
+class ExtractionConfig:
+    """From the trained field to a depth map."""
+
+    mc_resolution: int = option(384, "marching-cubes cells along the volume's longest side", min=2)
+    depth_method: Literal["mesh", "sphere"] = option("mesh", "depth by ray casting the marching-cubes mesh, or by "
+                                                     "sphere tracing the field")
+    edge_filter: float = option(10.0, "drop depth-edge (flying) pixels: jumps above this many pixel footprints (0: off)",
+                                min=0.0)
+    photometric_filter: float = option(0.4, "drop depth pixels whose relative RMS residual reaches this (0: off)",
+                                       min=0.0)
+
+
+SECTIONS = {"field": FieldConfig, "sampling": SamplingConfig, "schedule": ScheduleConfig, "init": InitConfig,
+            "runtime": RuntimeConfig, "extraction": ExtractionConfig}
+
+
+@dataclass(frozen=True)
+class Option:
+    """One option: its flat name, where it lives (section, key), its type and allowed values."""
+
+    name: str
+    section: str
+    key: str
+    type: object
+    help: str
+    min: float | None = None
+    max: float | None = None
+    above: float | None = None
+
+    @property
+    def choices(self) -> tuple | None:
+        """The allowed words of a Literal option (with a number alternative: the words besides the number)."""
+        words = [a for t in self._alternatives() if typing.get_origin(t) is Literal for a in typing.get_args(t)]
+        return tuple(words) if words else None
+
+    @property
+    def is_bool(self) -> bool:
+        return self.type is bool
+
+    def _alternatives(self) -> tuple:
+        return typing.get_args(self.type) if typing.get_origin(self.type) in (typing.Union, _UnionType) else (self.type,)
+
+    def _numeric(self):
+        """int or float when the option takes a number (besides words or None), else None."""
+        for t in self._alternatives():
+            if t in (int, float):
+                return t
+        return None
+
+    def allowed(self) -> str:
+        """What the option takes, in words."""
+        parts = []
+        num = self._numeric()
+        if num is not None:
+            rng = []
+            if self.min is not None:
+                rng.append(f">= {self.min:g}")
+            if self.above is not None:
+                rng.append(f"> {self.above:g}")
+            if self.max is not None:
+                rng.append(f"<= {self.max:g}")
+            parts.append(("an integer" if num is int else "a number") + (" " + " and ".join(rng) if rng else ""))
+        if self.choices:
+            parts.append(("" if parts else "one of ") + ", ".join(map(str, self.choices)))
+        if type(None) in self._alternatives():
+            parts.append("none")
+        if self.is_bool:
+            parts.append("true or false")
+        if self.type is str and self.key == "device":
+            parts.append("auto, cpu, cuda or cuda:N")
+        return " or ".join(parts)
+
+    def metavar(self) -> str:
+        """How --help shows the value: {a,b} for a choice of words, N (an integer) or X (a number) with the
+        words it also takes, the key in capitals for text."""
+        if self.choices and self._numeric() is None:
+            return "{" + ",".join(self.choices) + "}"
+        word = {int: "N", float: "X"}.get(self._numeric(), self.key.upper())
+        return "|".join([word, *(self.choices or ()), *(["none"] if type(None) in self._alternatives() else [])])
+
+    def _fail(self, value):
+        raise ConfigError(f"option {self.name} ({self.section}.{self.key}): {value!r} is not allowed; it takes {self.allowed()}")
+
+    def check(self, value) -> None:
+        """Raise ConfigError unless `value` is of the option's type and in its range."""
+        if value is None:
+            if type(None) not in self._alternatives():
+                self._fail(value)
+            return
+        if self.choices and value in self.choices and not isinstance(value, bool):
+            return
+        if self.is_bool:
+            if not isinstance(value, bool):
+                self._fail(value)
+            return
+        num = self._numeric()
+        if num is not None and isinstance(value, (int, float)) and not isinstance(value, bool):
+            if (num is int and not isinstance(value, int)) or not math.isfinite(value):
+                self._fail(value)
+            if ((self.min is not None and value < self.min) or (self.max is not None and value > self.max)
+                    or (self.above is not None and not value > self.above)):
+                self._fail(value)
+            return
+        if self.type is str and isinstance(value, str) and (self.key != "device" or DEVICE_PATTERN.fullmatch(value)):
+            return
+        self._fail(value)
+
+    def parse(self, text: str):
+        """The value of `text` (a command-line word, a key=value spec, a YAML string), checked."""
+        word = text.strip()
+        if self.is_bool:
+            low = word.lower()
+            if low not in ("true", "false", "1", "0", "yes", "no", "on", "off"):
+                self._fail(text)
+            value = low in ("true", "1", "yes", "on")
+        elif self.choices and word in self.choices:
+            value = word
+        elif type(None) in self._alternatives() and word.lower() in ("none", "null"):
+            value = None
+        elif self._numeric() is not None:
+            try:
+                value = int(word) if self._numeric() is int else float(word)
+            except ValueError:
+                self._fail(text)
+        else:
+            value = word
+        self.check(value)
+        return value
+
+    def coerce(self, value):
+        """A value read from YAML: strings are parsed as on the command line (YAML reads 1e-4 as a string), an
+        integer is accepted for a number; checked."""
+        if isinstance(value, str):
+            return self.parse(value)
+        if isinstance(value, int) and not isinstance(value, bool) and self._numeric() is float:
+            value = float(value)
+        self.check(value)
+        return value
+
+
+_UnionType = type(int | None)
+
+
+def _collect_options() -> dict[str, Option]:
+    options: dict[str, Option] = {}
+    for section, cls in SECTIONS.items():
+        hints = typing.get_type_hints(cls)
+        for f in dataclasses.fields(cls):
+            md = f.metadata
+            name = md.get("name") or f.name
+            if name in options:
+                raise RuntimeError(f"option name {name!r} ({section}.{f.name}) is not unique")
+            options[name] = Option(name, section, f.name, hints[f.name], md["help"], md.get("min"), md.get("max"),
+                                   md.get("above"))
+    return options
+
+
+@dataclass
+class TrainConfig:
+    """Everything that defines a run, in six sections (see the module docstring and PRESETS)."""
+
+    field: FieldConfig = dataclasses.field(default_factory=FieldConfig)
+    sampling: SamplingConfig = dataclasses.field(default_factory=SamplingConfig)
+    schedule: ScheduleConfig = dataclasses.field(default_factory=ScheduleConfig)
+    init: InitConfig = dataclasses.field(default_factory=InitConfig)
+    runtime: RuntimeConfig = dataclasses.field(default_factory=RuntimeConfig)
+    extraction: ExtractionConfig = dataclasses.field(default_factory=ExtractionConfig)
+
+    def get(self, name: str):
+        """The value of an option by its flat name."""
+        opt = _option(name)
+        return getattr(getattr(self, opt.section), opt.key)
+
+    def with_options(self, **options) -> "TrainConfig":
+        """A copy with options set by flat name (e.g. iters=300, init_iters=100, device="cpu"), validated."""
+        sections = {name: dataclasses.replace(getattr(self, name)) for name in SECTIONS}
+        for name, value in options.items():
+            opt = _option(name)
+            setattr(sections[opt.section], opt.key, value)
+        return TrainConfig(**sections).validate()
+
+    def validate(self) -> "TrainConfig":
+        """Check every option's type and range and the rules between options; raise ConfigError naming the
+        option, its value and what is allowed. Returns self."""
+        for name, cls in SECTIONS.items():
+            if not isinstance(getattr(self, name), cls):
+                raise ConfigError(f"TrainConfig.{name} must be a {cls.__name__}, got {type(getattr(self, name)).__name__}")
+        for opt in OPTIONS.values():
+            opt.check(self.get(opt.name))
+        s, f = self.sampling, self.field
+        if s.up_sample_steps > 0 and s.n_importance % s.up_sample_steps:
+            raise ConfigError(f"option n_importance: {s.n_importance} is not a multiple of up_sample_steps "
+                              f"({s.up_sample_steps})")
+        if f.skip is not None and not f.skip < f.layers:
+            raise ConfigError(f"option skip: {f.skip} must be below layers ({f.layers}), or none")
+        return self
+
+    def to_dict(self) -> dict:
+        """{section: {key: value}}: plain values, as YAML and checkpoints hold them."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, doc: dict, base: "TrainConfig | None" = None, source: str = "config") -> "TrainConfig":
+        """`base` (default: TrainConfig()) with the values of doc {section: {key: value}} (all optional),
+        validated. Unknown sections or keys raise ConfigError naming `source`."""
+        if not isinstance(doc, dict):
+            raise ConfigError(f"{source}: expected a mapping of sections ({', '.join(SECTIONS)}), got {type(doc).__name__}")
+        sections = {name: dataclasses.replace(getattr(base or cls(), name)) for name in SECTIONS}
+        for name, values in doc.items():
+            if name not in SECTIONS:
+                raise ConfigError(f"{source}: unknown section {name!r}; sections: {', '.join(SECTIONS)}")
+            if not isinstance(values, dict):
+                raise ConfigError(f"{source}: section {name} must be a mapping of options, got {values!r}")
+            keys = {f.name: f for f in dataclasses.fields(SECTIONS[name])}
+            for key, value in values.items():
+                if key not in keys:
+                    raise ConfigError(f"{source}: unknown option {name}.{key}; {name} has {', '.join(keys)}")
+                opt = OPTIONS[keys[key].metadata.get("name") or key]
+                try:
+                    setattr(sections[name], key, opt.coerce(value))
+                except ConfigError as e:
+                    raise ConfigError(f"{source}: {e}") from None
+        return cls(**sections).validate()
+
+
+OPTIONS: dict[str, Option] = _collect_options()
+
+
+def _option(name: str) -> Option:
+    opt = OPTIONS.get(name)
+    if opt is None:
+        raise ConfigError(f"unknown option {name!r}; options: {', '.join(OPTIONS)}")
+    return opt
+
+
+# ----------------------------------------------------------------------------------------------
+# presets
+
+PRESETS: dict[str, TrainConfig] = {}
+PRESET_SUMMARIES: dict[str, str] = {}
+
+
+def _preset(name: str, summary: str, **options) -> None:
+    PRESETS[name] = TrainConfig().with_options(**options)
+    PRESET_SUMMARIES[name] = summary
+
+
+# the paper: 4000 iterations, 2048 rays, 32 + 32 samples, NeuS MLP 8 x 256, Adam 1e-4 constant, lambda_sc 0 then 1
+# after 1000 iterations, lambda_reg 0.1 (plus our depth-search start; TF32 on CUDA, which changed the bunny's MAE
+# by 3% against full float32)
+_preset("paper", "the paper's recipe: 4000 iterations, 2048 rays, 32+32 samples, MLP 8x256, Adam 1e-4 (GPU)",
+        matmul="tf32")
+# measured better on the virtual scanner (default-rig bunny: MAE 0.77 mm against 2.0 mm for "paper"): NeuS's
+# learning rate 5e-4 with cosine decay, and no surface-colour loss (it samples the sharp pattern at one point and
+# disagrees with the blurred edges the camera sees)
+_preset("tuned", "paper with lr 5e-4, cosine decay and no surface-colour loss: better on the virtual scanner (GPU)",
+        matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0)
+# CPU: the tuned recipe with a smaller field and batch, minutes on two cores (small rig)
+_preset("cpu", "tuned with a 4x64 field, 384 rays, 1500 iterations: minutes on two CPU cores (small rig)",
+        iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, lr=5e-4, lr_decay="cosine",
+        lambda_sc=0.0, hidden=64, layers=4, skip=2, n_freqs=6, search_step_mm=2.0, mc_resolution=192,
+        checkpoint_every=250, log_every=25)
+# tests: a few hundred iterations of a smaller field
+_preset("tiny", "a 3x48 field for 300 iterations: tests", iters=300, rays=256, n_samples=16, n_importance=8,
+        up_sample_steps=1, lr=5e-4, lr_decay="cosine", sc_start=100, hidden=48, layers=3, skip=None, n_freqs=4,
+        init_iters=100, search_step_mm=2.0, search_stride=3, mc_resolution=128, checkpoint_every=100, log_every=25)
+
+
+def preset(name: str, **options) -> TrainConfig:
+    """A copy of preset `name` with options set by flat name (see OPTIONS), validated."""
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; presets: {', '.join(PRESETS)}")
+    return PRESETS[name].with_options(**options)
+
+
+def default_preset_name(device) -> str:
+    """paper on a CUDA device, cpu otherwise (device: a torch.device or its type as a string)."""
+    return "paper" if getattr(device, "type", device) == "cuda" else "cpu"
+
+
+# ----------------------------------------------------------------------------------------------
+# YAML
+
+
+def load_config(path, base: TrainConfig | None = None) -> TrainConfig:
+    """A config from a YAML file of sections (field, sampling, ...: mappings of options; any may be left out and
+    keeps `base`'s values, default TrainConfig()). A `fitted` section (values a run fitted, written by
+    `save_config`) is read past, so a run's config.yaml can be passed back."""
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file not found: {path}")
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: not valid YAML ({e})") from None
+    if isinstance(doc, dict):
+        doc = {k: v for k, v in doc.items() if k != "fitted"}
+    return TrainConfig.from_dict(doc if doc is not None else {}, base, source=str(path))
+
+
+def save_config(path, config: TrainConfig, fitted: dict | None = None) -> None:
+    """Write the config as YAML (every section and option) and, when given, the values the run fitted in a
+    `fitted` section."""
+    import yaml
+
+    doc = config.to_dict()
+    if fitted is not None:
+        doc["fitted"] = _plain(fitted)
+    Path(path).write_text(yaml.safe_dump(doc, sort_keys=False, default_flow_style=False, width=120))
+
+
+def _plain(x):
+    """Nested dicts/lists with numpy scalars turned into Python numbers (YAML's safe dumper needs them)."""
+    if isinstance(x, dict):
+        return {_plain(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if hasattr(x, "item") and callable(x.item):
+        return x.item()
+    return x

@@ -1,0 +1,179 @@
+"""The typed configuration: presets, validation with clear messages, YAML in and out, flat option names, and
+the CLI options generated from it."""
+import dataclasses
+import math
+
+import pytest
+
+from slwarp import cli
+from slwarp.neural.config import (OPTIONS, PRESET_SUMMARIES, PRESETS, SECTIONS, ConfigError, TrainConfig, load_config,
+                                  preset, save_config)
+
+# The presets as flat fields, written out by hand from the flat TrainConfig they replace: the sections must
+# hold exactly these values (a change here is a change of behaviour).
+FLAT_DEFAULTS = dict(iters=4000, rays=2048, n_samples=32, n_importance=32, up_sample_steps=4, lr=1e-4, lr_decay="none",
+                     lr_final=0.05, lambda_rc=1.0, lambda_sc=1.0, sc_start=1000, lambda_reg=0.1, anneal_end=0,
+                     contrast_threshold=0.05, pattern_blur="auto", photometric_filter=0.4, hidden=256, layers=8, skip=4,
+                     n_freqs=6, init="search", init_iters=300, search_step_mm=1.0, search_stride=2, seed=0, backend="warp",
+                     device="auto", matmul="fp32", compile=True, cuda_graph=True, incremental=False, start_frames=3,
+                     add_every=500, checkpoint_every=500, log_every=50, mc_resolution=384, depth_method="mesh",
+                     edge_filter=10.0)
+FLAT_PRESETS = {
+    "paper": dict(matmul="tf32"),
+    "tuned": dict(matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0),
+    "cpu": dict(iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, lr=5e-4, lr_decay="cosine",
+                lambda_sc=0.0, hidden=64, layers=4, skip=2, n_freqs=6, search_step_mm=2.0, mc_resolution=192,
+                checkpoint_every=250, log_every=25),
+    "tiny": dict(iters=300, rays=256, n_samples=16, n_importance=8, up_sample_steps=1, lr=5e-4, lr_decay="cosine",
+                 sc_start=100, hidden=48, layers=3, skip=None, n_freqs=4, init_iters=100, search_step_mm=2.0,
+                 search_stride=3, mc_resolution=128, checkpoint_every=100, log_every=25),
+}
+
+
+@pytest.mark.parametrize("name", list(FLAT_PRESETS))
+def test_presets_hold_the_flat_values(name):
+    expect = {**FLAT_DEFAULTS, **FLAT_PRESETS[name]}
+    cfg = PRESETS[name]
+    assert set(OPTIONS) == set(expect)
+    assert {k: cfg.get(k) for k in OPTIONS} == expect
+    assert cfg.schedule.iters == expect["iters"] and cfg.init.iters == expect["init_iters"] and cfg.init.method == "search"
+    assert set(PRESET_SUMMARIES) == set(PRESETS)
+
+
+def test_preset_copies_and_flat_overrides():
+    cfg = preset("tiny", iters=50, init_iters=20, init="sphere", device="cpu", skip=None)
+    assert (cfg.schedule.iters, cfg.init.iters, cfg.init.method, cfg.runtime.device) == (50, 20, "sphere", "cpu")
+    cfg.schedule.iters = 7
+    assert PRESETS["tiny"].schedule.iters == 300  # presets are never changed through a copy
+    with pytest.raises(ConfigError, match="unknown option 'iterations'"):
+        preset("tiny", iterations=5)
+    with pytest.raises(ConfigError, match="unknown preset 'fast'; presets: paper, tuned, cpu, tiny"):
+        preset("fast")
+
+
+@pytest.mark.parametrize("option,value,allowed", [
+    ("lr_decay", "cos", "one of none, cosine"),  # used to mean cosine silently
+    ("rays", 0, "an integer >= 1"),
+    ("iters", 1.5, "an integer >= 0"),
+    ("lr", 0.0, "a number > 0"),
+    ("lambda_sc", math.nan, "a number >= 0"),
+    ("lr_final", 1.5, "a number >= 0 and <= 1"),
+    ("pattern_blur", -1.0, "a number >= 0 or auto"),
+    ("pattern_blur", "sharp", "a number >= 0 or auto"),
+    ("incremental", "yes", "true or false"),
+    ("init", "zero", "one of search, sphere, camera"),
+    ("device", "gpu", "auto, cpu, cuda or cuda:N"),
+    ("skip", 0, "an integer >= 1 or none"),
+    ("backend", None, "one of warp, torch"),
+])
+def test_validation_names_option_value_and_what_is_allowed(option, value, allowed):
+    with pytest.raises(ConfigError) as e:
+        preset("paper", **{option: value})
+    msg = str(e.value)
+    assert f"option {option} " in msg and repr(value) in msg and allowed in msg
+
+
+def test_rules_between_options():
+    with pytest.raises(ConfigError, match="n_importance: 30 is not a multiple of up_sample_steps \\(4\\)"):
+        preset("paper", n_importance=30)
+    with pytest.raises(ConfigError, match="skip: 8 must be below layers \\(8\\)"):
+        preset("paper", skip=8)
+    cfg = preset("paper")
+    cfg.schedule.lr_decay = "exp"  # set by hand: validate() (which Trainer calls) still catches it
+    with pytest.raises(ConfigError, match="lr_decay"):
+        cfg.validate()
+
+
+def test_option_names_are_unique_and_documented():
+    assert len(OPTIONS) == sum(len(dataclasses.fields(cls)) for cls in SECTIONS.values())
+    for opt in OPTIONS.values():
+        assert opt.help and opt.section in SECTIONS
+    assert OPTIONS["init_iters"].section == "init" and OPTIONS["init_iters"].key == "iters"
+
+
+def test_yaml_round_trip_partial_files_and_errors(tmp_path):
+    cfg = preset("cpu", iters=10, skip=None, pattern_blur=0.75, device="cpu")
+    save_config(tmp_path / "config.yaml", cfg, fitted={"pattern_blur_px": 0.9, "fit_mse": {0.25: 1e-3}})
+    assert load_config(tmp_path / "config.yaml") == cfg  # the fitted section is read past
+    (tmp_path / "part.yaml").write_text("schedule:\n  lr: 1e-3\ninit: {method: sphere}\n")
+    part = load_config(tmp_path / "part.yaml", base=PRESETS["tiny"])
+    assert part.schedule.lr == 1e-3 and part.init.method == "sphere" and part.field.hidden == 48  # YAML's "1e-3" string
+    cases = {"sched:\n  iters: 3\n": "unknown section 'sched'; sections: field, sampling, schedule",
+             "schedule:\n  iter: 3\n": "unknown option schedule.iter; schedule has iters, lr",
+             "schedule:\n  lr_decay: cos\n": "option lr_decay (schedule.lr_decay): 'cos' is not allowed",
+             "schedule: 3\n": "section schedule must be a mapping",
+             "- 1\n- 2\n": "expected a mapping of sections"}
+    for text, msg in cases.items():
+        (tmp_path / "bad.yaml").write_text(text)
+        with pytest.raises(ConfigError, match="bad.yaml") as e:
+            load_config(tmp_path / "bad.yaml")
+        assert msg in str(e.value)
+    with pytest.raises(ConfigError, match="config file not found"):
+        load_config(tmp_path / "missing.yaml")
+
+
+def parse(argv):
+    args = cli.build_parser(argv).parse_args(argv)
+    return cli._config_from_args(args)
+
+
+def test_cli_flags_are_generated_for_every_option():
+    for name, opt in OPTIONS.items():
+        flag = "--" + name.replace("_", "-")
+        default = PRESETS["tiny"].get(name)
+        if opt.is_bool:
+            argv, expect = ["--no-" + flag[2:] if default else flag], not default
+        elif opt.choices and opt._numeric() is None:
+            expect = next(c for c in opt.choices if c != default)
+            argv = [flag, expect]
+        elif name == "device":
+            argv, expect = [flag, "cpu"], "cpu"
+        else:
+            expect = {int: 2, float: 0.5}[opt._numeric()]
+            assert expect != default
+            argv = [flag, str(expect)]
+        _, cfg, _ = parse(["reconstruct", "scan", "--out", "o", "--preset", "tiny", *argv])
+        assert cfg.get(name) == expect, name
+
+
+def test_cli_help_shows_presets_and_the_chosen_presets_defaults(capsys):
+    for argv, shown in ((["reconstruct", "--preset", "tiny", "--help"], "(preset tiny: 48)"),
+                        (["demo", "--preset=paper", "--help"], "(preset paper: 256)")):
+        with pytest.raises(SystemExit):
+            cli.build_parser(argv).parse_args(argv)
+        out = capsys.readouterr().out
+        assert shown in " ".join(out.split())  # argparse wraps the help
+        for name in PRESETS:  # every preset, one line each
+            assert sum(line.strip().startswith(name + " ") for line in out.splitlines()) == 1, name
+
+
+def test_cli_config_file_then_flags(tmp_path):
+    (tmp_path / "c.yaml").write_text("schedule: {iters: 77, lr: 0.002}\nfield: {hidden: 32}\n")
+    name, cfg, dev = parse(["reconstruct", "scan", "--out", "o", "--preset", "tiny", "--device", "cpu", "--config",
+                            str(tmp_path / "c.yaml"), "--iters", "5"])
+    assert name == "tiny" and str(dev) == "cpu"
+    assert (cfg.schedule.iters, cfg.schedule.lr, cfg.field.hidden, cfg.field.layers) == (5, 0.002, 32, 3)
+    assert cfg.runtime.device == "cpu"
+
+
+def test_cli_bad_options_and_internal_errors(tmp_path, capsys, monkeypatch):
+    with pytest.raises(SystemExit):  # argparse rejects a bad value with the option's message
+        cli.main(["reconstruct", "scan", "--out", "o", "--lr-decay", "cos"])
+    assert "'cos' is not allowed; it takes one of none, cosine" in capsys.readouterr().err
+    (tmp_path / "bad.yaml").write_text("schedule: {iterz: 3}\n")
+    assert cli.main(["reconstruct", "scan", "--out", "o", "--device", "cpu", "--config", str(tmp_path / "bad.yaml")]) == 2
+    err = capsys.readouterr().err
+    assert "unknown option schedule.iterz" in err and len(err.strip().splitlines()) == 1
+
+    def broken(args):
+        raise ValueError("an internal bug")
+
+    monkeypatch.setattr(cli, "cmd_evaluate", broken)
+    with pytest.raises(ValueError, match="an internal bug"):  # a bug keeps its traceback
+        cli.main(["evaluate", "pred.npy", "scan"])
+
+
+def test_train_config_is_importable_from_slwarp():
+    import slwarp
+
+    assert slwarp.TrainConfig is TrainConfig and slwarp.preset is preset and slwarp.load_config is load_config

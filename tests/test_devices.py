@@ -1,0 +1,35 @@
+"""Device resolution in one place: torch devices from user strings, Warp device names from torch devices."""
+import pytest
+import torch
+
+from slwarp.devices import DeviceError, torch_device, warp_device
+
+
+def test_cpu_and_auto():
+    assert torch_device("cpu") == torch.device("cpu")
+    assert torch_device("auto") == torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    assert torch_device(None) == torch_device("auto")
+    assert warp_device(torch.device("cpu")) == "cpu" and warp_device("cpu") == "cpu"
+    assert warp_device("auto") == ("cuda:0" if torch.cuda.is_available() else "cpu")
+
+
+@pytest.mark.parametrize("spec", ["gpu", "cuda:x", "CPU", "cuda0", ""])
+def test_malformed_device_names_the_value(spec):
+    with pytest.raises(DeviceError, match="'auto', 'cpu', 'cuda' or 'cuda:N'") as e:
+        torch_device(spec)
+    assert repr(spec) in str(e.value)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_cuda_without_a_gpu_is_a_clear_error():
+    with pytest.raises(DeviceError, match="no CUDA device is available"):
+        torch_device("cuda:0")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_device_names():
+    assert torch_device("cuda") == torch.device("cuda")
+    assert warp_device(torch.device("cuda")) == f"cuda:{torch.cuda.current_device()}"
+    assert warp_device(torch.device("cuda", 0)) == "cuda:0"
+    with pytest.raises(DeviceError, match="CUDA device"):
+        torch_device(f"cuda:{torch.cuda.device_count()}")
