@@ -153,6 +153,9 @@ class ExtractionConfig:
                                 min=0.0)
     photometric_filter: float = option(0.4, "drop depth pixels whose relative RMS residual reaches this (0: off)",
                                        min=0.0)
+    refine_range: float = option(0.0, "photometric refinement after the filters: each pixel's depth moves by the offset "
+                                 "within +- this many mm that best explains its 7x7 window's images (offset and "
+                                 "modulation by least squares, blur per projector depth; 0: off)", min=0.0)
 
 
 SECTIONS = {"field": FieldConfig, "sampling": SamplingConfig, "schedule": ScheduleConfig, "init": InitConfig,

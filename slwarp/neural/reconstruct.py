@@ -21,7 +21,7 @@ import torch
 
 from ..evaluation.outputs import write_depth, write_mesh_ply, write_points_ply
 from .extract import depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, sphere_trace_depth
-from .pattern_model import photometric_filter
+from .pattern_model import photometric_filter, refine_depth
 from .config import TrainConfig, save_config
 from .train import Trainer
 
@@ -42,7 +42,8 @@ class Reconstruction:
 def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: bool = False):
     """(depth [H, W], mesh, timings) from a trained field as its config's extraction section says: marching
     cubes, then the mesh ray-cast (or sphere tracing when depth_method is 'sphere'), the depth range, the
-    flying-pixel and the photometric filters; depth is kept only inside `valid`."""
+    flying-pixel and the photometric filters, the photometric refinement when refine_range > 0; depth is kept
+    only inside `valid`."""
     ex = trainer.cfg.extraction
     t0 = time.perf_counter()
     cam = trainer.scan.camera
@@ -63,6 +64,9 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
         patterns = trainer.renderer.rendered_patterns.cpu().numpy()
         depth = photometric_filter(depth, cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames], patterns,
                                    ex.photometric_filter)
+    if ex.refine_range > 0:
+        depth = refine_depth(depth, cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames],
+                             trainer.scan.patterns[: trainer.n_frames], ex.refine_range)
     field_.train()
     return depth, mesh, {"marching_cubes_s": t1 - t0, "depth_s": time.perf_counter() - t1}
 
