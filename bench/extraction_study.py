@@ -78,8 +78,8 @@ def rendered_depth(trainer, valid: np.ndarray, chunk: int = 2048) -> np.ndarray:
 
 def study_field(trainer, scan, cfg) -> dict:
     """Stage drops and depth-extraction comparison for one trained field (see module docstring)."""
-    from slwarp.neural.extract import (extract_mesh, flying_pixel_filter, mesh_depth, photometric_filter,
-                                       sphere_trace_depth)
+    from slwarp.neural.extract import extract_mesh, flying_pixel_filter, mesh_depth, sphere_trace_depth
+    from slwarp.neural.pattern_model import photometric_filter
 
     cam, prj = scan.camera, scan.projector
     gt = scan.gt_depth.astype(np.float64)
@@ -97,13 +97,13 @@ def study_field(trainer, scan, cfg) -> dict:
         return np.where((d >= near) & (d <= far), d, np.nan)
 
     def filters(d):
-        f1 = flying_pixel_filter(d, cam, cfg.edge_filter) if cfg.edge_filter > 0 else d
-        f2 = photometric_filter(f1, cam, prj, images, patterns, cfg.photometric_filter) if cfg.photometric_filter > 0 else f1
+        f1 = flying_pixel_filter(d, cam, cfg.get("edge_filter")) if cfg.get("edge_filter") > 0 else d
+        f2 = photometric_filter(f1, cam, prj, images, patterns, cfg.get("photometric_filter")) if cfg.get("photometric_filter") > 0 else f1
         return f1, f2
 
     t0 = time.perf_counter()
     depths = {}
-    for res in (cfg.mc_resolution, 2 * cfg.mc_resolution):
+    for res in (cfg.get("mc_resolution"), 2 * cfg.get("mc_resolution")):
         mesh = extract_mesh(field, trainer.volume, res, trainer.device)
         depths[f"mesh, marching cubes {res}"] = mesh_depth(mesh, cam, "cpu")
     depths["sphere tracing"] = sphere_trace_depth(field, cam, trainer.depth_range, trainer.device, valid=valid)
@@ -111,7 +111,7 @@ def study_field(trainer, scan, cfg) -> dict:
     t_extract = time.perf_counter() - t0
 
     # 1. stages, on the preset's own pipeline (mesh at the preset's resolution)
-    raw = depths[f"mesh, marching cubes {cfg.mc_resolution}"]
+    raw = depths[f"mesh, marching cubes {cfg.get('mc_resolution')}"]
     stages = {}
     keep = ref.copy()
     contrast_drop = keep & ~valid
@@ -166,7 +166,8 @@ def filter_sweep(raw: np.ndarray, scan, trainer) -> list[dict]:
     of the grids above (0 = off). The field is the one trained with the preset's contrast threshold; a lower
     threshold here only keeps more pixels at extraction."""
     from slwarp.evaluation.metrics import depth_metrics
-    from slwarp.neural.extract import flying_pixel_filter, photometric_filter
+    from slwarp.neural.extract import flying_pixel_filter
+    from slwarp.neural.pattern_model import photometric_filter
 
     cam, prj = scan.camera, scan.projector
     images = scan.images[: trainer.n_frames]

@@ -22,7 +22,7 @@ class PatternStack:
     outside the projector image count 0, as in the renderer."""
 
     def __init__(self, patterns: np.ndarray):
-        from slwarp.neural.render import blur_patterns
+        from slwarp.neural.pattern_model import blur_patterns
 
         self.sigmas = np.round(np.arange(0.0, SIGMA_MAX + 1e-9, SIGMA_STEP), 6)
         pats = torch.as_tensor(np.asarray(patterns, np.float32))

@@ -53,7 +53,8 @@ def train_cached(scan, preset_name: str, variant: str, cache: Path, key: str, tr
     """(trainer, config, training seconds): a field trained on `scan` with a preset (CPU), kept in
     cache/<key>-<preset>-<variant>/checkpoint.pt and reloaded from there when it is complete. trainer_cls:
     a Trainer subclass (a model variant); overrides: TrainConfig fields."""
-    from slwarp.neural.train import Trainer, preset
+    from slwarp.neural.config import preset
+    from slwarp.neural.train import Trainer
 
     cfg = preset(preset_name, device="cpu", **overrides)
     folder = Path(cache) / f"{key}-{preset_name}-{variant}"

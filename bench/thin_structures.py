@@ -84,8 +84,9 @@ def pixel_cost(scan, depth: np.ndarray, sigma_fn) -> np.ndarray:
 
 def main(argv=None) -> int:
     from slwarp.evaluation.metrics import depth_metrics
-    from slwarp.neural.extract import extract_mesh, flying_pixel_filter, mesh_depth, photometric_filter
-    from slwarp.neural.render import blur_patterns
+    from slwarp.neural.extract import extract_mesh, flying_pixel_filter, mesh_depth
+    from slwarp.neural.pattern_model import photometric_filter
+    from slwarp.neural.pattern_model import blur_patterns
     from slwarp.neural.search import search_depth
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -121,13 +122,13 @@ def main(argv=None) -> int:
                                      "no_answer": float(np.isnan(e[s]).mean())} for g, s in groups.items()}
         trainer, cfg, _ = train_cached(scan, args.preset, "baseline", Path(args.cache), key=f"small-linear-{scene}")
         near, far = trainer.depth_range
-        raw = mesh_depth(extract_mesh(trainer.field.eval(), trainer.volume, cfg.mc_resolution, "cpu"), scan.camera, "cpu")
+        raw = mesh_depth(extract_mesh(trainer.field.eval(), trainer.volume, cfg.get("mc_resolution"), "cpu"), scan.camera, "cpu")
         raw = np.where(valid & (raw >= near) & (raw <= far), raw, np.nan).astype(np.float32)
         pats = trainer.renderer.rendered_patterns.cpu().numpy()
 
         def finish(d):
-            d1 = flying_pixel_filter(d, scan.camera, cfg.edge_filter)
-            d2 = photometric_filter(d1, scan.camera, scan.projector, scan.images, pats, cfg.photometric_filter)
+            d1 = flying_pixel_filter(d, scan.camera, cfg.get("edge_filter"))
+            d2 = photometric_filter(d1, scan.camera, scan.projector, scan.images, pats, cfg.get("photometric_filter"))
             sigma_fn, _ = fit_model(scan, d2, "ls", "depth")
             d3 = refine_depth(scan, d2, sigma_fn, "ls", radius=3)
             out = {}

@@ -72,7 +72,8 @@ def search_map(trainer) -> np.ndarray | None:
 def make_trainer_cls(flags: set[str]):
     """A Trainer subclass implementing the variant's flags (see module docstring)."""
     from slwarp.neural import ops
-    from slwarp.neural.render import RenderLosses, blur_patterns, structured_light_losses
+    from slwarp.neural.pattern_model import blur_patterns
+    from slwarp.neural.render import RenderLosses, structured_light_losses
     from slwarp.neural.train import Trainer
 
     class VariantTrainer(Trainer):
@@ -156,17 +157,17 @@ def linearise(scan, preset_name: str):
     the trainer's search setting), with the least-squares model at the blur fitted there."""
     import dataclasses
 
-    from slwarp.neural.render import blur_patterns
+    from slwarp.neural.pattern_model import blur_patterns
     from slwarp.neural.search import search_depth
-    from slwarp.neural.train import preset
+    from slwarp.neural.config import preset
 
     cfg = preset(preset_name)
     images = scan.images.astype(np.float32)
     b = images.max(0) - images.min(0)
-    valid = b > cfg.contrast_threshold
+    valid = b > cfg.get("contrast_threshold")
     depth, _ = search_depth(scan.camera, scan.projector, images,
                             blur_patterns(torch.as_tensor(scan.patterns), 1.0).numpy(), scan.depth_range,
-                            valid=valid, step_mm=cfg.search_step_mm, stride=cfg.search_stride, device="cpu")
+                            valid=valid, step_mm=cfg.get("search_step_mm"), stride=cfg.get("search_stride"), device="cpu")
     ok = np.isfinite(depth) & valid
     rays = scan.camera.pixel_to_ray(scan.camera.pixel_grid())
     uv, _ = projector_uv_z(rays[ok], depth[ok].astype(np.float64), scan.projector)
@@ -179,7 +180,7 @@ def linearise(scan, preset_name: str):
 
 def variant_photometric_filter(depth, trainer, threshold: float) -> np.ndarray:
     """Depth with pixels dropped whose relative RMS residual under the variant's own model (a/b, per-pixel
-    blur) reaches `threshold` (as slwarp.neural.extract.photometric_filter, which is the baseline's model)."""
+    blur) reaches `threshold` (as slwarp.neural.pattern_model.photometric_filter, which is the baseline's model)."""
     scan = trainer.scan
     images = scan.images[: trainer.n_frames].astype(np.float64)
     ok = np.isfinite(depth)
@@ -199,7 +200,8 @@ def variant_photometric_filter(depth, trainer, threshold: float) -> np.ndarray:
 def extract(trainer, cfg, flags: set[str]) -> dict:
     """Depth maps of the trained field: raw (mesh or sphere), after the flying-pixel filter, after the
     variant's photometric filter."""
-    from slwarp.neural.extract import extract_mesh, flying_pixel_filter, mesh_depth, photometric_filter, sphere_trace_depth
+    from slwarp.neural.extract import extract_mesh, flying_pixel_filter, mesh_depth, sphere_trace_depth
+    from slwarp.neural.pattern_model import photometric_filter
 
     cam = trainer.scan.camera
     valid = trainer.renderer.valid_map.cpu().numpy()
@@ -207,15 +209,15 @@ def extract(trainer, cfg, flags: set[str]) -> dict:
     if "sphere" in flags:
         d = sphere_trace_depth(field, cam, trainer.depth_range, trainer.device, valid=valid)
     else:
-        d = mesh_depth(extract_mesh(field, trainer.volume, cfg.mc_resolution, trainer.device), cam, "cpu")
+        d = mesh_depth(extract_mesh(field, trainer.volume, cfg.get("mc_resolution"), trainer.device), cam, "cpu")
     field.train()
     near, far = trainer.depth_range
     d = np.where(valid & (d >= near) & (d <= far), d, np.nan).astype(np.float32)
-    f1 = flying_pixel_filter(d, cam, cfg.edge_filter)
+    f1 = flying_pixel_filter(d, cam, cfg.get("edge_filter"))
     # the library's filter: the baseline's model exactly (min/max a, b; the global blur applied at its sigma)
     f_lib = photometric_filter(f1, cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames],
-                               trainer.renderer.rendered_patterns.cpu().numpy(), cfg.photometric_filter)
-    f2 = variant_photometric_filter(f1, trainer, cfg.photometric_filter) if flags & {"ls", "dblur"} else f_lib
+                               trainer.renderer.rendered_patterns.cpu().numpy(), cfg.get("photometric_filter"))
+    f2 = variant_photometric_filter(f1, trainer, cfg.get("photometric_filter")) if flags & {"ls", "dblur"} else f_lib
     # photometric refinement of the filtered depth: least-squares a, b and the blur per projector-depth bin,
     # both fitted at that depth; a 7x7 window, +-3 mm
     scan = trainer.scan
