@@ -2,7 +2,8 @@
 bilinear sampling of (defocused) patterns at the projected hit points.
 
 cast_camera_rays: one thread per camera pixel.
-    first hit along the (unit) camera ray -> depth z (mm), smooth normal, albedo (with texture);
+    first hit along the (unit) camera ray -> depth z (mm), smooth normal, albedo (with a sinusoidal or
+    checkerboard texture);
     lit = facing the projector, not shadowed (second ray toward the projector centre), and inside the
     projector image; shade = albedo * cos(angle to projector) * (ref_dist / dist_to_projector)^2.
 sample_patterns: one thread per (frame, pixel): the defocused pattern value at the projector pixel.
@@ -15,11 +16,32 @@ import warp as wp
 from slwarp.kernels.geometry import ProjectorParams, bilinear_channel, project_to_projector
 
 
+TEXTURE_SINE = wp.constant(0)  # smooth 3-D sinusoid (texture_value)
+TEXTURE_CHECKER = wp.constant(1)  # hard-edged checkerboard in the camera's x-y (checker_value)
+
+
 @wp.func
 def texture_value(x: wp.vec3, period: float) -> float:
     """Smooth 3-D sinusoidal texture in [0, 1] with the given period (mm)."""
     w = 6.283185307 / period
     return 0.5 + 0.5 * wp.sin(w * x[0]) * wp.sin(w * x[1] + 1.3) * wp.sin(w * x[2] + 0.7)
+
+
+@wp.func
+def checker_value(x: wp.vec3, period: float) -> float:
+    """Checkerboard in {0, 1} over the camera frame's x and y (squares of period / 2 mm, edges at multiples
+    of it): a print seen face-on, with albedo steps inside camera pixels (the case that mixes codes)."""
+    cell = 0.5 * period
+    k = int(wp.floor(x[0] / cell)) + int(wp.floor(x[1] / cell))
+    return float(k & 1)
+
+
+@wp.func
+def albedo_texture(x: wp.vec3, kind: int, period: float) -> float:
+    """The texture in [0, 1] of kind TEXTURE_SINE or TEXTURE_CHECKER at x (mm)."""
+    if kind == TEXTURE_CHECKER:
+        return checker_value(x, period)
+    return texture_value(x, period)
 
 
 @wp.kernel
@@ -29,6 +51,7 @@ def cast_camera_rays(
     face_object: wp.array(dtype=wp.int32),
     obj_albedo: wp.array(dtype=float),
     obj_texture: wp.array(dtype=float),
+    obj_texture_kind: wp.array(dtype=wp.int32),
     obj_period: wp.array(dtype=float),
     prm: ProjectorParams,
     proj_center: wp.vec3,
@@ -67,7 +90,7 @@ def cast_camera_rays(
     o = face_object[q.face]
     a = obj_albedo[o]
     if obj_texture[o] > 0.0:
-        a = a * (1.0 - obj_texture[o] + obj_texture[o] * texture_value(x, obj_period[o]))
+        a = a * (1.0 - obj_texture[o] + obj_texture[o] * albedo_texture(x, obj_texture_kind[o], obj_period[o]))
     albedo[i] = a
 
     to_p = proj_center - x

@@ -18,7 +18,7 @@ FLAT_DEFAULTS = dict(iters=4000, rays=2048, n_samples=32, n_importance=32, up_sa
                      n_freqs=6, init="search", init_iters=300, search_step_mm=1.0, search_stride=2, seed=0, backend="warp",
                      device="auto", matmul="fp32", compile=True, cuda_graph=True, incremental=False, start_frames=3,
                      add_every=500, checkpoint_every=500, log_every=50, mc_resolution=384, depth_method="mesh",
-                     edge_filter=10.0)
+                     edge_filter=10.0, refine_range=0.0)
 FLAT_PRESETS = {
     "paper": dict(matmul="tf32"),
     "tuned": dict(matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0),

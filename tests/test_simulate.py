@@ -7,15 +7,15 @@ from slwarp.cli import main as cli_main
 from slwarp.scans.patterns import named_set, random_binary
 from slwarp.sim.rigs import make_rig
 from slwarp.scans.scan import load_scan
-from slwarp.sim.scenes import SCENE_NAMES, SceneObject
-from slwarp.sim.simulate import SimOptions, simulate
+from slwarp.sim.scenes import SCENE_NAMES, SIX_SCENES, SceneObject, build_scene
+from slwarp.sim.simulate import CAMERA_MODELS, SimOptions, camera_model, camera_response, simulate, simulate_scene
 
 IDEAL = SimOptions(noise=False, defocus=False, gamma=1.0, bits=0)
 
 
-def plane(z, albedo=0.6):
+def plane(z, albedo=0.6, **texture):
     m = trimesh.Trimesh([[-2000, -2000, z], [2000, -2000, z], [2000, 2000, z], [-2000, 2000, z]], [[0, 2, 1], [0, 3, 2]])
-    return SceneObject("plane", m, albedo)
+    return SceneObject("plane", m, albedo, **texture)
 
 
 def bilinear_zero(img, u, v):
@@ -142,3 +142,146 @@ def test_cli_simulate_bad_input(tmp_path, capsys):
     assert "mesh not found" in capsys.readouterr().err
     assert cli_main(["simulate", "--scene", "bunny", "--patterns", "zebra", "--out", str(tmp_path / "x")]) == 2
     assert "unknown pattern set" in capsys.readouterr().err
+
+
+# --- textures, pixel integration, lens blur, camera response ---------------------------------------
+
+FLAT = SimOptions(noise=False, defocus=False, shading=False, bits=0)  # white frame = (gain + ambient) * albedo
+
+
+def checker_albedo(x, y, albedo, amplitude, period):
+    """Hand reference: squares of period / 2 mm over camera x and y, the square at the origin's + side dark."""
+    parity = (np.floor(x / (period / 2)) + np.floor(y / (period / 2))) % 2
+    return albedo * (1 - amplitude + amplitude * parity)
+
+
+def plane_points(cam, z):
+    d = cam.pixel_to_ray(cam.pixel_grid())
+    return d * (z / d[..., 2:3])
+
+
+def fully_lit(cam, proj, z, margin=2.0):
+    """Pixels of a plane at z whose point projects `margin` projector px inside the projector image (the
+    white frame fades over the last pixel, where bilinear taps leave the image)."""
+    uv = proj.project_camera_points(plane_points(cam, z))
+    return ((uv[..., 0] > margin) & (uv[..., 0] < proj.width - 1 - margin)
+            & (uv[..., 1] > margin) & (uv[..., 1] < proj.height - 1 - margin))
+
+
+def test_checker_texture_albedo(device):
+    cam, proj = make_rig("small")
+    z, period = 700.0, 40.0
+    scan = simulate([plane(z, 0.7, texture=0.9, texture_period=period, texture_kind="checker")], cam, proj,
+                    named_set("whiteblack", proj.width, proj.height), FLAT, device=device)
+    x = plane_points(cam, z)
+    expect = (FLAT.gain + FLAT.ambient) * checker_albedo(x[..., 0], x[..., 1], 0.7, 0.9, period)
+    cell = period / 2
+    dist_to_edge = np.minimum(np.abs(x[..., 0] / cell - np.round(x[..., 0] / cell)),
+                              np.abs(x[..., 1] / cell - np.round(x[..., 1] / cell))) * cell
+    sel = scan.mask & fully_lit(cam, proj, z) & (dist_to_edge > 0.01)  # float32 points: not within 10 um of an edge
+    white = scan.image("white")
+    assert sel.mean() > 0.5
+    assert np.abs(white[sel] - expect[sel]).max() < 1e-5
+    assert np.unique(np.round(white[sel] / (FLAT.gain + FLAT.ambient), 4)) == pytest.approx([0.07, 0.7])  # 10:1
+
+
+def test_supersampling_integrates_each_pixel_and_keeps_the_centre_ground_truth(device):
+    cam, proj = make_rig("small")
+    z, period = 700.0, 10.0  # 5 mm squares: 3 px on the small rig, so many pixels straddle an edge
+    objs = [plane(z, 0.7, texture=0.9, texture_period=period, texture_kind="checker")]
+    pats = named_set("whiteblack", proj.width, proj.height)
+    one = simulate(objs, cam, proj, pats, FLAT, device=device)
+    k = 3
+    integ = simulate(objs, cam, proj, pats, SimOptions(**{**FLAT.__dict__, "supersample": k}), device=device)
+    assert np.array_equal(integ.gt_depth, one.gt_depth) and np.array_equal(integ.mask, one.mask)
+    x = plane_points(cam.scaled(k), z)  # the k x k rays of each pixel
+    fine = checker_albedo(x[..., 0], x[..., 1], 0.7, 0.9, period)
+    expect = (FLAT.gain + FLAT.ambient) * fine.reshape(cam.height, k, cam.width, k).mean(axis=(1, 3))
+    white = integ.image("white")
+    sel = one.mask & fully_lit(cam, proj, z)
+    err = np.abs(white[sel] - expect[sel])
+    # float32 hit points put a sub-ray lying on an edge (within ~1e-5 mm) on the other side, rarely
+    one_ray = (FLAT.gain + FLAT.ambient) * (0.7 - 0.07) / k**2
+    assert (err > 1e-5).mean() < 0.01 and err.max() < one_ray + 1e-5
+    albedo = white[sel] / (FLAT.gain + FLAT.ambient)
+    mixed = (np.abs(albedo - 0.07) > 1e-3) & (np.abs(albedo - 0.7) > 1e-3)
+    assert mixed.mean() > 0.3  # one ray per pixel would never mix the two albedos
+
+
+def test_camera_blur_is_a_gaussian_psf(device):
+    from scipy.ndimage import gaussian_filter
+
+    cam, proj = make_rig("small")
+    objs = [plane(700.0, 0.7, texture=0.9, texture_period=20.0, texture_kind="checker")]
+    pats = named_set("whiteblack", proj.width, proj.height)
+    sharp = simulate(objs, cam, proj, pats, FLAT, device=device)
+    blurred = simulate(objs, cam, proj, pats, SimOptions(**{**FLAT.__dict__, "camera_blur": 1.5}), device=device)
+    ref = gaussian_filter(sharp.image("white").astype(np.float64), 1.5, mode="reflect", truncate=4.0)
+    sel = fully_lit(cam, proj, 700.0, margin=12.0)  # the PSF's support (6 px) stays on the lit plane
+    assert np.abs(blurred.image("white")[sel] - ref[sel]).max() < 2e-3
+    assert np.abs(blurred.image("white") - sharp.image("white"))[sel].max() > 0.1  # the edges did blur
+
+
+def test_camera_response_curves():
+    lin = np.array([-0.1, 0.0, 0.002, 0.25, 0.5, 1.0, 1.3])
+    srgb = camera_response(lin, SimOptions(response="srgb"))
+    # sRGB by hand: 12.92 x below 0.0031308, else 1.055 x^(1/2.4) - 0.055; clipped to [0, 1] first
+    assert srgb == pytest.approx([0.0, 0.0, 0.02584, 0.537099, 0.735357, 1.0, 1.0], abs=2e-6)
+    g = camera_response(lin, SimOptions(gamma=2.2))
+    assert g == pytest.approx([0.0, 0.0, 0.002 ** (1 / 2.2), 0.25 ** (1 / 2.2), 0.5 ** (1 / 2.2), 1.0, 1.0])
+    assert camera_response(lin, SimOptions()) == pytest.approx(np.clip(lin, 0, 1))
+
+
+def test_gamma_images_are_the_linear_images_through_the_curve(device):
+    cam, proj = make_rig("small")
+    pats = random_binary(proj.width, proj.height, per_scale=1)
+    objs = [plane(700.0)]
+    lin = simulate(objs, cam, proj, pats, IDEAL, device=device)
+    for opts, curve in [(SimOptions(**{**IDEAL.__dict__, "gamma": 2.2}), lambda i: i ** (1 / 2.2)),
+                        (SimOptions(**{**IDEAL.__dict__, "response": "srgb"}),
+                         lambda i: np.where(i <= 0.0031308, 12.92 * i, 1.055 * i ** (1 / 2.4) - 0.055))]:
+        scan = simulate(objs, cam, proj, pats, opts, device=device)
+        assert np.abs(scan.images - curve(lin.images.astype(np.float64))).max() < 1e-5
+
+
+def test_sim_options_and_scene_objects_reject_bad_values():
+    for bad, msg in [({"supersample": 2}, "odd"), ({"supersample": 0}, "odd"), ({"camera_blur": -1.0}, "camera_blur"),
+                     ({"response": "log"}, "response"), ({"response": "srgb", "gamma": 2.2}, "gamma must stay 1"),
+                     ({"gamma": 0.0}, "gamma"), ({"bits": 12}, "bits")]:
+        with pytest.raises(ValueError, match=msg):
+            SimOptions(**bad)
+    with pytest.raises(ValueError, match="texture_kind"):
+        SceneObject("x", None, texture_kind="stripes")
+    with pytest.raises(ValueError, match="texture_period"):
+        SceneObject("x", None, texture=0.5, texture_period=0.0)
+    with pytest.raises(ValueError, match="unknown camera model"):
+        camera_model("film")
+
+
+def test_camera_models_and_named_scenes():
+    assert SCENE_NAMES[:6] == SIX_SCENES == ("spheres", "torus", "boxes", "bunny", "vase", "steps")
+    assert camera_model("linear") == SimOptions()  # the scanner the six-scene results were measured with
+    for name in CAMERA_MODELS:
+        camera_model(name)
+    assert camera_model("gamma", seed=3).gamma == 2.2 and camera_model("gamma", seed=3).seed == 3
+    scan = simulate_scene("checker", "whiteblack", rig="small", options="srgb", device="cpu")
+    assert scan.meta["camera_model"] == "srgb" and scan.meta["simulator"]["response"] == "srgb"
+
+
+def test_rods_scene_has_thin_rods_in_front():
+    objs = {o.name: o for o in build_scene("rods")}
+    rods = [o for n, o in objs.items() if n.startswith("rod_")]
+    assert len(rods) >= 5
+    for rod in rods:
+        v = np.asarray(rod.mesh.vertices)
+        # a closed cylinder: its two cap centres on the axis, every other vertex 1.25 mm from it
+        axis = rod.mesh.principal_inertia_vectors[0]
+        r = np.sort(np.linalg.norm(np.cross(v - v.mean(0), axis), axis=1))
+        assert r[:2] == pytest.approx(0.0, abs=1e-6) and r[2:] == pytest.approx(1.25, abs=1e-6), rod.name
+        assert np.ptp(v @ axis) > 400.0  # long enough to cross the field of view
+        assert v[:, 2].max() < min(np.asarray(o.mesh.vertices)[:, 2].min() for n, o in objs.items() if n.startswith("sphere"))
+    cam, proj = make_rig("small")
+    scan = simulate(list(objs.values()), cam, proj, named_set("whiteblack", proj.width, proj.height), IDEAL)
+    on_rod = scan.gt_depth < 685.0
+    # the rods cover a thin share of the image: about (number x length x 2.5 mm) / footprint^2 pixels
+    assert 0.005 < on_rod.mean() < 0.05

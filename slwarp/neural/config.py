@@ -159,6 +159,9 @@ class ExtractionConfig:
         "depth), uniqueness (no other depth on the ray fits the codes), combined (photometric x peak: ranks errors best)")
     min_confidence: float = option(0.6, "drop depth pixels whose confidence is below this (0: keep all)", min=0.0,
                                    max=1.0)
+    refine_range: float = option(0.0, "photometric refinement after the filters: each pixel's depth moves by the offset "
+                                 "within +- this many mm that best explains its 7x7 window's images (offset and "
+                                 "modulation by least squares, blur per projector depth; 0: off)", min=0.0)
 
 
 SECTIONS = {"field": FieldConfig, "sampling": SamplingConfig, "schedule": ScheduleConfig, "init": InitConfig,

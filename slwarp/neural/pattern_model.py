@@ -30,6 +30,9 @@ __all__ = [
     "photometric_residual",
     "photometric_filter",
     "estimate_pattern_blur",
+    "least_squares_residual",
+    "fit_blur_by_projector_depth",
+    "refine_depth",
 ]
 
 # minimum modulation b (full-scale units, images in [0, 1]) of a pixel lit with usable contrast
@@ -38,6 +41,16 @@ CONTRAST_THRESHOLD = 0.05
 OFF_IMAGE_PX = -10.0
 # floor of the modulation b that the photometric residual is divided by (unlit pixels stay finite)
 MIN_MODULATION = 1.0e-3
+# least-squares offset/modulation: ridge pulling b toward max - min, in units of the codes' variance over the
+# frames (it only matters where the codes barely vary, e.g. a point off the projector image)
+LS_RIDGE = 0.02
+# photometric refinement (`refine_depth`): blur ladder (projector px) the per-pixel blur interpolates in,
+# projector-depth bins of the blur fit, window radius (px) and offset step (mm) of the search
+BLUR_LADDER_STEP = 0.2
+BLUR_LADDER = np.round(np.arange(0.0, 2.4 + 1e-9, BLUR_LADDER_STEP), 6)
+BLUR_BINS = 6
+REFINE_RADIUS = 3
+REFINE_STEP_MM = 0.05
 
 
 def offset_and_modulation(images):
@@ -149,3 +162,133 @@ def estimate_pattern_blur(camera, projector, images, patterns, depth, sigmas=Non
         if den > 0 and abs((keys[j] - keys[j - 1]) - h) < 1e-9:
             best = float(keys[j] + 0.5 * h * (y0 - y2) / den)
     return round(best, 3), mse
+
+
+def least_squares_residual(images: np.ndarray, codes: np.ndarray, b_prior: np.ndarray, ridge: float = LS_RIDGE) -> np.ndarray:
+    """[N, ...]: I - (a + b Q) with the offset a and modulation b solved per pixel in closed form, least
+    squares over the frames (axis 0) of images [N, ...] and pattern values codes [N, ...]:
+    b = (cov(Q, I) + ridge b_prior) / (var(Q) + ridge), clamped at >= 0 (a wrong depth must not explain the
+    images by inverting the codes), a = mean(I) - b mean(Q). b_prior [...]: max - min of the images.
+    Unlike min/max, this is exact for textured albedo and for codes that never reach 0 or 1 at a pixel."""
+    mq, mi = codes.mean(0), images.mean(0)
+    cov = (codes * images).mean(0) - mq * mi
+    var = (codes * codes).mean(0) - mq * mq
+    b = np.maximum((cov + ridge * b_prior) / (var + ridge), 0.0)
+    return images - (mi - b * mq) - b * codes
+
+
+def _projector_depth(depth: np.ndarray, camera, projector) -> np.ndarray:
+    """[H, W] projector-frame z (mm) of each pixel's depth point; NaN where depth is NaN."""
+    rays = camera.pixel_to_ray(camera.pixel_grid())
+    with np.errstate(invalid="ignore"):
+        X = rays * (np.asarray(depth, np.float64) / rays[..., 2])[..., None]
+    return np.asarray(projector.camera_to_projector(X.reshape(-1, 3)), np.float64)[:, 2].reshape(depth.shape)
+
+
+class _BlurLadder:
+    """The patterns blurred at every sigma of BLUR_LADDER, sampled with a per-pixel sigma (linear between
+    the two nearest rungs)."""
+
+    def __init__(self, patterns: np.ndarray):
+        pats = torch.as_tensor(np.asarray(patterns, np.float32))
+        self.rungs = [blur_patterns(pats, float(s)).numpy() for s in BLUR_LADDER]
+
+    def sample(self, uv: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+        """[N, H, W] at projector pixels uv [H, W, 2] with blur sigma [H, W] (px)."""
+        pos = np.clip(sigma / BLUR_LADDER_STEP, 0, len(self.rungs) - 1 - 1e-6)
+        lo = np.floor(pos).astype(np.int64)
+        t = (pos - lo).astype(np.float32)
+        out = 0.0
+        for rung in np.unique(np.concatenate([np.unique(lo), np.unique(lo) + 1])):
+            w = np.where(lo == rung, 1 - t, 0) + np.where(lo + 1 == rung, t, 0)
+            if w.any():
+                out = out + w * sample_patterns(self.rungs[rung], uv)
+        return np.asarray(out, np.float32)
+
+
+def fit_blur_by_projector_depth(depth: np.ndarray, camera, projector, images: np.ndarray, patterns: np.ndarray,
+                                bins: int = BLUR_BINS) -> tuple[np.ndarray, np.ndarray]:
+    """(z_p [K], sigma [K]): the pattern blur (projector px) that best explains the images at a depth map
+    [H, W] (mm), one per projector-depth bin (equal pixel counts; fewer bins below 200 pixels each), at the
+    bins' median projector z (mm). The projector's defocus grows with the distance from its focus plane, so
+    one global sigma is too sharp at one end of the volume and too soft at the other. Each bin's sigma: the
+    BLUR_LADDER rung of least mean squared least-squares residual, refined by a parabola.
+    patterns [N, Hp, Wp] unblurred."""
+    images = np.asarray(images, np.float32)
+    _, b = offset_and_modulation(images)
+    ok = np.isfinite(depth) & lit_with_contrast(b)
+    if ok.sum() < 100:
+        raise ValueError(f"fit_blur_by_projector_depth: only {int(ok.sum())} pixels with depth and contrast")
+    bins = int(max(1, min(bins, ok.sum() // 200)))
+    zp = _projector_depth(np.where(ok, depth, np.nan), camera, projector)[ok]
+    edges = np.quantile(zp, np.linspace(0.0, 1.0, bins + 1))
+    which = np.clip(np.searchsorted(edges, zp, side="right") - 1, 0, bins - 1)
+    uv = projector_coords(np.where(ok, depth, np.nan), camera, projector)
+    pats = torch.as_tensor(np.asarray(patterns, np.float32))
+    mse = np.empty((len(BLUR_LADDER), bins))
+    for j, s in enumerate(BLUR_LADDER):
+        r = least_squares_residual(images[:, ok], sample_patterns(blur_patterns(pats, float(s)).numpy(), uv)[:, ok], b[ok])
+        mse[j] = np.bincount(which, (r**2).mean(0), bins) / np.maximum(np.bincount(which, minlength=bins), 1)
+    sigma = np.empty(bins)
+    for k in range(bins):
+        j = int(np.argmin(mse[:, k]))
+        sigma[k] = BLUR_LADDER[j]
+        if 0 < j < len(BLUR_LADDER) - 1:
+            den = mse[j - 1, k] - 2 * mse[j, k] + mse[j + 1, k]
+            if den > 0:
+                sigma[k] += 0.5 * BLUR_LADDER_STEP * (mse[j - 1, k] - mse[j + 1, k]) / den
+    centres = np.array([np.median(zp[which == k]) for k in range(bins)])
+    return centres, sigma
+
+
+def refine_depth(depth: np.ndarray, camera, projector, images: np.ndarray, patterns: np.ndarray, half_range_mm: float,
+                 radius: int = REFINE_RADIUS, step_mm: float = REFINE_STEP_MM) -> np.ndarray:
+    """Photometric refinement of a depth map [H, W] (mm, NaN: none): every pixel moves by the offset
+    delta in +-half_range_mm (grid of step_mm, refined by a parabola) that, added to the depth of every pixel
+    of its (2 radius + 1)^2 window, minimises the window's summed L1 model cost relative to b.
+
+    The model here is the accurate one the study measured (bench/model_floor.py): offset and modulation per
+    pixel by least squares (`least_squares_residual`) and the blur per projector depth
+    (`fit_blur_by_projector_depth`, fitted at `depth` itself). Each pixel keeps its own depth plus the common
+    offset (no planarity assumption), so it corrects the smooth part of the field's error the way a local
+    decoder would; pixels without depth stay NaN. images [N, H, W], patterns [N, Hp, Wp] unblurred.
+    """
+    if not half_range_mm > 0 or not step_mm > 0:
+        raise ValueError(f"refine_depth: half_range_mm and step_mm must be > 0, got {half_range_mm}, {step_mm}")
+    depth = np.asarray(depth, np.float32)
+    ok = np.isfinite(depth)
+    if not ok.any():
+        return depth.copy()
+    import cv2
+
+    images = np.asarray(images, np.float32)
+    _, b = offset_and_modulation(images)
+    centres, sigmas = fit_blur_by_projector_depth(depth, camera, projector, images, patterns)
+    sigma = np.interp(np.nan_to_num(_projector_depth(depth, camera, projector), nan=float(centres[0])), centres, sigmas)
+    ladder = _BlurLadder(patterns)
+    deltas = np.arange(-half_range_mm, half_range_mm + 1e-9, step_mm)
+    k = 2 * radius + 1
+    # running argmin with the costs on either side of the best offset (for the parabola): O(H W) memory
+    best = np.full(depth.shape, np.inf, np.float32)
+    best_j = np.zeros(depth.shape, np.int64)
+    left = np.full(depth.shape, np.nan, np.float32)
+    right = np.full(depth.shape, np.nan, np.float32)
+    prev = np.full(depth.shape, np.nan, np.float32)
+    for j, delta in enumerate(deltas):
+        shifted = np.where(ok, depth + np.float32(delta), np.nan)
+        codes = ladder.sample(projector_coords(shifted, camera, projector), sigma)
+        r = least_squares_residual(images, codes, b)
+        cost = np.where(ok, np.abs(r).mean(0) / np.maximum(b, MIN_MODULATION), 0.0).astype(np.float32)
+        cost = cv2.boxFilter(cost, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        right = np.where(best_j == j - 1, cost, right)
+        better = cost < best
+        best = np.where(better, cost, best)
+        best_j = np.where(better, j, best_j)
+        left = np.where(better, prev, left)
+        right = np.where(better, np.nan, right)
+        prev = cost
+    den = left - 2 * best + right
+    inner = np.isfinite(den) & (den > 0)
+    frac = np.where(inner, 0.5 * (left - right) / np.where(inner, den, 1.0), 0.0)
+    offset = deltas[best_j] + step_mm * frac
+    return np.where(ok, depth + offset, np.nan).astype(np.float32)

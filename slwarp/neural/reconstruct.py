@@ -23,6 +23,7 @@ import torch
 from ..evaluation.outputs import write_confidence, write_depth, write_mesh_ply, write_points_ply
 from .extract import depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, sphere_trace_depth
 from .confidence import depth_confidence
+from .pattern_model import refine_depth
 from .config import TrainConfig, save_config
 from .train import Trainer
 
@@ -46,7 +47,9 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     """(depth [H, W], confidence [H, W], mesh, timings) from a trained field as its config's extraction section
     says: marching cubes, then the mesh ray-cast (or sphere tracing when depth_method is 'sphere'), the depth
     range, the flying-pixel filter, the confidence map (`extraction.confidence`) and the pixels below
-    `extraction.min_confidence` dropped; depth is kept only inside `valid`. Both maps are NaN where no depth."""
+    `extraction.min_confidence` dropped, then the photometric refinement of the depth when refine_range > 0 (the
+    confidence is that of the depth before refinement); depth is kept only inside `valid`. Both maps are NaN
+    where no depth."""
     ex = trainer.cfg.extraction
     t0 = time.perf_counter()
     cam = trainer.scan.camera
@@ -71,8 +74,12 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
         drop = ~(confidence >= ex.min_confidence)
         depth[drop] = np.nan
         confidence[drop] = np.nan
-    return depth, confidence, mesh, {"marching_cubes_s": t1 - t0, "depth_s": t2 - t1,
-                                     "confidence_s": time.perf_counter() - t2}
+    t3 = time.perf_counter()
+    if ex.refine_range > 0:
+        depth = refine_depth(depth, cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames],
+                             trainer.scan.patterns[: trainer.n_frames], ex.refine_range)
+    return depth, confidence, mesh, {"marching_cubes_s": t1 - t0, "depth_s": t2 - t1, "confidence_s": t3 - t2,
+                                     "refine_s": time.perf_counter() - t3}
 
 
 def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, depth_range=None,

@@ -10,6 +10,14 @@ through marching cubes); nothing is downloaded.
     bunny     a smooth blobby "bunny-like" shape (body, head, ears) built as an implicit surface
     vase      a textured surface of revolution and a lying cylinder
     steps     a staircase receding in depth, a cone and a capsule
+    checker   a wall printed with a high-contrast checkerboard (20 mm squares, albedo 0.16 to 0.8) and
+              objects with strong textures (a checkered sphere, a box with a fine sinusoid)
+    rods      thin rods (2.5 mm diameter, 560 to 680 mm away: about 2 camera pixels wide on the small rig,
+              7 on the default rig) in front of two spheres and the wall: thin structures, the shadows
+              they cast and their occlusion edges
+
+The first six (`SIX_SCENES`) are the original benchmark set and never change (published results depend
+on them); `checker` and `rods` cover what users meet beyond it.
 """
 from __future__ import annotations
 
@@ -17,7 +25,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-SCENE_NAMES = ("spheres", "torus", "boxes", "bunny", "vase", "steps")
+SIX_SCENES = ("spheres", "torus", "boxes", "bunny", "vase", "steps")
+SCENE_NAMES = SIX_SCENES + ("checker", "rods")
+TEXTURE_KINDS = ("sine", "checker")
 DEFAULT_SCENE = "bunny"
 
 
@@ -25,8 +35,10 @@ DEFAULT_SCENE = "bunny"
 class SceneObject:
     """A mesh (camera frame, mm, outward normals) with its reflectance.
 
-    albedo: Lambertian albedo in [0, 1]; texture: amplitude in [0, 1] of a smooth 3-D sinusoidal albedo
-    texture (0 = uniform), texture_period: its period in mm.
+    albedo: Lambertian albedo in [0, 1]; texture: amplitude t in [0, 1] of an albedo texture T(x) in [0, 1]
+    (the albedo is albedo * (1 - t + t T(x)); 0 = uniform); texture_period: its period in mm;
+    texture_kind: "sine" (a smooth 3-D sinusoid) or "checker" (a hard-edged checkerboard over the camera
+    frame's x and y, squares of texture_period / 2).
     """
 
     name: str
@@ -34,6 +46,17 @@ class SceneObject:
     albedo: float = 0.7
     texture: float = 0.0
     texture_period: float = 40.0
+    texture_kind: str = "sine"
+
+    def __post_init__(self):
+        if self.texture_kind not in TEXTURE_KINDS:
+            raise ValueError(f"scene object {self.name!r}: texture_kind must be one of {TEXTURE_KINDS}, "
+                             f"got {self.texture_kind!r}")
+        if not 0.0 <= self.texture <= 1.0 or not 0.0 <= self.albedo <= 1.0:
+            raise ValueError(f"scene object {self.name!r}: albedo and texture must lie in [0, 1], "
+                             f"got {self.albedo} and {self.texture}")
+        if not self.texture_period > 0.0:
+            raise ValueError(f"scene object {self.name!r}: texture_period must be > 0 mm, got {self.texture_period}")
 
 
 def _transform(translation=(0, 0, 0), rx=0.0, ry=0.0, rz=0.0) -> np.ndarray:
@@ -45,11 +68,18 @@ def _transform(translation=(0, 0, 0), rx=0.0, ry=0.0, rz=0.0) -> np.ndarray:
     return T
 
 
-def _wall(z: float = 950.0, tilt_deg: float = 8.0, albedo: float = 0.65) -> SceneObject:
+def _wall(z: float = 950.0, tilt_deg: float = 8.0, albedo: float = 0.65, **texture) -> SceneObject:
     import trimesh
 
     wall = trimesh.creation.box(extents=(1800.0, 1500.0, 20.0), transform=_transform((0, 0, z + 10.0), ry=tilt_deg))
-    return SceneObject("wall", wall, albedo)
+    return SceneObject("wall", wall, albedo, **texture)
+
+
+def _rod(start, end, diameter: float = 2.5, sections: int = 24):
+    """A closed cylinder of `diameter` mm from `start` to `end` (mm)."""
+    import trimesh
+
+    return trimesh.creation.cylinder(radius=0.5 * diameter, segment=np.array([start, end], float), sections=sections)
 
 
 def _sphere(center, radius, subdivisions=6):
@@ -150,6 +180,33 @@ def build_scene(name: str) -> list[SceneObject]:
         capsule = trimesh.creation.capsule(height=160.0, radius=35.0, count=[96, 96],
                                            transform=_transform((120.0, -150.0, 680.0), ry=90.0, rz=15.0))
         objs += [SceneObject("cone", cone, 0.75), SceneObject("capsule", capsule, 0.6)]
+        return objs
+    if name == "checker":
+        # albedo 0.8 x (1 - 0.8 + 0.8 T): squares of 0.16 and 0.8, a 5:1 contrast whose dark squares stay above
+        # the decoders' contrast thresholds (a 10:1 print leaves them unlit for every method alike)
+        box = trimesh.creation.box((150.0, 150.0, 150.0), transform=_transform((140.0, 30.0, 760.0), rx=15.0, ry=-35.0))
+        return [
+            _wall(tilt_deg=8.0, albedo=0.8, texture=0.8, texture_period=40.0, texture_kind="checker"),
+            SceneObject("sphere_checker", _sphere((-120.0, -20.0, 720.0), 90.0), 0.8, 0.8, 30.0, "checker"),
+            SceneObject("box_fine_sine", box, 0.7, 0.9, 12.0, "sine"),
+        ]
+    if name == "rods":
+        objs = [
+            _wall(tilt_deg=-5.0),
+            SceneObject("sphere_left", _sphere((-120.0, 20.0, 800.0), 90.0), 0.75),
+            SceneObject("sphere_right", _sphere((130.0, -40.0, 760.0), 70.0), 0.6),
+        ]
+        # vertical, horizontal and slanted rods 560 to 680 mm away, crossing in front of the spheres
+        rods = [
+            ((-160.0, -260.0, 600.0), (-160.0, 260.0, 600.0)),
+            ((-60.0, -260.0, 640.0), (-60.0, 260.0, 660.0)),
+            ((60.0, -260.0, 620.0), (60.0, 260.0, 620.0)),
+            ((170.0, -260.0, 680.0), (170.0, 260.0, 665.0)),
+            ((-300.0, -120.0, 580.0), (300.0, -120.0, 600.0)),
+            ((-300.0, 150.0, 650.0), (300.0, 90.0, 650.0)),
+            ((-280.0, -250.0, 560.0), (260.0, 250.0, 680.0)),
+        ]
+        objs += [SceneObject(f"rod_{i}", _rod(p0, p1), 0.7) for i, (p0, p1) in enumerate(rods)]
         return objs
     raise ValueError(f"unknown scene {name!r}; built-in scenes: {', '.join(SCENE_NAMES)}")
 

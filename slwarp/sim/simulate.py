@@ -7,9 +7,15 @@ Image formation per camera pixel (ray through the pixel centre):
     where P_blur is the pattern blurred by a Gaussian of sigma = defocus_sigma
     + defocus_slope * |z_p - focus_dist| / focus_dist projector px, sampled bilinearly at the projection
     pi(x) (projector distortion applied);
-    camera: I = clip(radiance, 0, 1) ** (1 / gamma), then Poisson shot noise (full_well electrons at
-    I = 1) plus Gaussian read noise, then quantisation to `bits`.
-Every effect can be switched off (`SimOptions`); all randomness comes from `seed`.
+    optics and pixels (off by default): with `supersample` k > 1 (odd) each camera pixel is k x k rays
+    whose radiances are averaged (pixel integration: albedo steps, pattern edges and depth edges inside a
+    pixel mix, as on a real sensor); `camera_blur` > 0 convolves the radiance with a Gaussian lens PSF of
+    that sigma (camera px) before the pixels integrate it; ground truth (depth, mask) is the ray through
+    the pixel centre (the middle one of the k x k);
+    camera: I = response(clip(radiance, 0, 1)) with response I ** (1 / gamma) or the sRGB curve, then
+    Poisson shot noise (full_well electrons at I = 1) plus Gaussian read noise, then quantisation to `bits`.
+Every effect can be switched off (`SimOptions`); all randomness comes from `seed`. Named camera models
+(`CAMERA_MODELS`, `camera_model`) give the settings that benchmark sweeps use as one dimension.
 """
 from __future__ import annotations
 
@@ -25,7 +31,9 @@ from ..scans.scan import Scan
 from ..scans.scanner import Camera, Projector
 from .scenes import SceneObject, build_scene
 
-__all__ = ["SimOptions", "simulate", "simulate_scene", "RenderedGeometry"]
+__all__ = ["SimOptions", "simulate", "simulate_scene", "RenderedGeometry", "CAMERA_MODELS", "camera_model"]
+
+RESPONSES = ("gamma", "srgb")
 
 
 @dataclass
@@ -37,6 +45,11 @@ class SimOptions:
     read_noise: float = 0.004  # Gaussian read noise std, full-scale units
     bits: int = 8  # quantisation: 8 or 16; 0 keeps float (saved as 16-bit)
     gamma: float = 1.0  # camera response I ** (1 / gamma); 1 = linear (machine-vision cameras)
+    # "gamma": I ** (1 / gamma); "srgb": the sRGB encoding curve (a linear toe below 0.0031308, then
+    # 1.055 I ** (1 / 2.4) - 0.055: not a power law; needs gamma = 1), as consumer cameras and webcams write
+    response: str = "gamma"
+    supersample: int = 1  # k x k rays per camera pixel, averaged (pixel integration); odd, 1 = one ray
+    camera_blur: float = 0.0  # Gaussian lens PSF sigma (camera px) applied before pixel integration; 0 = none
     defocus: bool = True
     defocus_sigma: float = 0.6  # projector defocus at the focus plane (projector px)
     defocus_slope: float = 2.0  # extra sigma per unit of relative distance from the focus plane
@@ -47,6 +60,41 @@ class SimOptions:
     ref_dist: float = 750.0  # mm
     texture: bool = True  # per-object albedo textures where the scene defines them
     seed: int = 0
+
+    def __post_init__(self):
+        if self.response not in RESPONSES:
+            raise ValueError(f"SimOptions.response must be one of {RESPONSES}, got {self.response!r}")
+        if not self.gamma > 0:
+            raise ValueError(f"SimOptions.gamma must be > 0, got {self.gamma}")
+        if self.response == "srgb" and self.gamma != 1.0:
+            raise ValueError(f"SimOptions: response 'srgb' is its own curve; gamma must stay 1, got {self.gamma}")
+        if int(self.supersample) != self.supersample or self.supersample < 1 or self.supersample % 2 == 0:
+            raise ValueError(f"SimOptions.supersample must be an odd integer >= 1 (the middle ray is the pixel "
+                             f"centre), got {self.supersample}")
+        if not self.camera_blur >= 0:
+            raise ValueError(f"SimOptions.camera_blur must be >= 0 camera px, got {self.camera_blur}")
+        if self.bits not in (0, 8, 16):
+            raise ValueError(f"SimOptions.bits must be 0, 8 or 16, got {self.bits}")
+
+
+# Named camera models: one sweep dimension of the benchmarks. "linear" is the scanner the six-scene
+# results were measured with (one ray per pixel, linear response); the others add what real cameras do.
+CAMERA_MODELS = {
+    "linear": {},
+    # pixel integration (3 x 3 rays) and a lens PSF of 0.5 px: albedo and depth steps mix inside a pixel
+    "optics": {"supersample": 3, "camera_blur": 0.5},
+    # the same optics with a power-law response of gamma 2.2
+    "gamma": {"supersample": 3, "camera_blur": 0.5, "gamma": 2.2},
+    # the same optics with the sRGB curve (linear toe + power 1/2.4), not a power law
+    "srgb": {"supersample": 3, "camera_blur": 0.5, "response": "srgb"},
+}
+
+
+def camera_model(name: str, **overrides) -> SimOptions:
+    """SimOptions of a named camera model (`CAMERA_MODELS`), with any field overridden."""
+    if name not in CAMERA_MODELS:
+        raise ValueError(f"unknown camera model {name!r}; camera models: {', '.join(CAMERA_MODELS)}")
+    return SimOptions(**{**CAMERA_MODELS[name], **overrides})
 
 
 @dataclass
@@ -82,7 +130,7 @@ def render_geometry(objects: list[SceneObject], camera: Camera, projector: Proje
     """Ray-cast the scene for every camera pixel (see module docstring)."""
     from slwarp.kernels import runtime
     from slwarp.kernels.geometry import projector_params
-    from slwarp.kernels.simulate import cast_camera_rays
+    from slwarp.kernels.simulate import TEXTURE_CHECKER, TEXTURE_SINE, cast_camera_rays
 
     wp = runtime.init()
     device = warp_device(device)
@@ -99,6 +147,8 @@ def render_geometry(objects: list[SceneObject], camera: Camera, projector: Proje
         P = dirs.shape[0]
         albedo = np.array([o.albedo for o in objects], np.float32)
         tex = np.array([o.texture if options.texture else 0.0 for o in objects], np.float32)
+        codes = {"sine": int(TEXTURE_SINE), "checker": int(TEXTURE_CHECKER)}
+        tex_kind = np.array([codes[o.texture_kind] for o in objects], np.int32)
         period = np.array([o.texture_period for o in objects], np.float32)
         out = {
             "depth": wp.empty(P, dtype=float), "normal": wp.empty(P, dtype=wp.vec3), "uv_proj": wp.empty(P, dtype=wp.vec2),
@@ -108,7 +158,7 @@ def render_geometry(objects: list[SceneObject], camera: Camera, projector: Proje
         wp.launch(
             cast_camera_rays, dim=P,
             inputs=[mesh.id, wp.array(dirs, dtype=wp.vec3), wp.array(face_obj, dtype=wp.int32), wp.array(albedo),
-                    wp.array(tex), wp.array(period), projector_params(projector),
+                    wp.array(tex), wp.array(tex_kind, dtype=wp.int32), wp.array(period), projector_params(projector),
                     wp.vec3(*projector.center.astype(np.float32)), float(options.ref_dist), 0.05],
             outputs=[out["depth"], out["normal"], out["uv_proj"], out["z_proj"], out["lit"], out["shade"], out["albedo"]],
         )
@@ -165,13 +215,25 @@ def sample_projected_patterns(geom: RenderedGeometry, patterns: np.ndarray, opti
         return out.numpy()
 
 
-def form_images(geom: RenderedGeometry, values: np.ndarray, options: SimOptions) -> np.ndarray:
-    """Camera images [N, P] in [0, 1] from pattern values: radiometry, gamma, noise, quantisation."""
+def radiance(geom: RenderedGeometry, values: np.ndarray, options: SimOptions) -> np.ndarray:
+    """[N, P] scene radiance (camera full-scale units, before clipping) from pattern values [N, P]."""
     hit = np.isfinite(geom.depth)
-    rad = options.gain * geom.shade[None, :] * values + options.ambient * np.where(hit, geom.albedo, 0.0)[None, :]
-    img = np.clip(rad, 0.0, 1.0)
+    return options.gain * geom.shade[None, :] * values + options.ambient * np.where(hit, geom.albedo, 0.0)[None, :]
+
+
+def camera_response(radiance: np.ndarray, options: SimOptions) -> np.ndarray:
+    """The camera's response curve applied to radiance clipped to [0, 1] (full scale)."""
+    img = np.clip(radiance, 0.0, 1.0)
+    if options.response == "srgb":
+        return np.where(img <= 0.0031308, 12.92 * img, 1.055 * img ** (1.0 / 2.4) - 0.055)
     if options.gamma != 1.0:
         img = img ** (1.0 / options.gamma)
+    return img
+
+
+def sensor_images(radiance: np.ndarray, options: SimOptions) -> np.ndarray:
+    """Camera images [N, P] in [0, 1] from the radiance each pixel collected: response, noise, quantisation."""
+    img = camera_response(radiance, options)
     if options.noise:
         rng = np.random.default_rng(options.seed + 7919)
         img = rng.poisson(img * options.full_well) / options.full_well + rng.normal(0.0, options.read_noise, img.shape)
@@ -180,6 +242,33 @@ def form_images(geom: RenderedGeometry, values: np.ndarray, options: SimOptions)
         levels = (1 << options.bits) - 1
         img = np.rint(img * levels) / levels
     return img.astype(np.float32)
+
+
+def form_images(geom: RenderedGeometry, values: np.ndarray, options: SimOptions) -> np.ndarray:
+    """Camera images [N, P] in [0, 1] from pattern values, one ray per pixel: radiometry, response, noise,
+    quantisation."""
+    return sensor_images(radiance(geom, values, options), options)
+
+
+def pixel_radiance(geom_fine: RenderedGeometry, patterns: np.ndarray, camera: Camera, options: SimOptions,
+                   device: str | None = None, chunk_frames: int = 4) -> np.ndarray:
+    """[N, H * W] radiance collected by each camera pixel from a geometry rendered with k x k rays per pixel
+    (k = options.supersample, on `camera.scaled(k)`): the lens PSF (camera_blur, a Gaussian) applied to the
+    fine radiance, then the k x k box of each pixel averaged. Frames are processed `chunk_frames` at a time
+    (the fine values of all frames at once would need N x k^2 x H x W floats)."""
+    import cv2
+
+    k, H, W = options.supersample, camera.height, camera.width
+    out = np.empty((len(patterns), H * W), np.float64)
+    for f0 in range(0, len(patterns), chunk_frames):
+        values = sample_projected_patterns(geom_fine, patterns[f0 : f0 + chunk_frames], options, device)
+        rad = radiance(geom_fine, values, options).reshape(-1, H * k, W * k)
+        for j, img in enumerate(rad):
+            if options.camera_blur > 0:
+                img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), sigmaX=options.camera_blur * k,
+                                       borderType=cv2.BORDER_REFLECT)
+            out[f0 + j] = img.reshape(H, k, W, k).mean(axis=(1, 3), dtype=np.float64).ravel()
+    return out
 
 
 def simulate(objects: list[SceneObject], camera: Camera, projector: Projector, patterns: PatternSet,
@@ -193,14 +282,29 @@ def simulate(objects: list[SceneObject], camera: Camera, projector: Projector, p
     if patterns.patterns.shape[1:] != (projector.height, projector.width):
         raise ValueError(f"patterns are {patterns.width}x{patterns.height}, projector is {projector.width}x{projector.height}")
     t0 = time.perf_counter()
-    geom = render_geometry(objects, camera, projector, options, device)
-    t1 = time.perf_counter()
-    values = sample_projected_patterns(geom, patterns.patterns, options, device)
-    t2 = time.perf_counter()
-    images = form_images(geom, values, options).reshape(len(patterns), camera.height, camera.width)
+    k = options.supersample
+    H, W = camera.height, camera.width
+    if k == 1 and options.camera_blur == 0:
+        geom = render_geometry(objects, camera, projector, options, device)
+        t1 = time.perf_counter()
+        values = sample_projected_patterns(geom, patterns.patterns, options, device)
+        t2 = time.perf_counter()
+        images = form_images(geom, values, options)
+        depth = geom.depth.reshape(H, W)
+        lit = geom.lit.reshape(H, W)
+    else:
+        geom = render_geometry(objects, camera.scaled(k), projector, options, device)
+        t1 = time.perf_counter()
+        rad = pixel_radiance(geom, patterns.patterns, camera, options, device)
+        t2 = time.perf_counter()
+        images = sensor_images(rad, options)
+        c = k // 2  # the middle ray of each pixel's k x k is its centre: the ground truth
+        depth = geom.depth.reshape(H, k, W, k)[:, c, :, c]
+        lit = geom.lit.reshape(H, k, W, k)[:, c, :, c]
+    images = images.reshape(len(patterns), H, W)
     t3 = time.perf_counter()
-    depth = geom.depth.reshape(camera.height, camera.width).astype(np.float32)
-    mask = (geom.lit & np.isfinite(geom.depth)).reshape(camera.height, camera.width)
+    depth = np.ascontiguousarray(depth, np.float32)
+    mask = lit & np.isfinite(depth)
     if depth_range is None:
         valid = depth[np.isfinite(depth)]
         depth_range = (float(valid.min()) * 0.9, float(valid.max()) * 1.1) if valid.size else DEPTH_RANGE_MM
@@ -211,8 +315,12 @@ def simulate(objects: list[SceneObject], camera: Camera, projector: Projector, p
 
 
 def simulate_scene(scene: str = "bunny", patterns: str | PatternSet = "random6", rig: str = "default",
-                   options: SimOptions | None = None, device: str | None = None, pattern_seed: int = 0) -> Scan:
-    """A built-in scene on a built-in rig with a named pattern set (see `slwarp.scans.patterns.named_set`)."""
+                   options: SimOptions | str | None = None, device: str | None = None, pattern_seed: int = 0) -> Scan:
+    """A built-in scene on a built-in rig with a named pattern set (see `slwarp.scans.patterns.named_set`);
+    options: SimOptions, or the name of a camera model (`CAMERA_MODELS`); default: SimOptions()."""
+    camera_name = options if isinstance(options, str) else None
+    if camera_name is not None:
+        options = camera_model(camera_name)
     camera, projector = make_rig(rig)
     if isinstance(patterns, str):
         pset = named_set(patterns, projector.width, projector.height, seed=pattern_seed)
@@ -220,4 +328,5 @@ def simulate_scene(scene: str = "bunny", patterns: str | PatternSet = "random6",
     else:
         pset, pname = patterns, "custom"
     return simulate(build_scene(scene), camera, projector, pset, options, depth_range=DEPTH_RANGE_MM, device=device,
-                    meta={"scene": scene, "rig": rig, "patterns": pname})
+                    meta={"scene": scene, "rig": rig, "patterns": pname,
+                          **({"camera_model": camera_name} if camera_name else {})})
