@@ -172,9 +172,13 @@ def _write_metrics(json_path: Path, map_path: Path, pred, scan, mask, title: str
 
     m = depth_metrics(pred, scan.gt_depth, mask)
     doc = metrics_document(m, scan=scan.source, mask="scan mask" if mask is not None else "none", **info)
-    json_path.write_text(json.dumps(doc, indent=2, default=float) + "\n")
     shown = pred if mask is None else np.where(mask, pred, np.nan)  # the map shows what the numbers count
-    save_error_map(map_path, shown, scan.gt_depth, title=title)
+    for path, write in ((json_path, lambda: json_path.write_text(json.dumps(doc, indent=2, default=float) + "\n")),
+                        (map_path, lambda: save_error_map(map_path, shown, scan.gt_depth, title=title))):
+        try:
+            write()
+        except OSError as e:  # a full disk or a read-only file system: name the file (some writers do not)
+            raise OSError(f"{path}: cannot write it ({e.strerror or e})") from None
     return m
 
 

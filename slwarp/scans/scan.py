@@ -617,7 +617,8 @@ def _load_procam(folder: Path, capture) -> Scan:
     except (cv2.error, SystemError) as e:
         # OpenCV's parser reports a truncated file or a malformed matrix as cv2.error or (from its Python
         # binding) SystemError: the file is at fault, not the program
-        detail = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
+        detail = ("OpenCV cannot parse it" if isinstance(e, SystemError) or not str(e).strip()
+                  else str(e).strip().splitlines()[-1])
         raise ScanError(f"{xml}: truncated or malformed calibration XML ({detail})") from None
 
 
