@@ -76,6 +76,30 @@ def test_new_run_over_a_checkpoint_is_refused_unless_overwrite(scan, tmp_path):
     assert read_checkpoint(tmp_path / "checkpoint.pt")["iteration"] == 5
 
 
+def test_cli_resume_refuses_changed_frames_and_new_run_refuses_a_checkpoint(scan, tmp_path, capsys):
+    folder, out = tmp_path / "scan", tmp_path / "out"
+    scan.save(folder)
+    fast = ["--preset", "tiny", "--device", "cpu", "--init", "sphere", "--iters", "5", "--rays", "64",
+            "--mc-resolution", "16", "--photometric-filter", "0", "--quiet"]
+    assert cli_main(["reconstruct", str(folder), "--out", str(out), *fast]) == 0
+    capsys.readouterr()
+    before = {p.name: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    cases = [(["--resume", "--frames", "0:3"], "frames: 6 (rand20_0"),
+             ([], "holds the checkpoint of an earlier run; --resume continues it, --overwrite starts again")]
+    for extra, expect in cases:
+        assert cli_main(["reconstruct", str(folder), "--out", str(out), *fast, *extra]) == 2
+        err = capsys.readouterr().err
+        assert expect in err and len(err.strip().splitlines()) == 1, err
+    assert {p.name: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before  # nothing touched
+    # --help lists what may change on resume (from the config's option metadata)
+    from slwarp.cli import build_parser
+
+    sub = next(a for a in build_parser(["reconstruct"])._actions if a.dest == "command").choices["reconstruct"]
+    flagged = {a.option_strings[0] for a in sub._actions if a.help and "may change on resume" in a.help}
+    assert {"--iters", "--log-every", "--mc-resolution", "--device"} <= flagged
+    assert not {"--lr", "--seed", "--rays", "--frames"} & flagged
+
+
 @pytest.mark.parametrize("content", [b"", b"garbage, not a zip", "truncated"])
 def test_unreadable_checkpoint_is_a_one_line_error(scan, tmp_path, capsys, content):
     folder = tmp_path / "scan"
@@ -278,6 +302,18 @@ def test_checkpoint_on_a_full_disk_leaves_no_tmp(scan, tmp_path):
     with pytest.raises(OSError, match="checkpoint"):
         tr.save_checkpoint()
     assert not (tmp_path / "checkpoint.tmp").exists() and not (tmp_path / "checkpoint.pt").exists()
+
+
+def test_outputs_on_a_full_disk_name_the_folder_and_leave_nothing(tmp_path):
+    if not os.path.exists("/dev/full"):
+        pytest.skip("needs /dev/full")
+    out = tmp_path / "run"
+    with pytest.raises(OSError) as e:
+        with staged_outputs(out) as tmp:
+            (tmp / "depth.npy").symlink_to("/dev/full")  # every write there fails with ENOSPC
+            write_depth(tmp, np.ones((64, 64), np.float32))
+    assert "No space left on device" in str(e.value) and str(out) in str(e.value)
+    assert list(tmp_path.iterdir()) == []
 
 
 def _tiny_rig():

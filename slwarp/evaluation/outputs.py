@@ -54,7 +54,12 @@ def staged_outputs(folder: str | os.PathLike, keep: tuple[str, ...] = ("train",)
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir()
     try:
-        yield staging
+        try:
+            yield staging
+        except OSError as e:
+            if e.filename is None and e.errno:  # some writers (numpy, matplotlib) do not name the file
+                raise OSError(e.errno, f"{e.strerror} (writing the outputs of {folder})") from e
+            raise
         if not folder.exists():
             os.replace(staging, folder)
             return
