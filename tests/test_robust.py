@@ -215,6 +215,27 @@ def test_signal_saves_a_checkpoint_and_the_resumed_run_is_the_same(scan, tmp_pat
     assert torch.equal(params_vector(full), params_vector(resumed))
 
 
+def test_cli_sigterm_exits_143_with_a_checkpoint_and_how_to_continue(scan, tmp_path):
+    scan.save(tmp_path / "scan")
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "slwarp.cli", "reconstruct", str(tmp_path / "scan"), "--out", str(out),
+                             "--preset", "tiny", "--device", "cpu", "--init", "sphere", "--iters", "100000", "--rays", "64",
+                             "--checkpoint-every", "10", "--quiet"], stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.time() + 500
+        while not (out / "train" / "checkpoint.pt").exists() and proc.poll() is None and time.time() < deadline:
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGTERM)  # training is under way: its handler is installed
+        err = proc.communicate(timeout=300)[1]
+    finally:
+        proc.kill()
+    assert proc.returncode == 143, err
+    assert "interrupted by SIGTERM" in err and "continue with --resume" in err
+    assert read_checkpoint(out / "train" / "checkpoint.pt")["iteration"] >= 10
+    assert sorted(p.name for p in out.iterdir()) == ["train"]  # no partial outputs
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "scan"]
+
+
 def test_sigkill_mid_training_resumes_to_the_same_result(scan, tmp_path):
     """A child trains with a checkpoint every 10 iterations and is SIGKILLed after the checkpoint at 10; the
     resumed run ends where an uninterrupted one does, bit for bit."""
