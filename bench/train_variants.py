@@ -54,7 +54,7 @@ def run_one(name: str, kv: dict, out: Path) -> dict:
         scan = scan.select(frames.replace(";", ","))
     t1 = time.perf_counter()
     print(f"{name}: simulated {scene} in {t1 - t0:.1f} s; training {cfg.schedule.iters} iterations", flush=True)
-    res = reconstruct(scan, cfg, out_dir=out / name, progress=False, log_every_s=20.0)
+    res = reconstruct(scan, cfg, out_dir=out / name, progress=False, log_every_s=20.0, overwrite=True)
     doc = {"name": name, "scene": scene, "rig": rig, "patterns": patterns, "frames": scan.names, "preset": pname,
            "config": cfg.to_dict(), "pattern_blur_px": res.trainer.renderer.pattern_blur, "metrics": res.metrics, "timings": {**res.timings, "simulate_s": t1 - t0},
            "device": torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu",

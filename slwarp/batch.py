@@ -258,13 +258,15 @@ def shard(costs: Sequence[float | None], n_workers: int) -> list[list[int]]:
 class BatchOptions:
     """What every scan of a batch is reconstructed with besides the TrainConfig (see `reconstruct`): frames
     (a selection, see `Scan.frame_indices`), depth_range (near, far) mm for scans that declare none, use_mask,
-    resume (see the module docstring), progress (training progress of each scan; only when one process
-    runs the batch), log (per-scan start and end lines)."""
+    resume (see the module docstring), overwrite (start each scan afresh over a checkpoint in its folder),
+    progress (training progress of each scan; only when one process runs the batch), log (per-scan start and
+    end lines)."""
 
     frames: str | None = None
     depth_range: tuple[float, float] | None = None
     use_mask: bool = False
     resume: bool = False
+    overwrite: bool = False
     progress: bool = False
     log: bool = True
 
@@ -375,7 +377,7 @@ def run_scan(job: ScanJob, config, options: BatchOptions = BatchOptions(), worke
         resume = options.resume and (Path(job.out_dir) / CHECKPOINT).is_file()
         say(f"[{worker} {device}] {job.name}: {'resuming' if resume else 'starting'} ({len(scan)} frames) -> {job.out_dir}")
         res = reconstruct(scan, config, out_dir=job.out_dir, resume=resume, depth_range=options.depth_range,
-                          use_mask=options.use_mask, progress=options.progress)
+                          use_mask=options.use_mask, progress=options.progress, overwrite=options.overwrite and not resume)
         row.status = "done"
         row.iterations = res.timings.get("iterations")
         row.valid_share = float(np.isfinite(res.depth).mean())

@@ -18,6 +18,7 @@ anything else is a bug and keeps its traceback.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import textwrap
@@ -34,12 +35,15 @@ def _user_errors() -> tuple:
     from .decode.frames import MissingFrames
     from .devices import DeviceError
     from .neural.config import ConfigError
-    from .neural.train import TrainingDiverged
+    from .neural.train import CheckpointError, TrainingDiverged
     from .scans.scan import ScanError
     from .scans.scanner import CalibrationError
 
-    # OSError: a file that cannot be found, read or written (a missing folder, no permission, a full disk)
-    return (UserError, ScanError, CalibrationError, ConfigError, DeviceError, MissingFrames, OSError, TrainingDiverged)
+    # OSError: a file that cannot be found, read or written (a missing folder, no permission, a full disk, an
+    # output folder that is a file); CheckpointError: a truncated checkpoint, --resume of another run, a new
+    # run over a checkpoint
+    return (UserError, ScanError, CalibrationError, ConfigError, DeviceError, MissingFrames, OSError, TrainingDiverged,
+            CheckpointError)
 
 
 # Commands whose library code reports input that does not fit (a method the scan has no codes for, a
@@ -59,7 +63,14 @@ def cmd_info(args) -> int:
 
     scan = load_scan(args.scan, frames=args.frames)
     print(scan.summary(each_frame=args.roles))
+    _warn_problems(scan, sys.stdout)
     return 0
+
+
+def _warn_problems(scan, stream=None) -> None:
+    """One 'warning:' line per problem of the scan (Scan.problems: too few frames, black, saturated, no contrast)."""
+    for problem in scan.problems():
+        print(f"warning: {problem}", file=stream or sys.stderr)
 
 
 def _add_info(sub):
@@ -150,25 +161,30 @@ def _add_simulate(sub):
     p.set_defaults(func=cmd_simulate)
 
 
-def _write_metrics(out: Path, pred, scan, mask, title: str, extra: dict, confidence=None) -> tuple[dict, dict | None]:
-    """Metrics of `pred` against the scan's ground truth: metrics.json + error_map.png in `out`; with a
-    confidence map [H, W], also how well it ranks the errors (`confidence_metrics`, metrics.json's
-    "confidence"). Returns (metrics, confidence metrics or None)."""
+def _write_metrics(json_path: Path, map_path: Path, pred, scan, mask, title: str, confidence=None,
+                   **info) -> tuple[dict, dict | None]:
+    """Metrics of `pred` against the scan's ground truth: the metrics document (evaluation.metrics_document) at
+    `json_path`, the error map at `map_path`; with a confidence map [H, W], also how well it ranks the errors
+    (`confidence_metrics`, the document's "confidence"). Returns (metrics, confidence metrics or None)."""
     import json
 
     import numpy as np
 
-    from .evaluation.metrics import confidence_metrics, depth_metrics
+    from .evaluation.metrics import confidence_metrics, depth_metrics, metrics_document
     from .evaluation.viz import save_error_map
 
     m = depth_metrics(pred, scan.gt_depth, mask)
-    doc = {**extra, "mask": "scan mask" if mask is not None else "none", "metrics": m}
     cm = None
     if confidence is not None:
-        doc["confidence"] = cm = confidence_metrics(pred, confidence, scan.gt_depth, mask)
-    (out / "metrics.json").write_text(json.dumps(doc, indent=2, default=float) + "\n")
+        info["confidence"] = cm = confidence_metrics(pred, confidence, scan.gt_depth, mask)
+    doc = metrics_document(m, scan=scan.source, mask="scan mask" if mask is not None else "none", **info)
     shown = pred if mask is None else np.where(mask, pred, np.nan)  # the map shows what the numbers count
-    save_error_map(out / "error_map.png", shown, scan.gt_depth, title=title)
+    for path, write in ((json_path, lambda: json_path.write_text(json.dumps(doc, indent=2, default=float) + "\n")),
+                        (map_path, lambda: save_error_map(map_path, shown, scan.gt_depth, title=title))):
+        try:
+            write()
+        except OSError as e:  # a full disk or a read-only file system: name the file (some writers do not)
+            raise OSError(f"{path}: cannot write it ({e.strerror or e})") from None
     return m, cm
 
 
@@ -190,10 +206,12 @@ def cmd_decode(args) -> int:
     from .evaluation.metrics import format_table
     from .evaluation.outputs import write_confidence, write_depth_png
     from .evaluation.outputs import write_points_ply as write_ply
+    from .evaluation.outputs import check_output_folder
     from .evaluation.viz import ensure_dir, save_confidence_map, save_depth_color
     from .scans.scan import load_scan
 
     scan = load_scan(args.scan)
+    _warn_problems(scan)
     params = {"min_amplitude": args.min_amplitude}
     if args.method in ("gc", "gc-interp", "cgc", "gt"):
         params["min_bit_contrast"] = args.min_bit_contrast
@@ -207,7 +225,7 @@ def cmd_decode(args) -> int:
     depth, points, dec = reconstruct_depth(scan, args.method, frames=args.frames, triangulation=args.triangulation,
                                            depth_range=None if args.no_depth_range else "scan", **params)
     t1 = time.perf_counter()
-    out = ensure_dir(args.out)
+    out = ensure_dir(check_output_folder(args.out))
     np.save(out / "depth.npy", depth.astype(np.float32))
     write_depth_png(out / "depth.png", depth)
     save_depth_color(out / "depth_color.png", depth)
@@ -231,17 +249,18 @@ def cmd_decode(args) -> int:
               "(decode the codes of the other projector axis)")
     print(f"  time: decode {dec.extra['decode_s']:.2f} s, triangulate {dec.extra['triangulate_s']:.2f} s, "
           f"total {t1 - t0:.2f} s")
-    info = {"scan": scan.source, "method": args.method, "frames": dec.frames, "triangulation": dec.extra["triangulation"],
-            "params": params}
+    info = {"method": args.method, "frames": dec.frames, "triangulation": dec.extra["triangulation"], "params": params}
     written = ["depth.npy", "depth.png", "depth_color.png", "confidence.npy", "confidence.png", "points.ply"]
     if scan.gt_depth is not None:
         mask = scan.mask if scan.mask is not None else None
-        m, cm = _write_metrics(out, depth, scan, mask, f"{args.method}: |depth error|", info, confidence)
+        m, cm = _write_metrics(out / "metrics.json", out / "error_map.png", depth, scan, mask,
+                               f"{args.method}: |depth error|", confidence, **info)
         print(format_table([(args.method, m)]))
         _print_confidence_metrics(args.method, cm)
         written += ["metrics.json", "error_map.png"]
     else:
-        (out / "decode.json").write_text(json.dumps({**info, "valid_share": float(valid.mean())}, indent=2) + "\n")
+        (out / "decode.json").write_text(json.dumps({"scan": scan.source, **info, "valid_share": float(valid.mean())},
+                                                    indent=2) + "\n")
         written.append("decode.json")
     print(f"wrote {out}/: {', '.join(written)} ({n_pts} points)")
     return 0
@@ -281,8 +300,6 @@ def cmd_evaluate(args) -> int:
     from .evaluation.metrics import format_table
     from .evaluation.outputs import read_confidence
     from .scans.scan import load_scan, read_depth
-    from .evaluation.viz import ensure_dir
-
     pred = read_depth(args.pred, "prediction")
     scan = load_scan(args.scan)
     if scan.gt_depth is None:
@@ -299,18 +316,40 @@ def cmd_evaluate(args) -> int:
             confidence = read_confidence(conf_path, pred.shape)
         except ValueError as e:
             raise UserError(str(e)) from None
-    out = ensure_dir(args.out or Path(args.pred).parent)
-    info = {"prediction": str(args.pred), "scan": scan.source}
+    json_path, map_path = _evaluation_paths(args.out, Path(args.pred), Path(args.scan))
+    info = {"method": args.method, "prediction": str(args.pred)}
     if confidence is not None:
         info["confidence_map"] = str(conf_path)
-    m, cm = _write_metrics(out, pred.astype(np.float64), scan, mask, f"{Path(args.pred).name}: |depth error|", info,
-                           confidence)
+    m, cm = _write_metrics(json_path, map_path, pred.astype(np.float64), scan, mask,
+                           f"{Path(args.pred).name}: |depth error|", confidence, **info)
     print(format_table([(Path(args.pred).name, m)], title_header="prediction"))
     if cm is not None:
         _print_confidence_metrics(f"{conf_path.name} ({conf_path.parent.name})", cm)
     print(f"over {m['n_gt']} ground-truth pixels ({'inside the scan mask' if mask is not None else 'no mask'}); "
-          f"wrote {out}/metrics.json and error_map.png")
+          f"wrote {json_path} and {map_path}")
     return 0
+
+
+EVALUATION_JSON, EVALUATION_MAP = "evaluation.json", "evaluation_error_map.png"  # names no other command writes
+
+
+def _evaluation_paths(out: str | None, pred: Path, scan_dir: Path) -> tuple[Path, Path]:
+    """(metrics JSON, error map) of `evaluate`: --out FILE.json (the map beside it, named after it), --out FOLDER
+    (evaluation.json and evaluation_error_map.png in it) or, by default, those names in the prediction's folder;
+    never in the scan folder (its files belong to the scan)."""
+    from .evaluation.outputs import check_output_folder
+
+    if out is not None and out.endswith(".json"):
+        json_path = Path(out)
+        map_path = json_path.with_name(json_path.stem + "_error_map.png")
+    else:
+        folder = Path(out) if out is not None else pred.parent
+        json_path, map_path = folder / EVALUATION_JSON, folder / EVALUATION_MAP
+    if json_path.parent.resolve() == scan_dir.resolve():
+        raise UserError(f"{json_path.parent}: is the scan folder, which evaluate does not write into; give --out "
+                        "FOLDER or FILE.json elsewhere")
+    check_output_folder(json_path.parent).mkdir(parents=True, exist_ok=True)
+    return json_path, map_path
 
 
 def _add_evaluate(sub):
@@ -318,7 +357,9 @@ def _add_evaluate(sub):
                        "truth, and how well a confidence map ranks the errors")
     p.add_argument("pred", help="predicted depth: .npy (float, mm) or 16-bit PNG (0.1 mm, 0 = invalid)")
     p.add_argument("scan", help="scan folder with ground-truth depth")
-    p.add_argument("--out", help="folder for metrics.json and error_map.png (default: the prediction's folder)")
+    p.add_argument("--out", help=f"FILE.json, or a folder for {EVALUATION_JSON} and {EVALUATION_MAP} (default: the "
+                   "prediction's folder; never the scan folder)")
+    p.add_argument("--method", help="name of the method that made the prediction, recorded in the metrics")
     p.add_argument("--no-mask", action="store_true", help="evaluate every ground-truth pixel, not only the scan's mask")
     p.add_argument("--confidence", metavar="FILE.npy", help="a confidence map [H, W] in [0, 1] of the prediction "
                    "(default: confidence.npy beside it, when there is one): also report the MAE of its 90%% and 75%% "
@@ -344,7 +385,7 @@ def _parse_range(text: str | None):
         near, far = (float(x) for x in text.replace(" ", "").split(","))
     except ValueError:
         raise UserError(f"--depth-range must be NEAR,FAR in mm, got {text!r}") from None
-    if not 0 < near < far:
+    if not (math.isfinite(near) and math.isfinite(far) and 0 < near < far):
         raise UserError(f"--depth-range needs 0 < NEAR < FAR, got {near}, {far}")
     return near, far
 
@@ -375,9 +416,10 @@ def _chosen_preset(argv) -> str:
         return default_preset_name("cpu")
 
 
-def _add_config_options(p, preset_name: str) -> None:
+def _add_config_options(p, preset_name: str, training: bool = True) -> None:
     """--preset, --config and one flag per TrainConfig option (grouped by section), with the help and default
-    the config declares; flags the user does not give stay out of the namespace."""
+    the config declares (and, with `training`, which options may change on --resume); flags the user does not
+    give stay out of the namespace."""
     from .neural.config import OPTIONS, PRESET_SUMMARIES, PRESETS, SECTIONS
 
     p.add_argument("--preset", choices=list(PRESETS), help="the starting configuration (see the list below); default: "
@@ -395,7 +437,9 @@ def _add_config_options(p, preset_name: str) -> None:
         for opt in (o for o in OPTIONS.values() if o.section == section):
             default = defaults.get(opt.name)
             shown = "none" if default is None else str(default).lower() if opt.is_bool else default
-            kw = dict(dest=opt.name, default=argparse.SUPPRESS, help=f"{opt.help} (preset {preset_name}: {shown})")
+            resumable = "; may change on resume" if opt.resumable and training else ""
+            kw = dict(dest=opt.name, default=argparse.SUPPRESS,
+                      help=f"{opt.help} (preset {preset_name}: {shown}{resumable})")
             if opt.is_bool:
                 kw["action"] = argparse.BooleanOptionalAction
             else:
@@ -454,6 +498,7 @@ def cmd_reconstruct(args) -> int:
         return _reconstruct_batch(args, found, name, cfg, dev)
     scan_path = args.scans[0]
     scan = load_scan(scan_path, frames=args.frames)
+    _warn_problems(scan)
     depth_range = _parse_range(args.depth_range)
     if depth_range is None and scan.depth_range is None:
         raise UserError(f"{scan_path}: the scan declares no depth range: pass --depth-range NEAR,FAR (mm)")
@@ -463,7 +508,7 @@ def cmd_reconstruct(args) -> int:
           + f" ({cfg.schedule.iters} iterations, {s.rays} rays, {s.n_samples}+{s.n_importance} samples, "
           f"{f.hidden}x{f.layers} field) on {dev}" + (f" ({torch.cuda.get_device_name(dev)})" if dev.type == "cuda" else ""))
     res = reconstruct(scan, cfg, out_dir=args.out, resume=args.resume, depth_range=depth_range, use_mask=args.use_mask,
-                      progress=not args.quiet)
+                      progress=not args.quiet, overwrite=args.overwrite)
     t = res.timings
     valid = np.isfinite(res.depth)
     print(f"trained {t['iterations']} iterations in {t['train_wall_s_total']:.1f} s; marching cubes {t['marching_cubes_s']:.1f} s; "
@@ -493,7 +538,7 @@ def _reconstruct_batch(args, found, name: str, cfg, dev) -> int:
               + f" ({cfg.schedule.iters} iterations, {s.rays} rays, {s.n_samples}+{s.n_importance} samples, "
               f"{f.hidden}x{f.layers} field) on {dev}", flush=True)
     options = BatchOptions(frames=args.frames, depth_range=_parse_range(args.depth_range), use_mask=args.use_mask,
-                           resume=args.resume, progress=not args.quiet, log=not args.quiet)
+                           resume=args.resume, overwrite=args.overwrite, progress=not args.quiet, log=not args.quiet)
     summary = run_batch(found.scans, cfg, args.out, options, single=found.single, per_device=args.per_device)
     if summary is None:  # a rank other than 0: rank 0 reports
         return 0
@@ -515,8 +560,11 @@ def _add_reconstruct(sub, argv=None):
                         "(GPU LOCAL_RANK %% device count)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--frames", help="use only these frames (names, globs, indices, slices; comma-separated)")
-    p.add_argument("--resume", action="store_true", help="continue from OUT/train/checkpoint.pt; with several scans: "
+    p.add_argument("--resume", action="store_true", help="continue from OUT/train/checkpoint.pt: the same scan, frames, "
+                   "depth range and options, except those marked 'may change on resume' below; with several scans: "
                    "skip the scans whose outputs are complete, continue those with a checkpoint, start the others")
+    p.add_argument("--overwrite", action="store_true", help="start again, replacing the checkpoint in OUT (without it a "
+                   "run into a folder with a checkpoint is refused)")
     p.add_argument("--per-device", type=_positive_int, metavar="K", help="run K scans at a time on each device (every visible "
                    "GPU for --device cuda or auto, the CPU for cpu) in worker processes started here, without torchrun")
     p.add_argument("--depth-range", help="NEAR,FAR camera depth in mm (default: the scan's)")
@@ -545,7 +593,7 @@ def _add_demo(sub, argv=None):
     p.add_argument("--out", default="slwarp-demo", help="output folder (default: ./slwarp-demo)")
     p.add_argument("--scene", default=DEMO_SCENE, choices=list(SCENE_NAMES), help=f"built-in scene (default: {DEMO_SCENE})")
     p.add_argument("--quiet", action="store_true", help="no progress output")
-    _add_config_options(p, name)
+    _add_config_options(p, name, training=False)
     p.set_defaults(func=cmd_demo)
 
 
@@ -580,6 +628,9 @@ def main(argv=None) -> int:
         return int(args.func(args) or 0)
     except BrokenPipeError:  # output piped into `head` and the like
         return 0
+    except _interrupted() as e:
+        print(f"slwarp {args.command}: {e}", file=sys.stderr)
+        return e.exit_status
     except _user_errors() as e:
         return _report(args, e)
     except ValueError as e:
@@ -589,6 +640,12 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print(f"slwarp {args.command}: interrupted", file=sys.stderr)
         return 130
+
+
+def _interrupted():
+    from .neural.train import TrainingInterrupted
+
+    return TrainingInterrupted
 
 
 def _report(args, error: Exception) -> int:

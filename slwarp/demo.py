@@ -89,7 +89,8 @@ def run_demo(out_dir="slwarp-demo", scene: str = DEMO_SCENE, config=None, preset
     t_sim = time.perf_counter()
 
     log("2/4 neural SDF from the 6 random patterns ...")
-    ours = reconstruct(scan.select("rand*"), cfg, out_dir=out / "neural-sdf", progress=progress)
+    ours = reconstruct(scan.select("rand*"), cfg, out_dir=out / "neural-sdf", progress=progress,
+                       overwrite=True)  # a demo starts afresh each time
     t_ours = time.perf_counter()
 
     log("3/4 classical Gray code decoding with interpolation: GC(6) and GC(7) ...")

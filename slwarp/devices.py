@@ -20,6 +20,12 @@ class DeviceError(ValueError):
     """A device that is malformed or not present on this machine."""
 
 
+# names users try that slwarp cannot run on, and what to say about them
+_DEVICE_HINTS = {"gpu": "for an NVIDIA GPU give cuda or cuda:N", "mps": "Apple GPUs are not supported: the Warp kernels "
+                 "run on the CPU and CUDA devices", "xpu": "Intel GPUs are not supported: the Warp kernels run on the CPU "
+                 "and CUDA devices"}
+
+
 def torch_device(spec: str | torch.device | None = "auto") -> torch.device:
     """The torch device for 'auto' (CUDA when present, else the CPU), 'cpu', 'cuda' or 'cuda:N'."""
     if isinstance(spec, torch.device):
@@ -29,7 +35,8 @@ def torch_device(spec: str | torch.device | None = "auto") -> torch.device:
     elif isinstance(spec, str) and DEVICE_PATTERN.fullmatch(spec):
         dev = torch.device(spec)
     else:
-        raise DeviceError(f"device must be 'auto', 'cpu', 'cuda' or 'cuda:N', got {spec!r}")
+        hint = _DEVICE_HINTS.get(str(spec).split(":")[0].strip().lower())
+        raise DeviceError(f"device must be 'auto', 'cpu', 'cuda' or 'cuda:N', got {spec!r}" + (f" ({hint})" if hint else ""))
     if dev.type == "cuda":
         if not torch.cuda.is_available():
             raise DeviceError(f"device {spec}: CUDA was requested but no CUDA device is available")
@@ -43,8 +50,8 @@ def torch_device(spec: str | torch.device | None = "auto") -> torch.device:
 def warp_device(device: str | torch.device | None = "auto") -> str:
     """The Warp device name ('cpu', 'cuda:0', ...) of a torch device or device string; 'auto' and None
     pick as `torch_device` does. A CUDA device without an index is torch's current CUDA device."""
-    if device is None or device == "auto":
-        device = torch_device("auto")
+    if device is None or isinstance(device, str):
+        device = torch_device(device or "auto")  # checks the name (a DeviceError naming it) and its presence
     dev = torch.device(device)
     if dev.type == "cuda":
         return f"cuda:{dev.index if dev.index is not None else torch.cuda.current_device()}"

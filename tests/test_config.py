@@ -55,7 +55,11 @@ def test_preset_copies_and_flat_overrides():
 @pytest.mark.parametrize("option,value,allowed", [
     ("lr_decay", "cos", "one of none, cosine"),  # used to mean cosine silently
     ("rays", 0, "an integer >= 1"),
-    ("iters", 1.5, "an integer >= 0"),
+    ("iters", 1.5, "an integer >= 1"),
+    ("iters", 0, "an integer >= 1"),  # used to run only the warm-up and exit 0
+    ("iters", -5, "an integer >= 1"),
+    ("mc_resolution", 0, "an integer >= 16"),  # used to fail deep inside marching cubes
+    ("photometric_filter", -0.1, "a number >= 0"),
     ("lr", 0.0, "a number > 0"),
     ("lambda_sc", math.nan, "a number >= 0"),
     ("lr_final", 1.5, "a number >= 0 and <= 1"),
@@ -131,6 +135,8 @@ def test_cli_flags_are_generated_for_every_option():
             argv, expect = [flag, "cpu"], "cpu"
         else:
             expect = {int: 2, float: 0.5}[opt._numeric()]
+            if opt.min is not None and expect < opt.min:  # e.g. mc_resolution >= 16
+                expect = {int: int, float: float}[opt._numeric()](opt.min) + 1
             assert expect != default
             argv = [flag, str(expect)]
         _, cfg, _ = parse(["reconstruct", "scan", "--out", "o", "--preset", "tiny", *argv])
@@ -178,3 +184,13 @@ def test_train_config_is_importable_from_slwarp():
     import slwarp
 
     assert slwarp.TrainConfig is TrainConfig and slwarp.preset is preset and slwarp.load_config is load_config
+
+
+def test_resumable_options_are_marked_once():
+    from slwarp.neural.config import OPTIONS, RESUMABLE
+
+    # more iterations, logging and where the run executes may change on resume; what it computes may not
+    assert {"iters", "log_every", "checkpoint_every", "device", "mc_resolution"} <= set(RESUMABLE)
+    assert not {"lr", "seed", "rays", "hidden", "pattern_blur", "matmul"} & set(RESUMABLE)
+    fixed = preset("tiny").fixed_options()
+    assert set(fixed) == set(OPTIONS) - set(RESUMABLE) and fixed["seed"] == 0

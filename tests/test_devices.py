@@ -33,3 +33,13 @@ def test_cuda_device_names():
     assert warp_device(torch.device("cuda", 0)) == "cuda:0"
     with pytest.raises(DeviceError, match="CUDA device"):
         torch_device(f"cuda:{torch.cuda.device_count()}")
+
+
+@pytest.mark.parametrize("spec, hint", [("gpu", "cuda or cuda:N"), ("mps", "Apple GPUs are not supported")])
+def test_devices_users_try_are_refused_with_the_allowed_forms(spec, hint):
+    from slwarp.devices import DeviceError, torch_device, warp_device
+
+    for resolve in (torch_device, warp_device):
+        with pytest.raises(DeviceError) as e:
+            resolve(spec)
+        assert repr(spec) in str(e.value) and "'auto', 'cpu', 'cuda' or 'cuda:N'" in str(e.value) and hint in str(e.value)

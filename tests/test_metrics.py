@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from slwarp.cli import main as cli_main
-from slwarp.evaluation.metrics import depth_metrics, error_map, format_table
+from slwarp.evaluation.metrics import METRICS_SCHEMA, depth_metrics, error_map, format_table, metrics_document
 from slwarp.evaluation.outputs import write_depth_png
 from slwarp.scans.scan import Scan, load_scan
 from slwarp.scans.scanner import Camera, Projector, look_at_rotation
@@ -86,15 +86,40 @@ def test_cli_evaluate(tmp_path, capsys, fmt):
     assert cli_main(["evaluate", str(path), str(tmp_path / "scan"), "--out", str(tmp_path / "ev")]) == 0
     out = capsys.readouterr().out
     assert "MAE mm" in out and "pred." + fmt in out
-    doc = json.loads((tmp_path / "ev" / "metrics.json").read_text())
+    doc = json.loads((tmp_path / "ev" / "evaluation.json").read_text())
+    assert doc["schema"] == METRICS_SCHEMA and doc["prediction"] == str(path) and doc["mask"] == "scan mask"
     ref = depth_metrics(pred if fmt == "npy" else np.round(pred * 10) / 10, scan.gt_depth, scan.mask)
     for k in ("mae", "rmse", "over_1mm", "completeness", "n_valid"):
         assert doc["metrics"][k] == pytest.approx(ref[k], rel=1e-5, abs=1e-6 if fmt == "npy" else 0.05)
     assert doc["metrics"]["n_gt"] == 25 * 40 and doc["metrics"]["completeness"] == pytest.approx(24 / 25)  # row 10 NaN
-    assert (tmp_path / "ev" / "error_map.png").is_file()
-    # default output folder: beside the prediction; --no-mask counts every GT pixel
+    assert (tmp_path / "ev" / "evaluation_error_map.png").is_file()
+    # default: a file name no other command owns, beside the prediction (a reconstruction's metrics.json stays);
+    # --no-mask counts every GT pixel
+    (tmp_path / "metrics.json").write_text("{}")
     assert cli_main(["evaluate", str(path), str(tmp_path / "scan"), "--no-mask"]) == 0
-    assert json.loads((tmp_path / "metrics.json").read_text())["metrics"]["n_gt"] == 30 * 40
+    assert json.loads((tmp_path / "evaluation.json").read_text())["metrics"]["n_gt"] == 30 * 40
+    assert (tmp_path / "metrics.json").read_text() == "{}"
+    # --out FILE.json: the error map beside it
+    assert cli_main(["evaluate", str(path), str(tmp_path / "scan"), "--out", str(tmp_path / "r" / "bunny.json")]) == 0
+    assert json.loads((tmp_path / "r" / "bunny.json").read_text())["schema"] == METRICS_SCHEMA
+    assert (tmp_path / "r" / "bunny_error_map.png").is_file()
+
+
+def test_cli_evaluate_never_writes_into_the_scan_folder(tmp_path, capsys):
+    small_scan().save(tmp_path / "scan")
+    gt = tmp_path / "scan" / "gt_depth.npy"
+    np.save(gt, load_scan(tmp_path / "scan").gt_depth.astype(np.float32))
+    before = sorted(p.name for p in (tmp_path / "scan").iterdir())
+    assert cli_main(["evaluate", str(gt), str(tmp_path / "scan")]) == 2
+    assert "is the scan folder" in capsys.readouterr().err
+    assert sorted(p.name for p in (tmp_path / "scan").iterdir()) == before
+
+
+def test_one_metrics_schema():
+    m = {"mae": 1.0}
+    doc = metrics_document(m, method="gc", scan="s", frames=["a"], mask="scan mask", params={"x": 1})
+    assert doc == {"schema": METRICS_SCHEMA, "method": "gc", "prediction": None, "scan": "s", "frames": ["a"],
+                   "mask": "scan mask", "params": {"x": 1}, "metrics": {"mae": 1.0}}
 
 
 def test_cli_evaluate_bad_input(tmp_path, capsys):
@@ -109,6 +134,8 @@ def test_cli_evaluate_bad_input(tmp_path, capsys):
         (["evaluate", str(tmp_path / "pred.npy"), str(tmp_path / "nogt")], "no ground-truth depth"),
         (["evaluate", str(tmp_path / "bad.png"), str(tmp_path / "scan")], "unreadable or corrupt"),
         (["evaluate", str(tmp_path / "pred.npy"), str(tmp_path / "nowhere")], "scan not found"),
+        (["evaluate", str(tmp_path / "pred.npy"), str(tmp_path / "scan"), "--out", str(tmp_path / "pred.npy")],
+         "is a file"),
     ]
     for argv, msg in cases:
         assert cli_main(argv) == 2

@@ -12,8 +12,9 @@ import math
 
 import numpy as np
 
-__all__ = ["depth_metrics", "format_table", "METRIC_COLUMNS", "error_map", "chessboard_region", "plane_rms",
-           "sparsification_curve", "confidence_metrics", "CONFIDENCE_COLUMNS", "SPARSIFICATION_FRACTIONS"]
+__all__ = ["depth_metrics", "metrics_document", "METRICS_SCHEMA", "format_table", "METRIC_COLUMNS", "error_map",
+           "chessboard_region", "plane_rms", "sparsification_curve", "confidence_metrics", "CONFIDENCE_COLUMNS",
+           "SPARSIFICATION_FRACTIONS"]
 
 THRESHOLDS_MM = (1.0, 2.0, 5.0)
 
@@ -151,6 +152,19 @@ def confidence_metrics(pred: np.ndarray, confidence: np.ndarray, gt: np.ndarray,
     out.update(ause=area(curve - oracle), ause_random=area(mae - oracle),
                sparsification={"fractions": f.tolist(), "curve": curve.tolist(), "oracle": oracle.tolist()})
     return out
+
+
+METRICS_SCHEMA = "slwarp.metrics/1"  # the version of metrics_document's layout; bump it when a key changes meaning
+
+
+def metrics_document(metrics: dict, *, method: str | None = None, prediction: str | None = None,
+                     scan: str | None = None, frames: list[str] | None = None, mask: str = "none", **extra) -> dict:
+    """The one JSON layout of depth metrics that `reconstruct` (metrics.json), `decode` (metrics.json) and
+    `evaluate` (evaluation.json) write: {"schema", "method", "prediction", "scan", "frames", "mask", "metrics", ...}.
+    metrics: `depth_metrics`' dict (more keys may be added to it, e.g. accuracy at a fixed completeness); extra:
+    further top-level entries (e.g. the decoder's params). Entries that do not apply are None."""
+    return {"schema": METRICS_SCHEMA, "method": method, "prediction": prediction, "scan": scan,
+            "frames": None if frames is None else list(frames), "mask": mask, **extra, "metrics": dict(metrics)}
 
 
 def error_map(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:

@@ -7,17 +7,83 @@
                                          slwarp.scans.scan.read_depth)
     write_points_ply(path, points, ...)  the finite points of a point map as a binary PLY (trimesh), gray or RGB
     write_mesh_ply(path, mesh)           a trimesh mesh as a binary PLY
+    check_output_folder(path)            OutputError unless `path` can be (or is) a folder: not a file, nor under one
+    with staged_outputs(folder) as tmp:  write a run's outputs into `tmp`; they appear in `folder` together on
+        ...                              success, and not at all on failure
 
 Colour pictures (depth, error maps, previews) are in slwarp.evaluation.viz.
 """
 from __future__ import annotations
 
+import contextlib
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["write_depth", "write_depth_png", "write_points_ply", "write_mesh_ply", "write_confidence", "read_confidence"]
+__all__ = ["write_depth", "write_depth_png", "write_points_ply", "write_mesh_ply", "write_confidence", "read_confidence",
+           "OutputError", "check_output_folder", "staged_outputs"]
+
+
+class OutputError(OSError):
+    """An output folder that cannot be written: the path is a file or lies under one."""
+
+
+def check_output_folder(path: str | os.PathLike) -> Path:
+    """`path` as a Path, after checking that it is a folder or can become one (no file at it or above it);
+    OutputError names the file in the way. Permissions and free space show when writing (OSError)."""
+    path = Path(path)
+    for p in (path, *path.parents):
+        if p.exists():
+            if not p.is_dir():
+                raise OutputError(f"{path}: output folder " + ("is a file" if p == path else f"lies under a file ({p})"))
+            break
+    return path
+
+
+@contextlib.contextmanager
+def staged_outputs(folder: str | os.PathLike, keep: tuple[str, ...] = ("train",)):
+    """Write a run's outputs into a temporary folder beside `folder` (yielded), then move them into `folder`
+    together: when `folder` does not exist it is one rename; otherwise the previous outputs (every entry but
+    those named in `keep`, e.g. the training checkpoint) are replaced by the new ones. On an exception nothing
+    of this run appears, the temporary folder is removed, and so is `folder` if this call created it and it is
+    empty (then the exception propagates)."""
+    folder = check_output_folder(folder)
+    existed = folder.exists()
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    staging = folder.parent / f".{folder.name}.partial-{os.getpid()}"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir()
+    try:
+        try:
+            yield staging
+        except OSError as e:
+            if e.filename is None and e.errno:  # some writers (numpy, matplotlib) do not name the file
+                raise OSError(e.errno, f"{e.strerror} (writing the outputs of {folder})") from e
+            raise
+        if not folder.exists():
+            os.replace(staging, folder)
+            return
+        old = folder.parent / f".{folder.name}.previous-{os.getpid()}"
+        shutil.rmtree(old, ignore_errors=True)
+        old.mkdir()
+        for entry in folder.iterdir():
+            if entry.name not in keep:
+                os.replace(entry, old / entry.name)
+        for entry in staging.iterdir():
+            if (folder / entry.name).is_dir():  # a kept folder the run also wrote into: replace it whole
+                os.replace(folder / entry.name, old / entry.name)
+            os.replace(entry, folder / entry.name)
+        shutil.rmtree(old, ignore_errors=True)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+        if not existed and folder.is_dir():  # e.g. a train/ folder whose first checkpoint could not be written
+            for sub in sorted(folder.rglob("*"), key=lambda q: len(q.parts), reverse=True):
+                if sub.is_dir() and not any(sub.iterdir()):
+                    sub.rmdir()
+            if not any(folder.iterdir()):
+                folder.rmdir()
 
 DEPTH_PNG_PER_MM = 10.0  # depth PNG counts per mm: one count is 0.1 mm (max 6553.5 mm); 0 marks an invalid pixel
 

@@ -13,6 +13,10 @@ from this module with its type, choices and help), the keyword of `preset(name, 
 as mappings (`load_config`, `save_config`). `TrainConfig.validate` checks every value against its type and
 range and raises ConfigError naming the option, the value and what is allowed.
 
+Resuming: a run's checkpoint records its `fixed_options()` (every option but the resumable ones) and a resumed run
+must keep them; the options marked `resumable` (`RESUMABLE`: more iterations, logging and checkpoint intervals,
+where and how the same computation runs, and the whole extraction section, which acts after training) may change.
+
 PRESETS: paper, tuned, cpu, tiny (`PRESET_SUMMARIES` says what each is for); `default_preset_name(device)`
 picks paper on CUDA and cpu otherwise.
 """
@@ -39,6 +43,7 @@ __all__ = [
     "TrainConfig",
     "Option",
     "OPTIONS",
+    "RESUMABLE",
     "SECTIONS",
     "PRESETS",
     "PRESET_SUMMARIES",
@@ -54,11 +59,12 @@ class ConfigError(ValueError):
     what is allowed."""
 
 
-def option(default, help: str, *, min=None, max=None, above=None, name: str | None = None):
+def option(default, help: str, *, min=None, max=None, above=None, name: str | None = None, resumable: bool = False):
     """A config field: its default, a one-line help (CLI --help and docs), the allowed range (min <= value <=
-    max, value > above) and its flat name when it differs from the field's (it must be unique across
-    sections)."""
-    return dataclasses.field(default=default, metadata={"help": help, "min": min, "max": max, "above": above, "name": name})
+    max, value > above), its flat name when it differs from the field's (it must be unique across sections) and
+    whether a resumed run may change it (`resumable`: it does not define what the run computes)."""
+    return dataclasses.field(default=default, metadata={"help": help, "min": min, "max": max, "above": above, "name": name,
+                                                        "resumable": resumable})
 
 
 @dataclass
@@ -93,7 +99,8 @@ class SamplingConfig:
 class ScheduleConfig:
     """Iterations, learning rate, loss weights, incremental mode."""
 
-    iters: int = option(4000, "training iterations (after the warm-up)", min=0)
+    # resumable: more iterations continue a run (with cosine decay, the decay stretches to the new total)
+    iters: int = option(4000, "training iterations (after the warm-up)", min=1, resumable=True)
     lr: float = option(1e-4, "Adam learning rate", above=0.0)
     lr_decay: Literal["none", "cosine"] = option("none", "learning-rate schedule: none (paper: constant) or cosine "
                                                  "(NeuS: decay to lr_final x lr)")
@@ -130,38 +137,46 @@ class RuntimeConfig:
     """How and where the run executes (none of it changes the method)."""
 
     seed: int = option(0, "random seed (field initialisation, pixel batches, ray jitter)", min=0)
-    backend: Literal["warp", "torch"] = option("warp", "fused Warp kernels or their pure-torch twin")
-    device: str = option("auto", "auto (CUDA when present), cpu, cuda or cuda:N")
+    # backend, device, compile and cuda_graph run the same computation (equal to float rounding, not bit for
+    # bit): a run may continue on another device or backend; matmul changes the precision, so it stays
+    backend: Literal["warp", "torch"] = option("warp", "fused Warp kernels or their pure-torch twin", resumable=True)
+    device: str = option("auto", "auto (CUDA when present), cpu, cuda or cuda:N", resumable=True)
     matmul: Literal["fp32", "tf32"] = option("fp32", "CUDA matrix precision of the field MLP")
-    compile: bool = option(True, "torch.compile the field (CUDA only)")
+    compile: bool = option(True, "torch.compile the field (CUDA only)", resumable=True)
     # the whole step (render, losses, backward, Adam) captured once and replayed: no Python, launch or
     # allocation cost per step; the same draws and results as plain launches; falls back (with a warning)
     # to plain launches if the capture fails
-    cuda_graph: bool = option(True, "CUDA: capture the training step once as a CUDA graph and replay it")
-    checkpoint_every: int = option(500, "iterations between checkpoints", min=1)
-    log_every: int = option(50, "iterations between logged losses", min=1)
+    cuda_graph: bool = option(True, "CUDA: capture the training step once as a CUDA graph and replay it", resumable=True)
+    checkpoint_every: int = option(500, "iterations between checkpoints", min=1, resumable=True)
+    log_every: int = option(50, "iterations between logged losses", min=1, resumable=True)
 
 
 @dataclass
 class ExtractionConfig:
-    """From the trained field to a depth map."""
+    """From the trained field to a depth map.
 
-    mc_resolution: int = option(384, "marching-cubes cells along the volume's longest side", min=2)
+    Every extraction option acts after training: a resumed run may change it (e.g. extract again at another
+    resolution)."""
+
+    # below 16 cells a cell spans more than 1/16 of the working volume: no scene's surface survives it
+    mc_resolution: int = option(384, "marching-cubes cells along the volume's longest side", min=16, resumable=True)
     depth_method: Literal["mesh", "sphere"] = option("mesh", "depth by ray casting the marching-cubes mesh, or by "
-                                                     "sphere tracing the field")
+                                                     "sphere tracing the field", resumable=True)
     edge_filter: float = option(10.0, "drop depth-edge (flying) pixels: jumps above this many pixel footprints (0: off)",
-                                min=0.0)
+                                min=0.0, resumable=True)
     # what the method knows about each pixel, as a map in [0, 1] written beside the depth (slwarp.neural.confidence);
     # photometric with min_confidence 0.6 is the photometric check (relative RMS residual below 0.4)
     confidence: Literal["photometric", "peak", "agreement", "uniqueness", "combined"] = option(
         "photometric", "per-pixel confidence written as confidence.npy and used by min_confidence: photometric (1 - "
         "relative RMS residual of the codes), peak (NeuS weight on the surface), agreement (rendered vs extracted "
-        "depth), uniqueness (no other depth on the ray fits the codes), combined (photometric x peak: ranks errors best)")
+        "depth), uniqueness (no other depth on the ray fits the codes), combined (photometric x peak: ranks errors best)",
+        resumable=True)
     min_confidence: float = option(0.6, "drop depth pixels whose confidence is below this (0: keep all)", min=0.0,
-                                   max=1.0)
+                                   max=1.0, resumable=True)
     refine_range: float = option(0.0, "photometric refinement after the filters: each pixel's depth moves by the offset "
                                  "within +- this many mm that best explains its 7x7 window's images (offset and "
-                                 "modulation by least squares, blur per projector depth; 0: off)", min=0.0)
+                                 "modulation by least squares, blur per projector depth; 0: off)", min=0.0,
+                                 resumable=True)
 
 
 SECTIONS = {"field": FieldConfig, "sampling": SamplingConfig, "schedule": ScheduleConfig, "init": InitConfig,
@@ -180,6 +195,7 @@ class Option:
     min: float | None = None
     max: float | None = None
     above: float | None = None
+    resumable: bool = False  # a resumed run may change it (see the module docstring)
 
     @property
     def choices(self) -> tuple | None:
@@ -305,7 +321,7 @@ def _collect_options() -> dict[str, Option]:
             if name in options:
                 raise RuntimeError(f"option name {name!r} ({section}.{f.name}) is not unique")
             options[name] = Option(name, section, f.name, hints[f.name], md["help"], md.get("min"), md.get("max"),
-                                   md.get("above"))
+                                   md.get("above"), bool(md.get("resumable")))
     return options
 
 
@@ -349,6 +365,10 @@ class TrainConfig:
             raise ConfigError(f"option skip: {f.skip} must be below layers ({f.layers}), or none")
         return self
 
+    def fixed_options(self) -> dict:
+        """{flat name: value} of every option a resumed run must keep: all but the `RESUMABLE` ones."""
+        return {name: self.get(name) for name, opt in OPTIONS.items() if not opt.resumable}
+
     def to_dict(self) -> dict:
         """{section: {key: value}}: plain values, as YAML and checkpoints hold them."""
         return dataclasses.asdict(self)
@@ -378,6 +398,8 @@ class TrainConfig:
 
 
 OPTIONS: dict[str, Option] = _collect_options()
+# the options a resumed run may change (flat names); every other one is part of the run's identity
+RESUMABLE: tuple[str, ...] = tuple(name for name, opt in OPTIONS.items() if opt.resumable)
 
 
 def _option(name: str) -> Option:

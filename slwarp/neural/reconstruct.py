@@ -8,7 +8,10 @@ Outputs written to out_dir: depth.npy, depth.png (uint16, 0.1 mm), depth_color.p
 [0, 1], NaN where no depth) + confidence.png, mesh.ply,
 points.ply, history.json + loss.png, timings.json, config.yaml (the run's TrainConfig and the values it
 fitted; `--config` reads it back), and metrics.json + error_map.png when the scan has ground truth;
-train/checkpoint.pt holds the resumable training state.
+train/checkpoint.pt holds the resumable training state. The outputs appear together or not at all
+(`evaluation.outputs.staged_outputs`); `resume` continues the checkpoint of the same run (else RunMismatch), and a
+new run into a folder with a checkpoint needs `overwrite=True` (else CheckpointExists). SIGINT/SIGTERM raise
+`TrainingInterrupted` after saving a checkpoint (see slwarp.neural.train).
 """
 from __future__ import annotations
 
@@ -20,7 +23,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..evaluation.outputs import write_confidence, write_depth, write_mesh_ply, write_points_ply
+from ..evaluation.outputs import (check_output_folder, staged_outputs, write_confidence, write_depth, write_mesh_ply,
+                                  write_points_ply)
 from .extract import depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, sphere_trace_depth
 from .confidence import depth_confidence
 from .pattern_model import refine_depth
@@ -83,22 +87,33 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
 
 
 def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, depth_range=None,
-                use_mask: bool = False, progress: bool = True, log_every_s: float | None = None) -> Reconstruction:
+                use_mask: bool = False, progress: bool = True, log_every_s: float | None = None,
+                overwrite: bool = False) -> Reconstruction:
     """Train the neural SDF on `scan` and extract its depth map (see module docstring).
 
     use_mask: also restrict the depth map to the scan's mask (by default only to the pixels lit with
     enough contrast in the images, the same information the classical decoders use). progress: a bar on a
     terminal, else a line every few seconds; log_every_s: progress lines every this many seconds in any case.
+    resume / overwrite: continue out_dir's checkpoint / replace it (neither: a checkpoint there is refused).
+    Errors a caller may handle per scan: ScanError, ConfigError, CheckpointError (RunMismatch, CheckpointExists),
+    TrainingInterrupted, TrainingDiverged, OSError.
     """
-    from ..evaluation.metrics import confidence_metrics, depth_metrics, error_map
+    out = check_output_folder(out_dir) if out_dir is not None else None
+    if out is None:
+        return _reconstruct(scan, config, None, resume, depth_range, use_mask, progress, log_every_s, overwrite)
+    with staged_outputs(out) as staging:
+        return _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log_every_s, overwrite, staging)
+
+
+def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log_every_s, overwrite, staging=None):
+    """reconstruct's work: the checkpoint in out/train, the other outputs written into `staging`."""
+    from ..evaluation.metrics import confidence_metrics, depth_metrics, error_map, metrics_document
     from ..evaluation.viz import save_confidence_map, save_depth_color, save_map_with_colorbar
 
-    out = Path(out_dir) if out_dir is not None else None
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     trainer = Trainer(scan, config, out_dir=out / "train" if out is not None else None, resume=resume,
-                      depth_range=depth_range, progress=progress or bool(log_every_s), progress_interval_s=log_every_s)
+                      depth_range=depth_range, progress=progress or bool(log_every_s), progress_interval_s=log_every_s,
+                      overwrite=overwrite)
     t1 = time.perf_counter()
     trainer.train()
     if trainer.device.type == "cuda":
@@ -114,7 +129,8 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
         metrics = depth_metrics(depth, scan.gt_depth, scan.mask)
     timings = {"setup_s": t1 - t0, "train_s": t2 - t1, "train_wall_s_total": trainer.elapsed,
                "iterations": trainer.iteration, **ext_t, "total_s": time.perf_counter() - t0}
-    if out is not None:
+    if staging is not None:
+        out = staging
         write_depth(out, depth)
         rng = (np.nanpercentile(scan.gt_depth, 1), np.nanpercentile(scan.gt_depth, 99)) if scan.gt_depth is not None and np.isfinite(scan.gt_depth).any() else None
         save_depth_color(out / "depth_color.png", depth, rng)
@@ -123,10 +139,11 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
         write_points_ply(out / "points.ply", points, scan.images.max(0)[np.isfinite(depth)])
         trainer.save_history(out)
         if metrics is not None:
-            doc = {"method": "neural-sdf", "frames": list(scan.names), "mask": "scan mask", "metrics": metrics,
-                   "confidence": {"kind": config.extraction.confidence,
-                                  **confidence_metrics(depth, confidence, scan.gt_depth, scan.mask)}}
-            (out / "metrics.json").write_text(json.dumps(doc, indent=1, default=float))
+            doc = metrics_document(metrics, method="neural-sdf", scan=scan.source,
+                                   frames=list(scan.names[: trainer.n_frames]), mask="scan mask" if scan.mask is not None else "none",
+                                   confidence={"kind": config.extraction.confidence,
+                                               **confidence_metrics(depth, confidence, scan.gt_depth, scan.mask)})
+            (out / "metrics.json").write_text(json.dumps(doc, indent=2, default=float) + "\n")
             save_map_with_colorbar(out / "error_map.png", error_map(depth, scan.gt_depth, scan.mask),
                                    f"|depth error|, MAE {metrics['mae']:.3f} mm", "mm", value_range=(0.0, 5.0), cmap="inferno")
         # the confidence map beside the depth map

@@ -13,15 +13,24 @@ without it). Incremental mode (paper Fig. 8): start with `start_frames` frames a
 `add_every` iterations without restarting; `Trainer.add_frames` lets a caller add captured frames to a
 running optimisation.
 
+Checkpoints (`out_dir/checkpoint.pt`) record the run's identity (`run_identity`: the frames by name and content
+digest, the depth range, a digest of the calibration and every option that is not `resumable`); `resume=True`
+refuses a checkpoint of another run (`RunMismatch`, naming each difference), and a new run refuses to replace an
+existing checkpoint unless `overwrite=True` (`CheckpointExists`). SIGINT/SIGTERM during `train()` save a checkpoint at
+the next step boundary and raise `TrainingInterrupted` (exit status 130/143 on the command line).
+
 Repeatability: every random draw (pixel batches, ray jitter) comes from one torch.Generator seeded by
 `runtime.seed` and saved in checkpoints, so a resumed run continues exactly as an uninterrupted one would.
 """
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import os
+import signal
+import threading
 import time
 from contextlib import nullcontext as _nullcontext
 from dataclasses import dataclass, field
@@ -39,11 +48,139 @@ from .progress import Progress
 from .render import StructuredLightRenderer
 from .search import search_depth
 
-__all__ = ["Trainer", "TrainingDiverged", "History"]
+__all__ = ["Trainer", "TrainingDiverged", "TrainingInterrupted", "CheckpointError", "CheckpointExists", "RunMismatch",
+           "History", "run_identity"]
 
 
 class TrainingDiverged(RuntimeError):
     """The loss became non-finite; the last good checkpoint is kept."""
+
+
+class TrainingInterrupted(Exception):
+    """SIGINT or SIGTERM stopped training at a step boundary after saving a checkpoint (when the run has an output
+    folder). signum: the signal; checkpoint: the Path saved or None; exit_status: 128 + signum (130, 143)."""
+
+    def __init__(self, signum: int, iteration: int, checkpoint: Path | None):
+        self.signum, self.iteration, self.checkpoint = signum, iteration, checkpoint
+        self.exit_status = 128 + int(signum)
+        where = (f"checkpoint saved at {checkpoint}; continue with --resume (Python: resume=True)" if checkpoint
+                 else "no checkpoint (no output folder)")
+        super().__init__(f"interrupted by {signal.Signals(signum).name} at iteration {iteration}: {where}")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be used: missing, truncated, not a slwarp checkpoint, or of another run."""
+
+
+class CheckpointExists(CheckpointError):
+    """A new run would replace an existing checkpoint (pass resume=True to continue it, overwrite=True to replace it)."""
+
+
+class RunMismatch(CheckpointError):
+    """--resume with a checkpoint written by a different run; `differences` lists (what, old, new)."""
+
+    def __init__(self, path, differences: list[tuple[str, object, object]]):
+        self.differences = differences
+        lines = "; ".join(f"{what}: {old} in the checkpoint, {new} now" for what, old, new in differences)
+        super().__init__(f"{path}: --resume with a different run ({lines}); resume with the same scan, frames and "
+                         "options, or start again with --overwrite (or another --out)")
+
+
+def _digest(*arrays) -> str:
+    h = hashlib.sha256()
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(str((a.dtype.str, a.shape)).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()[:16]
+
+
+def run_identity(scan, config: TrainConfig, depth_range) -> dict:
+    """What defines a run's result, as its checkpoint records it: the frames (name and a digest of the image and
+    pattern, in order), the depth range (mm), a digest of the calibration and every option a resumed run must
+    keep (`TrainConfig.fixed_options`). Plain values (JSON-able)."""
+    calib = json.dumps({"camera": scan.camera.to_dict(), "projector": scan.projector.to_dict(),
+                        "R": np.asarray(scan.projector.R).tolist(), "T": np.asarray(scan.projector.T).tolist()},
+                       sort_keys=True)
+    return {"frames": [[name, _digest(scan.images[i], scan.patterns[i])] for i, name in enumerate(scan.names)],
+            "depth_range": [float(x) for x in depth_range],
+            "calibration": hashlib.sha256(calib.encode()).hexdigest()[:16],
+            "options": config.fixed_options()}
+
+
+def _short_list(names: list[str], limit: int = 6) -> str:
+    return ", ".join(names[:limit]) + (f", ... ({len(names)} in all)" if len(names) > limit else "")
+
+
+def identity_differences(old: dict, new: dict) -> list[tuple[str, object, object]]:
+    """(what, old value, new value) for every difference between two `run_identity` records."""
+    diffs = []
+    old_frames, new_frames = [tuple(f) for f in old["frames"]], [tuple(f) for f in new["frames"]]
+    if old_frames != new_frames:
+        old_names, new_names = [f[0] for f in old_frames], [f[0] for f in new_frames]
+        if old_names != new_names:
+            diffs.append(("frames", f"{len(old_names)} ({_short_list(old_names)})",
+                          f"{len(new_names)} ({_short_list(new_names)})"))
+        else:
+            changed = [o[0] for o, n in zip(old_frames, new_frames) if o[1] != n[1]]
+            diffs.append(("frame content", "other images or patterns", f"changed in {_short_list(changed)}"))
+    if [float(x) for x in old["depth_range"]] != [float(x) for x in new["depth_range"]]:
+        diffs.append(("depth range (mm)", tuple(old["depth_range"]), tuple(new["depth_range"])))
+    if old["calibration"] != new["calibration"]:
+        diffs.append(("calibration", "digest " + old["calibration"], "digest " + new["calibration"]))
+    for name in sorted(set(old["options"]) | set(new["options"])):
+        a, b = old["options"].get(name, "(absent)"), new["options"].get(name, "(absent)")
+        if a != b:
+            diffs.append((f"option {name}", a, b))
+    return diffs
+
+
+def read_checkpoint(path, map_location="cpu") -> dict:
+    """The checkpoint at `path`, or CheckpointError naming the path and the problem (missing, truncated, not a
+    slwarp checkpoint)."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no checkpoint to resume from (run without --resume to start)")
+    try:
+        ck = torch.load(path, map_location=map_location, weights_only=False)
+    except Exception as e:  # noqa: BLE001 - torch reports truncation and garbage as many types (zip, pickle, EOF)
+        raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else 'truncated?'}); "
+                              "start again with --overwrite") from None
+    needed = ("iteration", "config", "field", "variance", "optimizer", "generator", "n_frames", "history")
+    if not isinstance(ck, dict) or any(k not in ck for k in needed):
+        raise CheckpointError(f"{path}: not a slwarp training checkpoint (missing "
+                              f"{[k for k in needed if not isinstance(ck, dict) or k not in ck]}); start again with --overwrite")
+    return ck
+
+
+class _StopSignals:
+    """While active (in the main thread only, where Python delivers signals), SIGINT and SIGTERM set `signum`
+    instead of stopping the process, so that training stops at the next step boundary; a second signal stops at
+    once. The previous handlers come back on exit."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self):
+        self.signum = None
+        self._previous = {}
+
+    def _handle(self, signum, frame):
+        if self.signum is not None:  # asked twice: stop now
+            self.__exit__()
+            signal.raise_signal(signum)
+            return
+        self.signum = signum
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            for s in self.SIGNALS:
+                self._previous[s] = signal.signal(s, self._handle)
+        return self
+
+    def __exit__(self, *exc):
+        for s, h in self._previous.items():
+            signal.signal(s, h)
+        self._previous = {}
 
 
 @dataclass
@@ -64,12 +201,13 @@ class Trainer:
     TrainConfig (validated here). out_dir: where checkpoints go (None: no checkpoints). resume: continue from
     out_dir/checkpoint.pt. sdf: an SDF module to train instead of the config's field. init_depth [H, W] (mm):
     a starting depth map for the warm-up instead of the depth search. progress: a bar on a terminal, else a
-    line every progress_interval_s seconds (default 10; given: lines in any case).
+    line every progress_interval_s seconds (default 10; given: lines in any case). overwrite: a new run may replace
+    an existing checkpoint in out_dir (else CheckpointExists). Raises CheckpointError / RunMismatch on resume.
     """
 
     def __init__(self, scan, config: TrainConfig, out_dir: str | os.PathLike | None = None, resume: bool = False,
                  sdf: torch.nn.Module | None = None, depth_range=None, progress: bool = True, init_depth=None,
-                 progress_interval_s: float | None = None):
+                 progress_interval_s: float | None = None, overwrite: bool = False):
         self.scan = scan
         self.cfg = config.validate()
         self.device = torch_device(config.runtime.device)
@@ -81,6 +219,25 @@ class Trainer:
             raise ScanError(f"{scan.source or 'scan'}: no depth range in the scan: give one (near, far) in mm "
                             "(CLI: --depth-range NEAR,FAR)")
         self.depth_range = tuple(float(x) for x in depth_range)
+        if not (len(self.depth_range) == 2 and all(map(math.isfinite, self.depth_range))
+                and 0 < self.depth_range[0] < self.depth_range[1]):
+            raise ScanError(f"{scan.source or 'scan'}: depth range {depth_range} must be two finite numbers "
+                            "0 < near < far (mm)")
+        # what this run is, and the checkpoint it continues (checked first: a refusal costs nothing)
+        self.identity = run_identity(scan, self.cfg, self.depth_range)
+        checkpoint = None
+        ck_path = self.out_dir / "checkpoint.pt" if self.out_dir is not None else None
+        if resume:
+            if ck_path is None:
+                raise CheckpointError("resume: no output folder to resume from")
+            checkpoint = read_checkpoint(ck_path, map_location=self.device)
+            if "identity" in checkpoint:
+                diffs = identity_differences(checkpoint["identity"], self.identity)
+                if diffs:
+                    raise RunMismatch(ck_path, diffs)
+        elif ck_path is not None and ck_path.exists() and not overwrite:
+            raise CheckpointExists(f"{ck_path}: holds the checkpoint of an earlier run; --resume continues it, "
+                                   "--overwrite starts again and replaces it (Python: resume=True / overwrite=True)")
         if self.device.type == "cpu":
             # transmittance products and sigmoids of a sharpening SDF underflow into denormal floats, which
             # x86 CPUs process ~100x slower (measured: 50 iterations in 46 s instead of 1.4 s)
@@ -91,14 +248,17 @@ class Trainer:
         torch.manual_seed(config.runtime.seed)
         self.generator = torch.Generator(device="cpu").manual_seed(config.runtime.seed)
         n_all = len(scan)
+        if n_all < 2:
+            raise ScanError(f"{scan.source or 'scan'}: {'; '.join(scan.problems(config.sampling.contrast_threshold))}")
         self.n_frames = min(config.schedule.start_frames, n_all) if config.schedule.incremental else n_all
         # the working volume (the frustum box of the pixels lit with contrast) sizes the field, which the
         # renderer then samples
         images = scan.images[: self.n_frames]
         lit = lit_with_contrast(offset_and_modulation(images)[1], config.sampling.contrast_threshold)
         if not lit.any():
+            why = scan.problems(config.sampling.contrast_threshold)
             raise ScanError(f"{scan.source or 'scan'}: no pixel is lit with contrast (modulation above "
-                            f"{config.sampling.contrast_threshold}) in the frames used")
+                            f"{config.sampling.contrast_threshold}) in the frames used" + (f": {'; '.join(why)}" if why else ""))
         self.volume = Volume.from_frustum(scan.camera, lit, self.depth_range)
         self.field = sdf if sdf is not None else make_field(
             config.field, self.volume, init="camera" if config.init.method == "camera" else "sphere", far=self.depth_range[1])
@@ -134,8 +294,10 @@ class Trainer:
                                                        np.asarray(init_depth, np.float32).reshape(scan.camera.height,
                                                                                                   scan.camera.width))
                 except ValueError as e:  # too few pixels with a starting depth: the scan does not fit its model
-                    raise ScanError(f"{scan.source or 'scan'}: cannot fit the pattern blur ({e}); check the depth range "
-                                    "and the patterns, or give a fixed pattern_blur (--pattern-blur)") from None
+                    why = scan.problems(config.sampling.contrast_threshold)
+                    raise ScanError(f"{scan.source or 'scan'}: " + (f"{'; '.join(why)} (so the pattern blur cannot be "
+                                    f"fitted: {e})" if why else f"cannot fit the pattern blur ({e}); check the depth "
+                                    "range and the patterns, or give a fixed pattern_blur (--pattern-blur)")) from None
             self.renderer.set_pattern_blur(sigma)
             self.blur_fit = fit
         if init_depth is not None:
@@ -143,10 +305,8 @@ class Trainer:
         self.iteration = 0
         self.history = History()
         self.elapsed = 0.0
-        if resume:
-            if self.out_dir is None or not (self.out_dir / "checkpoint.pt").is_file():
-                raise FileNotFoundError(f"--resume: no checkpoint at {self.out_dir / 'checkpoint.pt' if self.out_dir else '(no output folder)'}")
-            self.load_checkpoint(self.out_dir / "checkpoint.pt")
+        if checkpoint is not None:
+            self.load_checkpoint(ck_path, checkpoint)
 
     # --- frames -------------------------------------------------------------------------------
     def add_frames(self, images=None, patterns=None, count: int = 1):
@@ -199,6 +359,7 @@ class Trainer:
             "elapsed": self.elapsed,
             "init_depth": self.init_depth,
             "pattern_blur": self.renderer.pattern_blur,
+            "identity": self.identity,
         }
 
     def save_checkpoint(self, path=None) -> Path | None:
@@ -208,16 +369,23 @@ class Trainer:
         path = Path(path) if path is not None else self.out_dir / "checkpoint.pt"
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp")
-        torch.save(self.state(), tmp)
-        os.replace(tmp, path)
+        try:
+            torch.save(self.state(), tmp)
+            os.replace(tmp, path)
+        except (OSError, RuntimeError) as e:  # torch reports a full disk as a RuntimeError of its zip writer
+            tmp.unlink(missing_ok=True)
+            if isinstance(e, OSError):
+                raise
+            raise OSError(f"{path}: could not write the checkpoint ({str(e).splitlines()[0]}); is the disk full?") from None
         return path
 
-    def load_checkpoint(self, path):
-        ck = torch.load(path, map_location=self.device, weights_only=False)
+    def load_checkpoint(self, path, ck: dict | None = None):
+        """Continue from the checkpoint at `path` (or its already read contents `ck`)."""
+        ck = ck if ck is not None else read_checkpoint(path, map_location=self.device)
         saved = ck["config"].get("field", ck["config"])  # flat in checkpoints written before the config had sections
         field_now = dataclasses.asdict(self.cfg.field)
         if {k: saved.get(k) for k in field_now} != field_now:
-            raise ValueError(f"{path}: checkpoint was trained with a different field ({saved.get('hidden')}x"
+            raise CheckpointError(f"{path}: checkpoint was trained with a different field ({saved.get('hidden')}x"
                              f"{saved.get('layers')}); use the same preset/options to resume")
         if ck["n_frames"] != self.n_frames:
             self.n_frames = ck["n_frames"]
@@ -383,8 +551,15 @@ class Trainer:
         bar = Progress(total, "training", initial=self.iteration, enabled=self.progress,
                        interval_s=self.progress_interval_s)
         t_start = time.perf_counter() - self.elapsed
+        stop = _StopSignals()
         try:
+            stop.__enter__()
             while self.iteration < total:
+                if stop.signum is not None:  # between two steps: never inside a captured graph's replay
+                    bar.close()
+                    self.elapsed = time.perf_counter() - t_start
+                    saved = self.save_checkpoint() if self.out_dir is not None else None
+                    raise TrainingInterrupted(stop.signum, self.iteration, saved)
                 if (self.cfg.schedule.incremental and self.iteration > 0 and self.iteration % self.cfg.schedule.add_every == 0
                         and self.n_frames < len(self.scan)):
                     self.add_frames(count=1)
@@ -415,6 +590,7 @@ class Trainer:
                     self.elapsed = time.perf_counter() - t_start
                     self.save_checkpoint()
         finally:
+            stop.__exit__()
             bar.close()
             self.elapsed = time.perf_counter() - t_start
         if self.out_dir is not None:

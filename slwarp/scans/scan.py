@@ -39,6 +39,15 @@ class ScanError(ValueError):
 # image I/O
 
 
+BLACK_LEVEL = 0.02  # full scale: a pixel below it counts as black
+SATURATED_LEVEL = 0.99  # full scale: a pixel at or above it counts as saturated
+WEAK_PATTERN_SPAN = 0.75  # a non-constant pattern spanning less (max - min, full scale) leaves little contrast
+
+
+def _names(names: list[str], limit: int = 6) -> str:
+    return ", ".join(names[:limit]) + (f", ... ({len(names)} in all)" if len(names) > limit else "")
+
+
 def read_image(path: str | os.PathLike, what: str = "image") -> np.ndarray:
     """Read an 8/16-bit or float PNG/TIFF as float32 gray in [0, 1] (colour converted to gray)."""
     import cv2
@@ -180,6 +189,39 @@ class Scan:
         for name, arr in (("gt_depth", self.gt_depth), ("mask", self.mask)):
             if arr is not None and arr.shape != (self.camera.height, self.camera.width):
                 raise ScanError(f"{where}: {name} shape {arr.shape} != camera size {self.camera.height}x{self.camera.width}")
+
+    def problems(self, contrast: float = 0.05) -> list[str]:
+        """What makes this scan unusable or suspect, one sentence each naming the frames: too few frames, black
+        or saturated frames, no pixel with contrast (a modulation max - min above `contrast`, full scale) and
+        patterns with almost no contrast (e.g. a colour pattern drawn in one channel, read as gray). Empty when
+        none. `slwarp info` prints them as warnings; the trainer and the decoders name them when they fail."""
+        out = []
+        n = len(self.names)
+        if n < 2:
+            out.append(f"only {n} frame ({', '.join(self.names)}): a + b P(x) has two unknowns per pixel, the neural "
+                       "method and the decoders need at least 2 frames")
+        img = self.images
+        dark_pattern = self.patterns.max(axis=(1, 2)) <= 0  # a "black" frame (projector off) may well be black
+        black = [nm for nm, im, off in zip(self.names, img, dark_pattern)
+                 if not off and float(np.mean(im < BLACK_LEVEL)) > 0.99]
+        if black:
+            out.append(f"{'all frames are' if len(black) == n else f'{len(black)} of {n} frames are'} black (over 99% "
+                       f"of pixels below {BLACK_LEVEL:.0%} of full scale): {_names(black)}; check exposure and projector")
+        saturated = [nm for nm, im in zip(self.names, img) if float(np.mean(im >= SATURATED_LEVEL)) > 0.5]
+        if saturated:
+            out.append(f"{'all frames are' if len(saturated) == n else f'{len(saturated)} of {n} frames are'} saturated "
+                       f"(over half the pixels at {SATURATED_LEVEL:.0%} of full scale or more): {_names(saturated)}; "
+                       "lower the exposure")
+        if n >= 2 and not (img.max(0) - img.min(0) > contrast).any():
+            out.append(f"no pixel changes by more than {contrast:g} of full scale across the {n} frames: the patterns "
+                       "leave no contrast in the images")
+        span = self.patterns.max(axis=(1, 2)) - self.patterns.min(axis=(1, 2))
+        weak = [nm for nm, sp in zip(self.names, span) if 0 < sp < WEAK_PATTERN_SPAN]
+        if weak:
+            out.append(f"pattern{'s' if len(weak) > 1 else ''} {_names(weak)} span{'' if len(weak) > 1 else 's'} only "
+                       f"{float(span[self.names.index(weak[0])]):.2f} of full scale (a colour pattern with one channel? "
+                       "patterns are read as gray)")
+        return out
 
     # --- frames -------------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -570,6 +612,20 @@ def _load_procam(folder: Path, capture) -> Scan:
     import cv2
 
     xml = folder / "calibration_result.xml"
+    try:
+        return _load_procam_with(folder, capture, xml, _read_procam_calibration(xml))
+    except (cv2.error, SystemError) as e:
+        # OpenCV's parser reports a truncated file or a malformed matrix as cv2.error or (from its Python
+        # binding) SystemError: the file is at fault, not the program
+        detail = ("OpenCV cannot parse it" if isinstance(e, SystemError) or not str(e).strip()
+                  else str(e).strip().splitlines()[-1])
+        raise ScanError(f"{xml}: truncated or malformed calibration XML ({detail})") from None
+
+
+def _read_procam_calibration(xml: Path) -> dict:
+    """{key: float64 matrix} of a procam calibration_result.xml (cv2.FileStorage); ScanError when missing."""
+    import cv2
+
     fs = cv2.FileStorage(str(xml), cv2.FILE_STORAGE_READ)
     if not fs.isOpened():
         raise ScanError(f"{xml}: not a readable OpenCV FileStorage file")
@@ -584,10 +640,14 @@ def _load_procam(folder: Path, capture) -> Scan:
                 return np.asarray(m, np.float64)
         raise ScanError(f"{xml}: missing {' or '.join(keys)}")
 
-    cam_K, cam_d = mat("cam_int"), mat("cam_dist")
-    prj_K, prj_d = mat("proj_int"), mat("proj_dist")
-    R, T = mat("rotation", "roration"), mat("translation")
+    calib = {"cam_K": mat("cam_int"), "cam_d": mat("cam_dist"), "prj_K": mat("proj_int"), "prj_d": mat("proj_dist"),
+             "R": mat("rotation", "roration"), "T": mat("translation")}
     fs.release()
+    return calib
+
+
+def _load_procam_with(folder: Path, capture, xml: Path, calib: dict) -> Scan:
+    cam_K, cam_d, prj_K, prj_d, R, T = (calib[k] for k in ("cam_K", "cam_d", "prj_K", "prj_d", "R", "T"))
     caps = sorted((p for p in folder.glob("capture_*") if p.is_dir()), key=lambda p: _natural_key(p.name))
     if not caps:
         raise ScanError(f"{folder}: no capture_N folder")
