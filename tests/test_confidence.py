@@ -236,7 +236,7 @@ def test_cli_decode_writes_confidence_and_evaluate_reads_it(scan_dir, tmp_path, 
     assert cli_main(["evaluate", str(out / "depth.npy"), str(scan_dir), "--out", str(tmp_path / "ev")]) == 0
     printed = capsys.readouterr().out
     assert "MAE top 90% mm" in printed
-    ev = json.loads((tmp_path / "ev" / "metrics.json").read_text())
+    ev = json.loads((tmp_path / "ev" / "evaluation.json").read_text())
     assert ev["confidence"]["ause"] == pytest.approx(doc["confidence"]["ause"])
     assert ev["confidence_map"] == str(out / "confidence.npy")
     # --confidence FILE: a ranking by the true error gives AUSE 0
@@ -247,7 +247,7 @@ def test_cli_decode_writes_confidence_and_evaluate_reads_it(scan_dir, tmp_path, 
     assert cli_main(["evaluate", str(out / "depth.npy"), str(scan_dir), "--out", str(tmp_path / "ev2"),
                      "--confidence", str(tmp_path / "oracle.npy")]) == 0
     capsys.readouterr()
-    assert json.loads((tmp_path / "ev2" / "metrics.json").read_text())["confidence"]["ause"] == pytest.approx(0, abs=1e-9)
+    assert json.loads((tmp_path / "ev2" / "evaluation.json").read_text())["confidence"]["ause"] == pytest.approx(0, abs=1e-9)
     # a bad confidence file is a one-line error naming it
     np.save(tmp_path / "bad.npy", np.full((3, 3), 0.5))
     assert cli_main(["evaluate", str(out / "depth.npy"), str(scan_dir), "--confidence", str(tmp_path / "bad.npy")]) == 2

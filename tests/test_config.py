@@ -59,7 +59,9 @@ def test_preset_copies_and_flat_overrides():
     ("iters", 0, "an integer >= 1"),  # used to run only the warm-up and exit 0
     ("iters", -5, "an integer >= 1"),
     ("mc_resolution", 0, "an integer >= 16"),  # used to fail deep inside marching cubes
-    ("photometric_filter", -0.1, "a number >= 0"),
+    ("min_confidence", -0.1, "a number >= 0 and <= 1"),
+    ("min_confidence", 1.5, "a number >= 0 and <= 1"),
+    ("refine_range", -1.0, "a number >= 0"),
     ("lr", 0.0, "a number > 0"),
     ("lambda_sc", math.nan, "a number >= 0"),
     ("lr_final", 1.5, "a number >= 0 and <= 1"),

@@ -80,7 +80,7 @@ def test_cli_resume_refuses_changed_frames_and_new_run_refuses_a_checkpoint(scan
     folder, out = tmp_path / "scan", tmp_path / "out"
     scan.save(folder)
     fast = ["--preset", "tiny", "--device", "cpu", "--init", "sphere", "--iters", "5", "--rays", "64",
-            "--mc-resolution", "16", "--photometric-filter", "0", "--quiet"]
+            "--mc-resolution", "16", "--min-confidence", "0", "--quiet"]
     assert cli_main(["reconstruct", str(folder), "--out", str(out), *fast]) == 0
     capsys.readouterr()
     before = {p.name: p.read_bytes() for p in out.rglob("*") if p.is_file()}
@@ -366,7 +366,7 @@ def test_calibration_xml_errors_are_scan_errors(chessboard_path, tmp_path, capsy
 
 @pytest.mark.parametrize("argv, expect", [
     (["--iters", "0"], "iters"), (["--iters", "-3"], "iters"), (["--rays", "0"], "rays"),
-    (["--mc-resolution", "0"], "mc_resolution"), (["--photometric-filter", "-0.5"], "photometric_filter"),
+    (["--mc-resolution", "0"], "mc_resolution"), (["--min-confidence", "-0.5"], "min_confidence"),
     (["--device", "gpu"], "auto, cpu, cuda or cuda:N"), (["--device", "mps"], "auto, cpu, cuda or cuda:N"),
 ])
 def test_numeric_options_are_checked_at_the_door(tmp_path, capsys, argv, expect):
