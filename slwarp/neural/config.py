@@ -429,7 +429,7 @@ def _preset(name: str, summary: str, **options) -> None:
 # the paper: 4000 iterations, 2048 rays, 32 + 32 samples, NeuS MLP 8 x 256, Adam 1e-4 constant, lambda_sc 0 then 1
 # after 1000 iterations, lambda_reg 0.1 (plus our depth-search start; TF32 on CUDA, which changed the bunny's MAE
 # by 3% against full float32)
-_preset("paper", "the paper's recipe: 4000 iterations, 2048 rays, 32+32 samples, MLP 8x256, Adam 1e-4 (GPU)",
+_preset("paper", "the paper's recipe, unchanged: 4000 iterations, 2048 rays, 32+32 samples, MLP 8x256, Adam 1e-4 (GPU)",
         matmul="tf32")
 # measured better on the virtual scanner (default-rig bunny: MAE 0.77 mm against 2.0 mm for "paper"): NeuS's
 # learning rate 5e-4 with cosine decay, and no surface-colour loss (it samples the sharp pattern at one point and
