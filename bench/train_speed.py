@@ -1,7 +1,7 @@
 """Training speed: milliseconds per iteration of a preset under several settings, where the time of an
 iteration goes, and the end-to-end time from a loaded scan to a depth map for the Warp and torch backends.
 
-    python bench/train_speed.py                                  # CUDA: paper preset, bunny, default rig
+    python bench/train_speed.py                                  # CUDA: the default preset, bunny, default rig
     python bench/train_speed.py --configs warp:compile:tf32:graph torch:compile:tf32:graph
     python bench/train_speed.py --end-to-end                     # + reconstruct() with backend warp and torch
     python bench/train_speed.py --preset cpu --rig small         # CPU: the demo preset
@@ -275,7 +275,7 @@ def main(argv=None):
     p.add_argument("--configs", nargs="*", default=None,
                    help="default CUDA: warp:eager:fp32 warp:compile:tf32 warp:compile:tf32:graph torch:compile:tf32 "
                         "torch:compile:tf32:graph; CPU: warp:eager:fp32 torch:eager:fp32")
-    p.add_argument("--preset", default=None, help="default: paper on CUDA, cpu on the CPU")
+    p.add_argument("--preset", default=None, help="default: the device's default preset (DEFAULT_PRESET)")
     p.add_argument("--scene", default="bunny")
     p.add_argument("--rig", default=None, help="default: default on CUDA, small on the CPU")
     p.add_argument("--warmup", type=int, default=20)
@@ -299,7 +299,9 @@ def main(argv=None):
         except ConfigError as e:
             raise SystemExit(f"--set: {e}") from None
     dev = "cuda" if torch.cuda.is_available() else "cpu"
-    preset_name = args.preset or ("paper" if dev == "cuda" else "cpu")
+    from slwarp.neural.config import default_preset_name
+
+    preset_name = args.preset or default_preset_name(dev)
     rig = args.rig or ("default" if dev == "cuda" else "small")
     configs = args.configs if args.configs is not None else (
         ["warp:eager:fp32", "warp:compile:tf32", "warp:compile:tf32:graph", "torch:compile:tf32", "torch:compile:tf32:graph"]
