@@ -13,6 +13,10 @@ without it). Incremental mode (paper Fig. 8): start with `start_frames` frames a
 `add_every` iterations without restarting; `Trainer.add_frames` lets a caller add captured frames to a
 running optimisation.
 
+The hash-grid field (field.kind "hashgrid"): Adam groups for its tables (grid_table_lr_factor x lr), its MLP
+and the NeuS variance (lr), all following the schedule's factor; its levels switch on coarse to fine
+(`active_levels`) through a device-side count, so a captured CUDA graph is replayed unchanged.
+
 Repeatability: every random draw (pixel batches, ray jitter) comes from one torch.Generator seeded by
 `runtime.seed` and saved in checkpoints, so a resumed run continues exactly as an uninterrupted one would.
 """
@@ -58,7 +62,8 @@ class History:
 
 
 class Trainer:
-    """Trains a NeuSField (or a given SDF module) on a scan with the structured-light renderer.
+    """Trains the config's field (make_field: NeuS's MLP or the hash grid) or a given SDF module on a scan with
+    the structured-light renderer.
 
     scan: a slwarp.Scan (its depth_range is required unless depth_range (near, far) mm is given); config: a
     TrainConfig (validated here). out_dir: where checkpoints go (None: no checkpoints). resume: continue from
