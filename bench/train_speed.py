@@ -1,19 +1,30 @@
 """Training speed: milliseconds per iteration of a preset under several settings, where the time of an
 iteration goes, and the end-to-end time from a loaded scan to a depth map for the Warp and torch backends.
 
-    python bench/train_speed.py                                  # CUDA: paper preset, bunny, default rig
+    python bench/train_speed.py                                  # CUDA: the default preset, bunny, default rig
     python bench/train_speed.py --configs warp:compile:tf32:graph torch:compile:tf32:graph
     python bench/train_speed.py --end-to-end                     # + reconstruct() with backend warp and torch
     python bench/train_speed.py --preset cpu --rig small         # CPU: the demo preset
+    python bench/train_speed.py --preset accurate --configs warp:compile:tf32:graph warp:compile:tf32:graph:twin
+    python bench/train_speed.py --preset fast --configs warp:compile:tf32:graph --end-to-end --backends warp
+    python bench/train_speed.py --preset tiny --set field=hashgrid iters=4 --iters 2 --warmup 1   # CPU smoke test
 
-Each config is BACKEND:MODE:MATMUL[:graph]: backend warp|torch, mode eager|compile (torch.compile of the
-field), matmul fp32|tf32, and graph = the whole step captured once as a CUDA graph and replayed.
+Each config is BACKEND:MODE:MATMUL[:graph][:twin]: backend warp|torch (the renderer's kernels), mode
+eager|compile (torch.compile of the field), matmul fp32|tf32, graph = the whole step captured once as a CUDA
+graph and replayed, twin = a hash-grid field's encoding in its pure-torch twin instead of the Warp kernels
+(the like-for-like comparison of the encoding: warp:...:graph against warp:...:graph:twin). --set applies
+options (key=value, the flat names of slwarp.neural.config) to the preset.
 
 Breakdown (CUDA): the step announces its phases to the renderer's phase_hook; the bench turns each
 announcement into an empty marker kernel, so the profiler's kernel timeline splits into phases: MLP
 forward (the up-sampling and final field evaluations, explicit gradient included), losses and gathers,
 MLP backward (the gradient of the explicit Eikonal gradient is this model's double backward), our Warp
 kernels (every phase), Adam, and the rest of the wall time (Python, launches, synchronisation: the GPU idles).
+With a hash-grid field the "MLP" columns hold the whole field (encoding included: its Warp kernels are
+counted in "our Warp kernels"). Peak GPU memory per config. --end-to-end: reconstruct() from the loaded scan
+(depth search, blur fit, training, marching cubes, depth, filters), after a short run of the same preset that
+builds the kernels and compiles the field (reported apart as warm-up; Warp's kernel cache keeps the build
+across processes, torch.compile's in-process).
 Writes <out>/train-speed-<device>.json and .md (and end-to-end rows with --end-to-end).
 """
 from __future__ import annotations
@@ -26,7 +37,9 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 
-WARP_KERNEL_MARKERS = ("render_kernels", "cast_camera", "upsample", "merge_sorted", "stratified", "camera_rays")
+# Warp's CUDA kernels are named <kernel>_cuda_kernel_forward (the hash grid's encode, gradient, ...)
+WARP_KERNEL_MARKERS = ("render_kernels", "cast_camera", "upsample", "merge_sorted", "stratified", "camera_rays",
+                       "_cuda_kernel_forward")
 MARKER_KERNEL = "spin_kernel"  # torch.cuda._sleep's kernel: the phase marker
 PHASE_COLUMNS = {"batch": "losses_other", "rays": "mlp_forward", "field": "mlp_forward", "render": "losses_other",
                  "backward": "mlp_backward", "optimizer": "adam", "end": "losses_other"}
@@ -105,19 +118,31 @@ def cpu_breakdown(trainer, steps: int = 10) -> dict:
     return cats
 
 
-def time_config(scan, spec: str, preset_name: str, warmup: int, iters: int, dev: str) -> dict:
+def parse_spec(spec: str) -> dict:
+    """BACKEND:MODE:MATMUL[:graph][:twin] -> the options it sets and whether the encoding runs in the twin."""
+    parts = spec.split(":")
+    if len(parts) < 3 or parts[0] not in ("warp", "torch") or parts[1] not in ("eager", "compile") \
+            or parts[2] not in ("fp32", "tf32") or not set(parts[3:]) <= {"graph", "twin"}:
+        raise SystemExit(f"config {spec!r}: expected BACKEND:MODE:MATMUL[:graph][:twin], e.g. warp:compile:tf32:graph")
+    return {"options": dict(backend=parts[0], compile=parts[1] == "compile", matmul=parts[2],
+                            cuda_graph="graph" in parts[3:]), "twin": "twin" in parts[3:]}
+
+
+def time_config(scan, spec: str, preset_name: str, warmup: int, iters: int, dev: str, options: dict | None = None) -> dict:
     import torch
 
     from slwarp.neural.config import preset
     from slwarp.neural.train import Trainer
 
-    parts = spec.split(":")
-    backend, mode, mm = parts[:3]
-    graph = len(parts) > 3 and parts[3] == "graph"
-    cfg = preset(preset_name, backend=backend, compile=(mode == "compile"), matmul=mm, cuda_graph=graph, init="sphere")
+    parsed = parse_spec(spec)
+    cfg = preset(preset_name, **{**(options or {}), **parsed["options"], "init": "sphere"})
     if dev == "cuda":
         torch.cuda.reset_peak_memory_stats()
     tr = Trainer(scan, cfg, progress=False)
+    if parsed["twin"]:
+        if not hasattr(tr.field, "backend"):
+            raise SystemExit(f"config {spec!r}: 'twin' needs a hash-grid field (--set field=hashgrid or a hash-grid preset)")
+        tr.field.backend = "torch"  # the encoding's gathers in torch; the renderer's kernels as the config says
     sync = torch.cuda.synchronize if dev == "cuda" else (lambda: None)
     t0 = time.perf_counter()
     for _ in range(warmup):
@@ -129,7 +154,7 @@ def time_config(scan, spec: str, preset_name: str, warmup: int, iters: int, dev:
         tr.step()
     sync()
     ms = (time.perf_counter() - t0) / iters * 1e3
-    row = {"config": spec, "preset": preset_name, "ms_per_it": ms, "it_per_s": 1e3 / ms, "warmup_s": t_warm,
+    row = {"config": spec, "preset": preset_name, "field": cfg.field.kind, "ms_per_it": ms, "it_per_s": 1e3 / ms, "warmup_s": t_warm,
            "projected_s": cfg.schedule.iters * ms / 1e3, "iters_of_preset": cfg.schedule.iters, "graph_used": tr.graph_captured}
     if dev == "cuda":
         b = breakdown(tr)
@@ -144,14 +169,21 @@ def time_config(scan, spec: str, preset_name: str, warmup: int, iters: int, dev:
     return row
 
 
-def end_to_end(scan, backend: str, preset_name: str, dev: str) -> dict:
-    """reconstruct() from the loaded scan: wall time of each stage, it/s, MAE, peak GPU memory."""
+def end_to_end(scan, backend: str, preset_name: str, dev: str, options: dict | None = None) -> dict:
+    """reconstruct() from the loaded scan: wall time of each stage, it/s, MAE, peak GPU memory; first a short
+    run of the same preset (its warm-up: kernel builds, torch.compile, CUDA-graph capture), timed apart."""
     import torch
 
     from slwarp.neural.reconstruct import reconstruct
     from slwarp.neural.config import preset
 
-    cfg = preset(preset_name, backend=backend)
+    cfg = preset(preset_name, **{**(options or {}), "backend": backend})
+    short = cfg.with_options(iters=min(cfg.schedule.iters, 5), init_iters=min(cfg.init.iters, 5), mc_resolution=16)
+    t0 = time.perf_counter()
+    reconstruct(scan, short, out_dir=None, progress=False)
+    if dev == "cuda":
+        torch.cuda.synchronize()
+    warmup_s = time.perf_counter() - t0
     if dev == "cuda":
         torch.cuda.synchronize()
         torch.cuda.reset_peak_memory_stats()
@@ -159,7 +191,8 @@ def end_to_end(scan, backend: str, preset_name: str, dev: str) -> dict:
     res = reconstruct(scan, cfg, out_dir=None, progress=False)
     wall = time.perf_counter() - t0
     t = res.timings
-    row = {"backend": backend, "preset": preset_name, "wall_s": wall, "timings": t, "it_per_s": t["iterations"] / t["train_s"],
+    row = {"backend": backend, "preset": preset_name, "field": cfg.field.kind, "warmup_s": warmup_s, "wall_s": wall,
+           "timings": t, "it_per_s": t["iterations"] / t["train_s"],
            "graph_used": res.trainer.graph_captured, "pattern_blur_px": res.trainer.renderer.pattern_blur,
            "metrics": res.metrics}
     if dev == "cuda":
@@ -170,7 +203,8 @@ def end_to_end(scan, backend: str, preset_name: str, dev: str) -> dict:
 
 def markdown(doc: dict) -> str:
     nan = float("nan")
-    lines = [f"# Training speed, preset `{doc['preset']}`, {doc['scene']} ({doc['rig']} rig), {doc['device']}, {doc['date']}", ""]
+    opts = f" with {' '.join(doc['options'])}" if doc.get("options") else ""
+    lines = [f"# Training speed, preset `{doc['preset']}`{opts}, {doc['scene']} ({doc['rig']} rig), {doc['device']}, {doc['date']}", ""]
     if doc["rows"]:
         lines += [f"Per iteration ({doc['iters']} timed after {doc['warmup']} warm-up iterations; the preset runs "
                   f"{doc['rows'][0]['iters_of_preset']} + the depth-search warm-up). Breakdown: GPU ms per iteration "
@@ -187,18 +221,21 @@ def markdown(doc: dict) -> str:
                          f"{r['ms_per_it']:.2f} | {r['it_per_s']:.1f} | {r['projected_s']:.1f} | " + " | ".join(cells)
                          + f" | {r.get('peak_gpu_mem_GB', nan):.2f} |")
         base = {r["config"]: r["ms_per_it"] for r in doc["rows"]}
-        for fast, slow in (("warp:compile:tf32:graph", "torch:compile:tf32:graph"), ("warp:compile:tf32:graph", "torch:compile:tf32"),
+        for fast, slow in (("warp:compile:tf32:graph", "warp:compile:tf32:graph:twin"),
+                           ("warp:eager:fp32", "warp:eager:fp32:twin"),
+                           ("warp:compile:tf32:graph", "torch:compile:tf32:graph"), ("warp:compile:tf32:graph", "torch:compile:tf32"),
                            ("warp:compile:tf32:graph", "warp:compile:tf32"), ("warp:compile:tf32", "torch:compile:tf32"),
                            ("warp:eager:fp32", "torch:eager:fp32")):
             if fast in base and slow in base:
                 lines.append(f"\n{slow} / {fast}: {base[slow] / base[fast]:.2f}x")
     if doc.get("end_to_end"):
         lines += ["", "## End to end: loaded scan to depth map (reconstruct(), default options of the preset)", "",
-                  "| backend | wall s | search + blur fit s | train s | it/s | marching cubes s | depth s | MAE mm | median mm | >5 mm | complete | peak GB |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+                  "Warm-up: a 5 + 5 iteration run of the same preset before (kernel builds, compile, capture).", "",
+                  "| backend | warm-up s | wall s | search + blur fit s | train s | it/s | marching cubes s | depth s | MAE mm | median mm | >5 mm | complete | peak GB |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in doc["end_to_end"]:
             t, m = r["timings"], r["metrics"] or {}
-            lines.append(f"| {r['backend']}{' (graph)' if r['graph_used'] else ''} | {r['wall_s']:.1f} | {t['setup_s']:.1f} | {t['train_s']:.1f} | "
+            lines.append(f"| {r['backend']}{' (graph)' if r['graph_used'] else ''} | {r.get('warmup_s', nan):.1f} | {r['wall_s']:.1f} | {t['setup_s']:.1f} | {t['train_s']:.1f} | "
                          f"{r['it_per_s']:.1f} | {t['marching_cubes_s']:.1f} | {t['depth_s']:.1f} | {m.get('mae', nan):.3f} | "
                          f"{m.get('median', nan):.3f} | {100 * m.get('over_5mm', nan):.2f}% | {100 * m.get('completeness', nan):.1f}% | "
                          f"{r.get('peak_gpu_mem_GB', nan):.2f} |")
@@ -238,41 +275,59 @@ def main(argv=None):
     p.add_argument("--configs", nargs="*", default=None,
                    help="default CUDA: warp:eager:fp32 warp:compile:tf32 warp:compile:tf32:graph torch:compile:tf32 "
                         "torch:compile:tf32:graph; CPU: warp:eager:fp32 torch:eager:fp32")
-    p.add_argument("--preset", default=None, help="default: paper on CUDA, cpu on the CPU")
+    p.add_argument("--preset", default=None, help="default: the device's default preset (DEFAULT_PRESET)")
     p.add_argument("--scene", default="bunny")
     p.add_argument("--rig", default=None, help="default: default on CUDA, small on the CPU")
     p.add_argument("--warmup", type=int, default=20)
     p.add_argument("--iters", type=int, default=50)
-    p.add_argument("--end-to-end", action="store_true", help="also run reconstruct() with backend warp and torch")
+    p.add_argument("--end-to-end", action="store_true", help="also run reconstruct() with each of --backends")
+    p.add_argument("--backends", nargs="*", default=["warp", "torch"], choices=["warp", "torch"],
+                   help="the backends of --end-to-end")
+    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                   help="options applied to the preset (flat names of slwarp.neural.config, e.g. field=hashgrid)")
     p.add_argument("--out", default=str(REPO / "bench" / "results"))
     args = p.parse_args(argv)
+    from slwarp.neural.config import OPTIONS, ConfigError
+
+    options = {}
+    for item in args.set:
+        key, sep, value = item.partition("=")
+        if not sep or key not in OPTIONS:
+            raise SystemExit(f"--set {item!r}: expected KEY=VALUE with KEY an option of slwarp.neural.config")
+        try:
+            options[key] = OPTIONS[key].parse(value)
+        except ConfigError as e:
+            raise SystemExit(f"--set: {e}") from None
     dev = "cuda" if torch.cuda.is_available() else "cpu"
-    preset_name = args.preset or ("paper" if dev == "cuda" else "cpu")
+    from slwarp.neural.config import default_preset_name
+
+    preset_name = args.preset or default_preset_name(dev)
     rig = args.rig or ("default" if dev == "cuda" else "small")
     configs = args.configs if args.configs is not None else (
         ["warp:eager:fp32", "warp:compile:tf32", "warp:compile:tf32:graph", "torch:compile:tf32", "torch:compile:tf32:graph"]
         if dev == "cuda" else ["warp:eager:fp32", "torch:eager:fp32"])
     scan = simulate_scene(args.scene, "random6", rig=rig, device="cuda:0" if dev == "cuda" else "cpu")
     name = torch.cuda.get_device_name(0) if dev == "cuda" else "CPU"
-    doc = {"device": name, "date": str(datetime.date.today()), "preset": preset_name, "scene": args.scene, "rig": rig,
+    doc = {"device": name, "date": str(datetime.date.today()), "preset": preset_name, "options": args.set,
+           "scene": args.scene, "rig": rig,
            "warmup": args.warmup, "iters": args.iters, "rows": [], "end_to_end": []}
     for spec in configs:
         torch.manual_seed(0)
-        row = time_config(scan, spec, preset_name, args.warmup, args.iters, dev)
+        row = time_config(scan, spec, preset_name, args.warmup, args.iters, dev, options)
         doc["rows"].append(row)
         print(json.dumps(row), flush=True)
     if args.end_to_end:
-        for backend in ("warp", "torch"):
-            row = end_to_end(scan, backend, preset_name, dev)
+        for backend in args.backends:
+            row = end_to_end(scan, backend, preset_name, dev, options)
             doc["end_to_end"].append(row)
             print(json.dumps(row, default=float), flush=True)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    tag = "cuda" if dev == "cuda" else "cpu"
+    tag = ("cuda" if dev == "cuda" else "cpu") + ("" if args.preset is None else f"-{preset_name}")
     old = out / f"train-speed-{tag}.json"
     if old.is_file():  # a run of only the per-config rows or only --end-to-end keeps the other part
         prev = json.loads(old.read_text())
-        if prev.get("device") == name and prev.get("preset") == preset_name:
+        if prev.get("device") == name and prev.get("preset") == preset_name and prev.get("options", []) == args.set:
             for part in ("rows", "end_to_end", "seeds"):
                 if not doc.get(part) and prev.get(part):
                     doc[part] = prev[part]

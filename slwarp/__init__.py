@@ -11,6 +11,7 @@ Public API (imported lazily, so `import slwarp` stays fast):
     render_structured_light, RenderOutput  the fused Warp renderer as a torch op (slwarp.neural.ops)
     StructuredLightRenderer                sampling + any SDF module + losses: a drop-in loss (slwarp.neural.render)
     NeuSField, LearnedVariance, Volume     the SDF network in mm (slwarp.neural.field)
+    HashGridSDF                            the hash-grid SDF field in mm (slwarp.neural.hashgrid)
     TrainConfig, preset, load_config       the typed run configuration and its presets (slwarp.neural.config)
     Trainer                                training with the paper's schedule (slwarp.neural.train)
     reconstruct                            train, extract mesh and depth (slwarp.neural.reconstruct)
@@ -41,6 +42,7 @@ _LAZY = {
     "NeuSField": "slwarp.neural.field",
     "LearnedVariance": "slwarp.neural.field",
     "Volume": "slwarp.neural.field",
+    "HashGridSDF": "slwarp.neural.hashgrid",
     "TrainConfig": "slwarp.neural.config",
     "load_config": "slwarp.neural.config",
     "Trainer": "slwarp.neural.train",

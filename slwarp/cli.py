@@ -395,8 +395,8 @@ def _parse_range(text: str | None):
 
 
 def _chosen_preset(argv) -> str:
-    """The preset a reconstruct or demo command line runs with: --preset, else the device's default (paper on
-    CUDA, cpu otherwise; the device from --device, default auto). Used for the defaults --help shows."""
+    """The preset a reconstruct or demo command line runs with: --preset, else the device's default
+    (slwarp.neural.config.DEFAULT_PRESET; the device from --device, default auto). Used for the defaults --help shows."""
     from .devices import DeviceError, torch_device
     from .neural.config import PRESETS, default_preset_name
 
@@ -420,15 +420,16 @@ def _add_config_options(p, preset_name: str, training: bool = True) -> None:
     """--preset, --config and one flag per TrainConfig option (grouped by section), with the help and default
     the config declares (and, with `training`, which options may change on --resume); flags the user does not
     give stay out of the namespace."""
-    from .neural.config import OPTIONS, PRESET_SUMMARIES, PRESETS, SECTIONS
+    from .neural.config import DEFAULT_PRESET, OPTIONS, PRESET_SUMMARIES, PRESETS, SECTIONS
 
     p.add_argument("--preset", choices=list(PRESETS), help="the starting configuration (see the list below); default: "
-                   "paper when the device is CUDA, else cpu")
+                   f"{DEFAULT_PRESET['cuda']} when the device is CUDA, else {DEFAULT_PRESET['cpu']}")
     p.add_argument("--config", metavar="FILE.yaml", help="a TrainConfig in YAML (sections field, sampling, schedule, "
                    "init, runtime, extraction; any option may be left out) applied over the preset; a run's "
                    "config.yaml reads back; flags override it")
     p.description = textwrap.fill(p.description, 100)
-    p.epilog = "presets:\n" + "\n".join(f"  {k:6s} {v}" for k, v in PRESET_SUMMARIES.items())
+    width = max(map(len, PRESET_SUMMARIES))
+    p.epilog = "presets:\n" + "\n".join(f"  {k:{width}s} {v}" for k, v in PRESET_SUMMARIES.items())
     p.formatter_class = argparse.RawDescriptionHelpFormatter  # keeps the preset list one line each
     defaults = PRESETS[preset_name]
     for section, cls in SECTIONS.items():

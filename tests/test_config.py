@@ -18,7 +18,10 @@ FLAT_DEFAULTS = dict(iters=4000, rays=2048, n_samples=32, n_importance=32, up_sa
                      n_freqs=6, init="search", init_iters=300, search_step_mm=1.0, search_stride=2, seed=0, backend="warp",
                      device="auto", matmul="fp32", compile=True, cuda_graph=True, incremental=False, start_frames=3,
                      add_every=500, checkpoint_every=500, log_every=50, mc_resolution=384, depth_method="mesh",
-                     edge_filter=10.0, refine_range=0.0)
+                     edge_filter=10.0, refine_range=0.0, field="mlp", grid_levels=16, grid_log2_table=19, grid_base=16, grid_finest="auto",
+                     grid_hidden=64, grid_layers=1, grid_activation="softplus", grid_gradient="finite_difference",
+                     grid_table_lr_factor=10.0, grid_start_levels=2, grid_level_every=150)
+HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, grid_table_lr_factor=10.0)
 FLAT_PRESETS = {
     "paper": dict(matmul="tf32"),
     "tuned": dict(matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0),
@@ -28,6 +31,12 @@ FLAT_PRESETS = {
     "tiny": dict(iters=300, rays=256, n_samples=16, n_importance=8, up_sample_steps=1, lr=5e-4, lr_decay="cosine",
                  sc_start=100, hidden=48, layers=3, skip=None, n_freqs=4, init_iters=100, search_step_mm=2.0,
                  search_stride=3, mc_resolution=128, checkpoint_every=100, log_every=25),
+    "fast": dict(matmul="tf32", iters=1000, init_iters=200, grid_start_levels=2, grid_level_every=50, mc_resolution=256,
+                 checkpoint_every=1000, **HASHGRID),
+    "accurate": dict(matmul="tf32", grid_start_levels=2, grid_level_every=200, **HASHGRID),
+    "cpu-hashgrid": dict(iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, search_step_mm=2.0,
+                         mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
+                         **HASHGRID),
 }
 
 
@@ -48,8 +57,8 @@ def test_preset_copies_and_flat_overrides():
     assert PRESETS["tiny"].schedule.iters == 300  # presets are never changed through a copy
     with pytest.raises(ConfigError, match="unknown option 'iterations'"):
         preset("tiny", iterations=5)
-    with pytest.raises(ConfigError, match="unknown preset 'fast'; presets: paper, tuned, cpu, tiny"):
-        preset("fast")
+    with pytest.raises(ConfigError, match="unknown preset 'quick'; presets: paper, tuned, cpu, tiny, fast, accurate"):
+        preset("quick")
 
 
 @pytest.mark.parametrize("option,value,allowed", [
@@ -72,6 +81,11 @@ def test_preset_copies_and_flat_overrides():
     ("device", "gpu", "auto, cpu, cuda or cuda:N"),
     ("skip", 0, "an integer >= 1 or none"),
     ("backend", None, "one of warp, torch"),
+    ("field", "cnn", "one of mlp, hashgrid"),
+    ("grid_finest", "fine", "an integer >= 1 and <= 65536 or auto"),
+    ("grid_levels", 0, "an integer >= 1 and <= 64"),
+    ("grid_gradient", "exact", "one of finite_difference, analytic"),
+    ("grid_table_lr_factor", 0.0, "a number > 0"),
 ])
 def test_validation_names_option_value_and_what_is_allowed(option, value, allowed):
     with pytest.raises(ConfigError) as e:
@@ -85,6 +99,10 @@ def test_rules_between_options():
         preset("paper", n_importance=30)
     with pytest.raises(ConfigError, match="skip: 8 must be below layers \\(8\\)"):
         preset("paper", skip=8)
+    with pytest.raises(ConfigError, match="grid_start_levels: 9 must not exceed grid_levels \\(8\\)"):
+        preset("cpu-hashgrid", grid_start_levels=9)
+    with pytest.raises(ConfigError, match="grid_finest: 8 must not be below grid_base \\(16\\), or auto"):
+        preset("accurate", grid_finest=8)
     cfg = preset("paper")
     cfg.schedule.lr_decay = "exp"  # set by hand: validate() (which Trainer calls) still catches it
     with pytest.raises(ConfigError, match="lr_decay"):
@@ -135,8 +153,8 @@ def test_cli_flags_are_generated_for_every_option():
             argv = [flag, expect]
         elif name == "device":
             argv, expect = [flag, "cpu"], "cpu"
-        else:
-            expect = {int: 2, float: 0.5}[opt._numeric()]
+        else:  # a value that differs from tiny's and satisfies the rules between options
+            expect = {"grid_start_levels": 3, "grid_finest": 64, "grid_log2_table": 12}.get(name, {int: 2, float: 0.5}[opt._numeric()])
             if opt.min is not None and expect < opt.min:  # e.g. mc_resolution >= 16
                 expect = {int: int, float: float}[opt._numeric()](opt.min) + 1
             assert expect != default
@@ -196,3 +214,53 @@ def test_resumable_options_are_marked_once():
     assert not {"lr", "seed", "rays", "hidden", "pattern_blur", "matmul"} & set(RESUMABLE)
     fixed = preset("tiny").fixed_options()
     assert set(fixed) == set(OPTIONS) - set(RESUMABLE) and fixed["seed"] == 0
+
+
+def test_field_kind_network_and_default_presets():
+    from slwarp.neural.config import DEFAULT_PRESET, default_preset_name
+
+    mlp, grid = PRESETS["cpu"].field, PRESETS["cpu-hashgrid"].field
+    assert mlp.network() == dict(kind="mlp", hidden=64, layers=4, skip=2, n_freqs=6)  # grid options do not count
+    assert grid.network() == dict(kind="hashgrid", grid_levels=8, grid_log2_table=15, grid_base=16, grid_finest="auto",
+                                  grid_hidden=64, grid_layers=1, grid_activation="softplus",
+                                  grid_gradient="finite_difference", grid_table_lr_factor=10.0, grid_start_levels=2,
+                                  grid_level_every=150)
+    assert default_preset_name("cuda") == DEFAULT_PRESET["cuda"] and default_preset_name("cpu") == DEFAULT_PRESET["cpu"]
+    assert default_preset_name("mps") == DEFAULT_PRESET["cpu"]
+    assert set(DEFAULT_PRESET.values()) <= set(PRESETS)
+    assert "paper's recipe" in PRESET_SUMMARIES["paper"]
+    # the CLI flag of the field kind
+    _, cfg, _ = parse(["reconstruct", "scan", "--out", "o", "--preset", "tiny", "--field", "hashgrid", "--grid-finest",
+                       "256"])
+    assert (cfg.field.kind, cfg.field.grid_finest, cfg.field.hidden) == ("hashgrid", 256, 48)
+
+
+def test_make_field_builds_each_kind():
+    import torch
+
+    from slwarp.neural.field import NeuSField, Volume, auto_finest_resolution, make_field
+    from slwarp.neural.hashgrid import HashGridSDF
+
+    volume = Volume((-395.0, -300.0, 440.0), (395.0, 300.0, 1110.0))  # 790 mm along x, as the built-in rigs' bunny
+    # the pixel footprint at 775 mm (the middle of 450..1100): 775 / 450 = 1.72 mm on the small rig -> 459 cells
+    # -> 512; 775 / 1800 = 0.43 mm on the default rig -> 1835 cells -> 2048
+    assert auto_finest_resolution(volume, 775 / 450) == 512
+    assert auto_finest_resolution(volume, 775 / 1800) == 2048
+    assert auto_finest_resolution(volume, 1e4) == 1
+    with pytest.raises(ValueError, match="must be > 0 mm"):
+        auto_finest_resolution(volume, 0.0)
+    assert isinstance(make_field(PRESETS["cpu"].field, volume), NeuSField)
+    cfg = preset("cpu-hashgrid", grid_hidden=32, grid_layers=2, grid_gradient="analytic", grid_activation="relu").field
+    f = make_field(cfg, volume, pixel_mm=775 / 450)
+    assert isinstance(f, HashGridSDF)
+    assert (f.layout.levels, f.layout.log2_table_size, f.layout.base_resolution, f.layout.finest_resolution) == (8, 15, 16, 512)
+    assert (f.gradient, f.activation, f.n_active, int(f.active)) == ("analytic", "relu", 2, 2)
+    assert [lin.weight.shape[0] for lin in f.linears] == [32, 32, 1]
+    assert make_field(preset("accurate", grid_finest=1024).field, volume).layout.finest_resolution == 1024
+    # the starting surface: NeuS's sphere of radius 0.5 (normalised) at the volume's centre
+    centre = torch.tensor(volume.center, dtype=torch.float32)
+    assert float(f(centre[None]).detach()) == pytest.approx(-0.5 * volume.scale, abs=1.0)
+    far = make_field(cfg, volume, pixel_mm=1.7, init="camera", far=1100.0)
+    assert float(far(torch.tensor([[0.0, 0.0, 600.0]])).detach()) == pytest.approx(500.0, abs=1.0)
+    with pytest.raises(ValueError, match="needs the pixel footprint"):
+        make_field(cfg, volume)

@@ -18,6 +18,17 @@ def test_readme_drop_in_example_runs(capsys):
     assert "L_rc" in capsys.readouterr().out
 
 
+def test_readme_hashgrid_example_runs(capsys):
+    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
+    example = next(b for b in blocks if "HashGridSDF(" in b)
+    scope: dict = {}
+    exec(compile(example, "README.md", "exec"), scope)
+    losses, sdf = scope["losses"], scope["sdf"]
+    assert math.isfinite(float(losses.color)) and math.isfinite(float(losses.eikonal))
+    assert sdf.n_active == 6 and float(sdf.table.detach().abs().max()) > 1e-3  # the tables moved off their 1e-4 init
+    assert "hash grid: L_rc" in capsys.readouterr().out
+
+
 def test_readme_config_example_is_a_valid_config(tmp_path):
     from slwarp.neural.config import load_config, preset
 

@@ -1,6 +1,6 @@
 """TrainConfig: everything that defines a neural reconstruction run, in six typed sections.
 
-    field       the SDF network (NeuS's MLP: width, depth, skip, encoding)
+    field       the SDF network: kind mlp (NeuS's MLP: width, depth, skip, encoding) or hashgrid (its grid_* options)
     sampling    what a training step renders: rays, samples per ray, pixels with contrast, pattern blur
     schedule    iterations, Adam's learning rate and its decay, loss weights, incremental mode
     init        where the field starts: depth-search map + warm-up, NeuS's sphere, or a far surface
@@ -17,8 +17,9 @@ Resuming: a run's checkpoint records its `fixed_options()` (every option but the
 must keep them; the options marked `resumable` (`RESUMABLE`: more iterations, logging and checkpoint intervals,
 where and how the same computation runs, and the whole extraction section, which acts after training) may change.
 
-PRESETS: paper, tuned, cpu, tiny (`PRESET_SUMMARIES` says what each is for); `default_preset_name(device)`
-picks paper on CUDA and cpu otherwise.
+PRESETS: paper (the paper's recipe, unchanged), tuned, fast and accurate (the hash-grid field, GPU), cpu and
+cpu-hashgrid (small rig, two CPU cores), tiny (tests); `PRESET_SUMMARIES` says what each is for.
+`default_preset_name(device)` reads DEFAULT_PRESET (one entry per device type).
 """
 from __future__ import annotations
 
@@ -49,6 +50,7 @@ __all__ = [
     "PRESET_SUMMARIES",
     "preset",
     "default_preset_name",
+    "DEFAULT_PRESET",
     "load_config",
     "save_config",
 ]
@@ -69,14 +71,43 @@ def option(default, help: str, *, min=None, max=None, above=None, name: str | No
 
 @dataclass
 class FieldConfig:
-    """The SDF network.
+    """The SDF network: `kind` picks it, and only that kind's options apply.
 
-    NeuS's MLP: positional encoding, Softplus(beta=100), weight normalisation, geometric initialisation."""
+    mlp: NeuS's MLP (positional encoding, Softplus(beta=100), weight normalisation, geometric initialisation);
+    the paper's field. hashgrid: `HashGridSDF` (slwarp.neural.hashgrid), a multiresolution hash encoding and
+    a small MLP, trained with its own Adam groups (tables at grid_table_lr_factor x lr) and levels switched on
+    coarse to fine (grid_start_levels after the warm-up, one more every grid_level_every iterations)."""
 
+    kind: Literal["mlp", "hashgrid"] = option("mlp", "the SDF network: mlp (NeuS's MLP, the paper's) or hashgrid "
+                                              "(multiresolution hash grid + small MLP)", name="field")
     hidden: int = option(256, "width of the field MLP's hidden layers", min=1)
     layers: int = option(8, "hidden layers of the field MLP", min=1)
     skip: int | None = option(4, "hidden layer that re-receives the encoded input (none: no skip; below layers)", min=1)
     n_freqs: int = option(6, "positional-encoding frequencies (0: raw coordinates)", min=0)
+    grid_levels: int = option(16, "hash grid: resolution levels", min=1, max=64)
+    grid_log2_table: int = option(19, "hash grid: log2 of the entries of a hashed level's table", min=4, max=26)
+    grid_base: int = option(16, "hash grid: cells per side of the coarsest level", min=1)
+    # "auto": the power of two nearest to the volume's largest side over the pixel footprint at the middle of
+    # the depth range (finer failed on the small rig: notes/hashgrid.md): 2048 on the default rig, 512 on the small
+    grid_finest: int | Literal["auto"] = option("auto", "hash grid: cells per side of the finest level, or auto (the "
+                                                "camera's pixel footprint at the working depth)", min=1, max=65536)
+    grid_hidden: int = option(64, "hash grid: width of its MLP's hidden layers", min=1)
+    grid_layers: int = option(1, "hash grid: hidden layers of its MLP", min=1)
+    grid_activation: Literal["softplus", "relu"] = option("softplus", "hash grid: MLP activation (softplus: beta 100)")
+    grid_gradient: Literal["finite_difference", "analytic"] = option(
+        "finite_difference", "hash grid: spatial gradient for the Eikonal term and normals (finite_difference: "
+        "tetrahedral taps one finest active cell apart; analytic: exact, faster, lets thin sheets survive on cell faces)")
+    grid_table_lr_factor: float = option(10.0, "hash grid: the tables' Adam learning rate as a multiple of lr",
+                                         above=0.0)
+    grid_start_levels: int = option(2, "hash grid: levels switched on at the start (and in the warm-up)", min=1)
+    grid_level_every: int = option(150, "hash grid: iterations after the warm-up between two added levels "
+                                   "(0: all levels from the end of the warm-up on)", min=0)
+
+    def network(self) -> dict:
+        """The kind and the options of that kind: what defines the network (a checkpoint must match it)."""
+        keys = ("hidden", "layers", "skip", "n_freqs") if self.kind == "mlp" else tuple(
+            f.name for f in dataclasses.fields(self) if f.name.startswith("grid_"))
+        return {"kind": self.kind, **{k: getattr(self, k) for k in keys}}
 
 
 @dataclass
@@ -363,6 +394,11 @@ class TrainConfig:
                               f"({s.up_sample_steps})")
         if f.skip is not None and not f.skip < f.layers:
             raise ConfigError(f"option skip: {f.skip} must be below layers ({f.layers}), or none")
+        if f.grid_start_levels > f.grid_levels:
+            raise ConfigError(f"option grid_start_levels: {f.grid_start_levels} must not exceed grid_levels "
+                              f"({f.grid_levels})")
+        if f.grid_finest != "auto" and f.grid_finest < f.grid_base:
+            raise ConfigError(f"option grid_finest: {f.grid_finest} must not be below grid_base ({f.grid_base}), or auto")
         return self
 
     def fixed_options(self) -> dict:
@@ -424,7 +460,7 @@ def _preset(name: str, summary: str, **options) -> None:
 # the paper: 4000 iterations, 2048 rays, 32 + 32 samples, NeuS MLP 8 x 256, Adam 1e-4 constant, lambda_sc 0 then 1
 # after 1000 iterations, lambda_reg 0.1 (plus our depth-search start; TF32 on CUDA, which changed the bunny's MAE
 # by 3% against full float32)
-_preset("paper", "the paper's recipe: 4000 iterations, 2048 rays, 32+32 samples, MLP 8x256, Adam 1e-4 (GPU)",
+_preset("paper", "the paper's recipe, unchanged: 4000 iterations, 2048 rays, 32+32 samples, MLP 8x256, Adam 1e-4 (GPU)",
         matmul="tf32")
 # measured better on the virtual scanner (default-rig bunny: MAE 0.77 mm against 2.0 mm for "paper"): NeuS's
 # learning rate 5e-4 with cosine decay, and no surface-colour loss (it samples the sharp pattern at one point and
@@ -442,6 +478,29 @@ _preset("tiny", "a 3x48 field for 300 iterations: tests", iters=300, rays=256, n
         init_iters=100, search_step_mm=2.0, search_stride=3, mc_resolution=128, checkpoint_every=100, log_every=25)
 
 
+# the hash-grid field (slwarp.neural.hashgrid; notes/hashgrid.md): Adam 1e-3 for its MLP and the variance, 1e-2
+# for the tables, cosine decay, no surface-colour loss, levels coarse to fine. Their iterations and level schedules
+# are first choices for the GPU: the lead's GPU accuracy sweep (bench/train_variants.py) settles them.
+_HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, grid_table_lr_factor=10.0)
+# a GPU depth map as soon as possible: 1000 iterations with all 16 levels on by iteration 200 + 700
+_preset("fast", "hash-grid field, 200 + 1000 iterations, 16 levels switched on quickly: a depth map as soon as "
+        "possible (GPU)", matmul="tf32", iters=1000, init_iters=200, grid_start_levels=2, grid_level_every=50,
+        mc_resolution=256, checkpoint_every=1000, **_HASHGRID)
+# the accurate hash-grid recipe: the GPU default candidate
+_preset("accurate", "hash-grid field, the paper's 4000 iterations and batch, levels coarse to fine: the accurate "
+        "GPU recipe", matmul="tf32", grid_start_levels=2, grid_level_every=200, **_HASHGRID)
+# CPU: the cpu preset's step on a small hash grid (8 levels of 2^15 entries; finer tables are cache-bound on
+# one thread): small rig, bunny/vase/boxes mean MAE 0.575 mm against 0.749 for cpu at about its time per step
+_preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries): better MAE at about cpu's time "
+        "(small rig)", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, search_step_mm=2.0,
+        mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15, **_HASHGRID)
+
+# the preset a run gets when it names none, per device type. GPU: the lead's accuracy sweep chooses (accurate is
+# the candidate). CPU: cpu-hashgrid, measured on the small rig with the trainer (bunny MAE 0.479 mm against 0.606
+# for cpu; phase 1: mean of bunny, vase, boxes 0.575 against 0.749 mm at 0.95x cpu's time per step)
+DEFAULT_PRESET = {"cuda": "paper", "cpu": "cpu-hashgrid"}
+
+
 def preset(name: str, **options) -> TrainConfig:
     """A copy of preset `name` with options set by flat name (see OPTIONS), validated."""
     if name not in PRESETS:
@@ -450,8 +509,9 @@ def preset(name: str, **options) -> TrainConfig:
 
 
 def default_preset_name(device) -> str:
-    """paper on a CUDA device, cpu otherwise (device: a torch.device or its type as a string)."""
-    return "paper" if getattr(device, "type", device) == "cuda" else "cpu"
+    """The default preset of a device (a torch.device or its type as a string): DEFAULT_PRESET's entry for
+    CUDA, the CPU's for any other device."""
+    return DEFAULT_PRESET["cuda" if getattr(device, "type", device) == "cuda" else "cpu"]
 
 
 # ----------------------------------------------------------------------------------------------

@@ -200,12 +200,38 @@ class NeuSField(nn.Module):
         return f
 
 
-def make_field(config, volume: Volume, *, init: str = "sphere", far: float | None = None) -> nn.Module:
+def auto_finest_resolution(volume: Volume, pixel_mm: float) -> int:
+    """Cells per side of a hash grid's finest level that match a pixel footprint `pixel_mm` (mm, at the working
+    depth): the power of two nearest (in log scale) to the volume's largest side over it. 2048 (0.39 mm cells)
+    on the default rig, 512 (1.5 mm) on the small one; finer cells failed on the small rig (notes/hashgrid.md)."""
+    if not pixel_mm > 0:
+        raise ValueError(f"auto_finest_resolution: the pixel footprint must be > 0 mm, got {pixel_mm}")
+    cells = 2.0 * volume.scale / pixel_mm
+    return int(2 ** min(20, max(0, round(math.log2(max(cells, 1.0))))))
+
+
+def make_field(config, volume: Volume, *, init: str = "sphere", far: float | None = None,
+               pixel_mm: float | None = None) -> nn.Module:
     """The SDF network a TrainConfig.field section describes, sized to the working volume (mm in, mm out).
-    init and far as NeuSField takes them. The one place that turns a field config into a network: a new
-    kind of field is added here (and its options in slwarp.neural.config.FieldConfig)."""
-    return NeuSField(volume, hidden=config.hidden, layers=config.layers, skip=config.skip, n_freqs=config.n_freqs,
-                     init=init, far=far)
+    init and far as NeuSField takes them; pixel_mm: the camera's pixel footprint (mm) at the working depth,
+    needed by a hash grid with grid_finest "auto". The one place that turns a field config into a network: a
+    new kind of field is added here (and its options in slwarp.neural.config.FieldConfig)."""
+    if config.kind == "mlp":
+        return NeuSField(volume, hidden=config.hidden, layers=config.layers, skip=config.skip, n_freqs=config.n_freqs,
+                         init=init, far=far)
+    if config.kind != "hashgrid":
+        raise ValueError(f"make_field: unknown field kind {config.kind!r} (mlp or hashgrid)")
+    from .hashgrid import HashGridSDF
+
+    finest = config.grid_finest
+    if finest == "auto":
+        if pixel_mm is None:
+            raise ValueError("make_field: grid_finest 'auto' needs the pixel footprint pixel_mm (mm)")
+        finest = max(config.grid_base, auto_finest_resolution(volume, pixel_mm))
+    return HashGridSDF(volume, levels=config.grid_levels, log2_table_size=config.grid_log2_table,
+                       base_resolution=config.grid_base, finest_resolution=finest, hidden=config.grid_hidden,
+                       layers=config.grid_layers, activation=config.grid_activation, gradient=config.grid_gradient,
+                       init=init, far=far, active_levels=config.grid_start_levels)
 
 
 class LearnedVariance(nn.Module):

@@ -19,6 +19,10 @@ refuses a checkpoint of another run (`RunMismatch`, naming each difference), and
 existing checkpoint unless `overwrite=True` (`CheckpointExists`). SIGINT/SIGTERM during `train()` save a checkpoint at
 the next step boundary and raise `TrainingInterrupted` (exit status 130/143 on the command line).
 
+The hash-grid field (field.kind "hashgrid"): Adam groups for its tables (grid_table_lr_factor x lr), its MLP
+and the NeuS variance (lr), all following the schedule's factor; its levels switch on coarse to fine
+(`active_levels`) through a device-side count, so a captured CUDA graph is replayed unchanged.
+
 Repeatability: every random draw (pixel batches, ray jitter) comes from one torch.Generator seeded by
 `runtime.seed` and saved in checkpoints, so a resumed run continues exactly as an uninterrupted one would.
 """
@@ -195,7 +199,8 @@ class History:
 
 
 class Trainer:
-    """Trains a NeuSField (or a given SDF module) on a scan with the structured-light renderer.
+    """Trains the config's field (make_field: NeuS's MLP or the hash grid) or a given SDF module on a scan with
+    the structured-light renderer.
 
     scan: a slwarp.Scan (its depth_range is required unless depth_range (near, far) mm is given); config: a
     TrainConfig (validated here). out_dir: where checkpoints go (None: no checkpoints). resume: continue from
@@ -260,8 +265,11 @@ class Trainer:
             raise ScanError(f"{scan.source or 'scan'}: no pixel is lit with contrast (modulation above "
                             f"{config.sampling.contrast_threshold}) in the frames used" + (f": {'; '.join(why)}" if why else ""))
         self.volume = Volume.from_frustum(scan.camera, lit, self.depth_range)
+        # the camera's pixel footprint at the middle of the depth range sizes a hash grid's finest cells
+        pixel_mm = 0.5 * sum(self.depth_range) / (0.5 * (scan.camera.fx + scan.camera.fy))
         self.field = sdf if sdf is not None else make_field(
-            config.field, self.volume, init="camera" if config.init.method == "camera" else "sphere", far=self.depth_range[1])
+            config.field, self.volume, init="camera" if config.init.method == "camera" else "sphere",
+            far=self.depth_range[1], pixel_mm=pixel_mm)
         self.renderer = StructuredLightRenderer(
             self.field, scan.camera, scan.projector, scan.patterns[: self.n_frames], images, depth_range=self.depth_range,
             volume=self.volume, n_samples=config.sampling.n_samples, n_importance=config.sampling.n_importance,
@@ -271,8 +279,7 @@ class Trainer:
         )
         # a captured step reads the learning rate from a device tensor and keeps Adam's step count on the GPU
         self.use_graph = bool(config.runtime.cuda_graph) and self.device.type == "cuda"
-        self.optimizer = torch.optim.Adam(list(self.field.parameters()) + list(self.renderer.variance.parameters()),
-                                          lr=config.schedule.lr)
+        self.optimizer = torch.optim.Adam(self._parameter_groups(), lr=config.schedule.lr)
         self._configure_optimizer()
         self._graph = None  # the captured step (see _graph_step)
         self._eager_since_change = 0  # plain steps since the frames changed (capture needs warm kernels)
@@ -333,12 +340,44 @@ class Trainer:
     def lambda_sc(self, it: int) -> float:
         return self.cfg.schedule.lambda_sc if it >= self.cfg.schedule.sc_start else 0.0
 
-    def learning_rate(self, it: int) -> float:
+    def lr_factor(self, it: int) -> float:
+        """The schedule's factor on every parameter group's base learning rate at iteration `it` (1: none)."""
         if self.cfg.schedule.lr_decay == "none":
-            return self.cfg.schedule.lr
+            return 1.0
         total = max(1, self.cfg.schedule.iters + self.warmup_iters)
         progress = min(1.0, it / total)
-        return self.cfg.schedule.lr * (self.cfg.schedule.lr_final + (1.0 - self.cfg.schedule.lr_final) * 0.5 * (1.0 + math.cos(math.pi * progress)))
+        return self.cfg.schedule.lr_final + (1.0 - self.cfg.schedule.lr_final) * 0.5 * (1.0 + math.cos(math.pi * progress))
+
+    def learning_rate(self, it: int) -> float:
+        """The learning rate of the field's MLP (config lr times the schedule factor)."""
+        return self.cfg.schedule.lr * self.lr_factor(it)
+
+    def active_levels(self, it: int) -> int | None:
+        """Hash-grid levels switched on at iteration `it` (None for a field without levels): grid_start_levels
+        through the warm-up, then one more every grid_level_every iterations (all at once when 0)."""
+        if self.cfg.field.kind != "hashgrid" or not hasattr(self.field, "set_active_levels"):
+            return None
+        f = self.cfg.field
+        after = it - self.warmup_iters
+        if after < 0:
+            return min(f.grid_start_levels, self.field.levels)
+        added = self.field.levels if f.grid_level_every == 0 else after // f.grid_level_every
+        return min(self.field.levels, f.grid_start_levels + added)
+
+    def _parameter_groups(self) -> list[dict]:
+        """Adam's groups, each with its base learning rate ("base_lr", scaled by the schedule's factor): the
+        hash grid's tables (grid_table_lr_factor x lr), the rest of the field and the NeuS variance (lr); one
+        group of everything for other fields (as checkpoints of the MLP hold it)."""
+        lr = self.cfg.schedule.lr
+        variance = list(self.renderer.variance.parameters())
+        table = getattr(self.field, "table", None)
+        if self.cfg.field.kind != "hashgrid" or not isinstance(table, torch.nn.Parameter):
+            return [{"params": list(self.field.parameters()) + variance, "lr": lr, "base_lr": lr}]
+        rest = [p for p in self.field.parameters() if p is not table]
+        table_lr = lr * self.cfg.field.grid_table_lr_factor
+        return [{"params": [table], "lr": table_lr, "base_lr": table_lr},
+                {"params": rest, "lr": lr, "base_lr": lr},
+                {"params": variance, "lr": lr, "base_lr": lr}]
 
     def cos_anneal(self, it: int) -> float:
         return 1.0 if self.cfg.schedule.anneal_end <= 0 else min(1.0, it / self.cfg.schedule.anneal_end)
@@ -383,10 +422,16 @@ class Trainer:
         """Continue from the checkpoint at `path` (or its already read contents `ck`)."""
         ck = ck if ck is not None else read_checkpoint(path, map_location=self.device)
         saved = ck["config"].get("field", ck["config"])  # flat in checkpoints written before the config had sections
-        field_now = dataclasses.asdict(self.cfg.field)
-        if {k: saved.get(k) for k in field_now} != field_now:
-            raise CheckpointError(f"{path}: checkpoint was trained with a different field ({saved.get('hidden')}x"
-                             f"{saved.get('layers')}); use the same preset/options to resume")
+        field_now = self.cfg.field.network()
+        saved_kind = saved.get("kind", "mlp")  # written before the hash grid: the MLP
+        if saved_kind != field_now["kind"]:
+            raise CheckpointError(f"{path}: checkpoint was trained with the {saved_kind} field, the config asks for the "
+                             f"{field_now['kind']} field (--field); resume with --field {saved_kind} and the same preset")
+        differ = {k: (saved.get(k), v) for k, v in field_now.items() if saved.get(k) != v}
+        if differ:
+            raise CheckpointError(f"{path}: checkpoint was trained with a different {saved_kind} field (checkpoint, config: "
+                             + ", ".join(f"{k} {a!r} vs {b!r}" for k, (a, b) in differ.items())
+                             + "); use the same preset/options to resume")
         if ck["n_frames"] != self.n_frames:
             self.n_frames = ck["n_frames"]
             self.renderer.set_frames(self.scan.images[: self.n_frames], self.scan.patterns[: self.n_frames])
@@ -420,12 +465,21 @@ class Trainer:
             if "step" in st and torch.is_tensor(st["step"]):
                 st["step"] = st["step"].to(self.device if self.use_graph else "cpu", torch.float32)
 
-    def _set_lr(self, lr: float) -> None:
+    def _set_lr(self, factor: float) -> None:
+        """Each group's learning rate: its base rate times the schedule's factor (a device tensor's fill under
+        CUDA graphs: no recapture, no host sync)."""
         for group in self.optimizer.param_groups:
+            lr = group.get("base_lr", self.cfg.schedule.lr) * factor
             if torch.is_tensor(group["lr"]):
                 group["lr"].fill_(lr)
             else:
                 group["lr"] = lr
+
+    def _set_levels(self, it: int) -> None:
+        """Apply the hash grid's level schedule (a device-side level count: no recapture, no host sync)."""
+        n = self.active_levels(it)
+        if n is not None and n != self.field.n_active:
+            self.field.set_active_levels(n)
 
     def step(self) -> dict:
         """One optimisation step; returns the scalar losses (0-d tensors: reading them synchronises)."""
@@ -436,7 +490,8 @@ class Trainer:
         jitter = self.renderer.draw_jitter(self.cfg.sampling.rays, self.generator)
         weights = {"warmup": 1.0 if self.in_warmup(it) else 0.0,
                    "lambda_sc": 0.0 if self.in_warmup(it) else self.lambda_sc(it - self.warmup_iters)}
-        self._set_lr(self.learning_rate(it))
+        self._set_lr(self.lr_factor(it))
+        self._set_levels(it)
         vals = None
         if self.use_graph and self.cos_anneal(it) == 1.0:
             vals = self._graph_step(pick, jitter, weights)
