@@ -198,7 +198,8 @@ def markdown(doc: dict) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--presets", default=None, help="comma-separated presets (default: the device's default preset)")
+    ap.add_argument("--presets", default=None, help="comma-separated presets, each PRESET or PRESET:key=value:key=value "
+                    "(a variant, e.g. accurate:refine_range=3; default: the device's default preset)")
     ap.add_argument("--set", default=None, help="option overrides for every preset, e.g. 'iters=300,rays=512'")
     ap.add_argument("--rigs", default=None, help="comma-separated rig geometries (default: all)")
     ap.add_argument("--small", action="store_true", help="each geometry's small-resolution rig")
@@ -224,11 +225,10 @@ def main(argv=None) -> int:
     n_gpu = torch.cuda.device_count() if cuda else 0
     devices = [f"cuda:{i}" for i in range(n_gpu) for _ in range(args.workers_per_gpu)] if cuda else \
         ["cpu"] * (args.workers or 1)
-    presets = args.presets.split(",") if args.presets else [default_preset_name("cuda" if cuda else "cpu")]
+    labels = args.presets.split(",") if args.presets else [default_preset_name("cuda" if cuda else "cpu")]
     overrides = parse_overrides(args.set)
     rigs = [rig_name(g, args.small) for g in (args.rigs.split(",") if args.rigs else GEOMETRIES)]
     scenes = args.scenes.split(",") if args.scenes else list(SCENE_NAMES)
-    labels = presets
     out = Path(args.out)
     state = Path(args.state) if args.state else out / "accuracy-state"
     state.mkdir(parents=True, exist_ok=True)
@@ -236,8 +236,10 @@ def main(argv=None) -> int:
     jobs = []
     for r in rigs:
         for s in scenes:
-            for p in presets:  # neural runs first: they are the long ones
-                jobs.append({"kind": "neural", "label": p, "preset": p, "overrides": overrides, "rig": r, "scene": s,
+            for label in labels:  # neural runs first: they are the long ones
+                name, *variant = label.split(":")
+                jobs.append({"kind": "neural", "label": label, "preset": name,
+                             "overrides": {**overrides, **parse_overrides(",".join(variant))}, "rig": r, "scene": s,
                              "seed": args.seed})
             jobs.append({"kind": "classical", "rig": r, "scene": s, "seed": args.seed})
     results, todo = [], []

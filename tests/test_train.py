@@ -31,7 +31,7 @@ def small_scan():
 
 
 def tiny(**kw):
-    return preset("tiny", device="cpu", **kw)
+    return preset("tiny", **{"device": "cpu", **kw})
 
 
 # the tiny preset on a small hash grid (6 levels of 2^12 entries, 16..512 cells: auto on the small rig).
