@@ -131,12 +131,17 @@ def photometric_filter(depth: np.ndarray, camera, projector, images: np.ndarray,
     return np.where(r < threshold, depth, np.nan).astype(np.float32)
 
 
-def estimate_pattern_blur(camera, projector, images, patterns, depth, sigmas=None) -> tuple[float, dict]:
+BLUR_FIT_PIXELS = 65536  # the blur is one number: this many evenly spread pixels pin it as well as all of them
+
+
+def estimate_pattern_blur(camera, projector, images, patterns, depth, sigmas=None,
+                          max_pixels: int = BLUR_FIT_PIXELS, device=None) -> tuple[float, dict]:
     """The Gaussian pattern blur (projector px) that best explains the images at a depth map [H, W] (mm).
 
     For each candidate sigma the patterns are blurred as the renderer blurs them (`blur_patterns`), sampled
     where each pixel's depth point projects, and compared with the images (a + b P); the sigma with the
-    lowest mean squared residual over the pixels with depth and contrast wins, refined by a parabola
+    lowest mean squared residual over the pixels with depth and contrast (at most `max_pixels` of them, evenly
+    spread over the list: the fit's cost no longer grows with the camera's resolution) wins, refined by a parabola
     through the best grid value and its neighbours. Depth errors of the search map (a fraction of a
     projector pixel) barely move the optimum. Returns (sigma, {sigma: mse}).
     """
@@ -146,12 +151,26 @@ def estimate_pattern_blur(camera, projector, images, patterns, depth, sigmas=Non
     ok = np.isfinite(depth) & lit_with_contrast(b)
     if ok.sum() < 100:
         raise ValueError(f"estimate_pattern_blur: only {int(ok.sum())} pixels with depth and contrast")
-    pats = torch.as_tensor(np.asarray(patterns, np.float32))
-    uv = projector_coords(np.where(ok, depth, np.nan), camera, projector)  # the same for every sigma
+    # the patterns are blurred where the training runs (device: a torch device; None: the CPU)
+    pats = torch.as_tensor(np.asarray(patterns, np.float32), device=device)
+    idx = np.flatnonzero(ok)
+    if idx.size > max_pixels:
+        idx = idx[np.linspace(0, idx.size - 1, max_pixels).astype(np.int64)]
+    # the chosen pixels laid out as rows of 256 (OpenCV's remap wants image-like maps); the last row is padded
+    # with repeats of the last pixel, which the mean leaves out
+    n = idx.size
+    rows = -(-n // 256)
+    sel = np.concatenate([idx, np.full(rows * 256 - n, idx[-1])])
+    rays = camera.pixel_to_ray(camera.pixel_grid().reshape(-1, 2)[sel])
+    X = rays * (depth.reshape(-1)[sel].astype(np.float64) / rays[:, 2])[:, None]
+    uv = np.asarray(projector.project_camera_points(X), np.float64)
+    uv = np.where(np.isfinite(uv), uv, OFF_IMAGE_PX).astype(np.float32).reshape(rows, 256, 2)
+    I = images.reshape(len(images), -1)[:, sel][:, :n]
+    A, B = a.reshape(-1)[sel][:n], b.reshape(-1)[sel][:n]
     mse = {}
     for s in sigmas:
-        pred = sample_patterns(blur_patterns(pats, float(s)).numpy(), uv)
-        mse[float(s)] = float(np.mean(((images - a - b * pred) ** 2)[:, ok]))
+        pred = sample_patterns(blur_patterns(pats, float(s)).cpu().numpy(), uv).reshape(len(images), -1)[:, :n]
+        mse[float(s)] = float(np.mean((I - A - B * pred) ** 2))
     keys = sorted(mse)
     j = keys.index(min(mse, key=mse.get))
     best = keys[j]

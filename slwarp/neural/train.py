@@ -291,7 +291,8 @@ class Trainer:
             search_blur = 1.0 if config.sampling.pattern_blur == "auto" else float(config.sampling.pattern_blur)
             init_depth, self.search_info = search_depth(
                 scan.camera, scan.projector, images,
-                blur_patterns(torch.as_tensor(scan.patterns[: self.n_frames]), search_blur).numpy(), self.depth_range,
+                blur_patterns(torch.as_tensor(scan.patterns[: self.n_frames], device=self.device), search_blur).cpu().numpy(),
+                self.depth_range,
                 valid=lit, step_mm=config.init.search_step_mm, stride=config.init.search_stride, device=self.device)
         if config.sampling.pattern_blur == "auto" and not resume:
             sigma, fit = 1.0, None
@@ -299,7 +300,8 @@ class Trainer:
                 try:
                     sigma, fit = estimate_pattern_blur(scan.camera, scan.projector, images, scan.patterns[: self.n_frames],
                                                        np.asarray(init_depth, np.float32).reshape(scan.camera.height,
-                                                                                                  scan.camera.width))
+                                                                                                  scan.camera.width),
+                                                       device=self.device)
                 except ValueError as e:  # too few pixels with a starting depth: the scan does not fit its model
                     why = scan.problems(config.sampling.contrast_threshold)
                     raise ScanError(f"{scan.source or 'scan'}: " + (f"{'; '.join(why)} (so the pattern blur cannot be "
