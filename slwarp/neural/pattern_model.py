@@ -203,7 +203,12 @@ class _BlurLadder:
 
     def __init__(self, patterns, device):
         pats = torch.as_tensor(patterns, dtype=torch.float32, device=device)
-        self.rungs = torch.stack([blur_patterns(pats, float(s)) for s in BLUR_LADDER], dim=1)[None]
+        tf32 = torch.backends.cudnn.allow_tf32  # the trainer switches TF32 on: 10-bit mantissas in the blur's convolutions
+        torch.backends.cudnn.allow_tf32 = False
+        try:
+            self.rungs = torch.stack([blur_patterns(pats, float(s)) for s in BLUR_LADDER], dim=1)[None]
+        finally:
+            torch.backends.cudnn.allow_tf32 = tf32
         _, self.n, self.r, self.hp, self.wp = self.rungs.shape
 
     def sample(self, uv: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
@@ -253,7 +258,7 @@ def _fit_blur(depth: torch.Tensor, ok: torch.Tensor, rays: torch.Tensor, project
     img, bb = images[:, ok], b[ok]
     mse = []
     for j in range(len(BLUR_LADDER)):
-        codes = ladder.sample(uv, torch.full_like(bb, float(j)))
+        codes = ladder.sample(uv, torch.full_like(bb, min(float(j), ladder.r - 1 - 1e-6)))  # rung j (the last: inside)
         r = least_squares_residual(img, codes, bb)
         mse.append(torch.bincount(which, (r * r).mean(0).double(), bins) / count)
     centres = torch.stack([torch.quantile(zp[which == k], 0.5) for k in range(bins)])
