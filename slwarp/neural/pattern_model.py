@@ -181,17 +181,25 @@ def least_squares_residual(images, codes, b_prior, ridge: float = LS_RIDGE):
     return images - (mi - b * mq) - b * codes
 
 
-def _pixel_rays(camera, device) -> torch.Tensor:
-    """[H, W, 3] float32 on `device`: each pixel's ray scaled to z = 1 (a depth d gives the point d ray),
-    computed in float64 on the host through the scanner's geometry."""
-    rays = camera.pixel_to_ray(camera.pixel_grid())
-    return torch.as_tensor((rays / rays[..., 2:3]).astype(np.float32), device=device)
+class _Rays:
+    """Each camera pixel's ray scaled to camera z = 1, in the projector frame: the pixel's point at depth d
+    (camera z, mm) is d ray + T in the projector frame (X_p = R X_c + T), one multiply-add per depth instead
+    of a rotation. `ray` [H, W, 3] float64 on the device (computed on the host through the scanner's geometry),
+    `ray32` its float32 copy, `T` [3]."""
+
+    def __init__(self, camera, projector, device):
+        rays = camera.pixel_to_ray(camera.pixel_grid())
+        self.ray = torch.as_tensor(np.asarray(rays / rays[..., 2:3], np.float64) @ projector.R.T, device=device)
+        self.ray32 = self.ray.float()
+        self.T = torch.as_tensor(projector.T, dtype=torch.float64, device=device)
+        self.T32 = self.T.float()
 
 
 def _projector_uv(points: torch.Tensor, projector) -> torch.Tensor:
-    """[..., 2] projector pixels of camera-frame points [..., 3] (the scanner's torch path: OpenCV distortion,
-    NaN behind the lens or outside the trusted field), OFF_IMAGE_PX where NaN (as `projector_coords`)."""
-    uv = projector.project_camera_points(points)
+    """[..., 2] projector pixels of projector-frame points [..., 3] (the scanner's torch path: OpenCV
+    distortion, NaN behind the lens or outside the trusted field), OFF_IMAGE_PX where NaN (as
+    `projector_coords`)."""
+    uv = projector.project(points)
     return torch.where(torch.isfinite(uv), uv, torch.full_like(uv, OFF_IMAGE_PX))
 
 
@@ -241,7 +249,7 @@ def _interp(x: torch.Tensor, xp: torch.Tensor, fp: torch.Tensor) -> torch.Tensor
     return torch.where(x <= xp[0], fp[0], torch.where(x >= xp[-1], fp[-1], out))
 
 
-def _fit_blur(depth: torch.Tensor, ok: torch.Tensor, rays: torch.Tensor, projector, images: torch.Tensor,
+def _fit_blur(depth: torch.Tensor, ok: torch.Tensor, rays: _Rays, projector, images: torch.Tensor,
               b: torch.Tensor, ladder: _BlurLadder, bins: int) -> tuple[torch.Tensor, torch.Tensor]:
     """`fit_blur_by_projector_depth` on tensors: (z_p [K], sigma [K]) float64 on the device. One host
     synchronisation (the pixel count), and the per-bin parabola on the K x R costs on the host."""
@@ -249,11 +257,11 @@ def _fit_blur(depth: torch.Tensor, ok: torch.Tensor, rays: torch.Tensor, project
     if n_ok < 100:
         raise ValueError(f"fit_blur_by_projector_depth: only {n_ok} pixels with depth and contrast")
     bins = int(max(1, min(bins, n_ok // 200)))
-    X = rays[ok] * depth[ok][:, None]  # [P, 3] camera frame
-    zp = projector.camera_to_projector(X.double())[:, 2]
+    X = rays.ray[ok] * depth[ok].double()[:, None] + rays.T  # [P, 3] projector frame
+    zp = X[:, 2]
     edges = torch.quantile(zp, torch.linspace(0.0, 1.0, bins + 1, dtype=zp.dtype, device=zp.device))
     which = (torch.searchsorted(edges, zp.contiguous(), right=True) - 1).clamp(0, bins - 1)
-    uv = _projector_uv(X, projector)
+    uv = _projector_uv(X.float(), projector)
     count = torch.bincount(which, minlength=bins).clamp_min(1).double()
     img, bb = images[:, ok], b[ok]
     mse = []
@@ -291,7 +299,7 @@ def fit_blur_by_projector_depth(depth: np.ndarray, camera, projector, images: np
     img = torch.as_tensor(images, dtype=torch.float32, device=dev)
     _, b = offset_and_modulation(img)
     ok = torch.isfinite(d) & lit_with_contrast(b)
-    centres, sigma = _fit_blur(d, ok, _pixel_rays(camera, dev), projector, img, b, _BlurLadder(patterns, dev), bins)
+    centres, sigma = _fit_blur(d, ok, _Rays(camera, projector, dev), projector, img, b, _BlurLadder(patterns, dev), bins)
     return centres.cpu().numpy(), sigma.cpu().numpy()
 
 
@@ -323,11 +331,11 @@ def refine_depth(depth: np.ndarray, camera, projector, images: np.ndarray, patte
     ok = torch.isfinite(d)
     img = torch.as_tensor(images, dtype=torch.float32, device=dev)
     _, b = offset_and_modulation(img)
-    rays = _pixel_rays(camera, dev)
+    rays = _Rays(camera, projector, dev)
     ladder = _BlurLadder(patterns, dev)
     centres, sigmas = _fit_blur(d, ok & lit_with_contrast(b), rays, projector, img, b, ladder, BLUR_BINS)
     # per-pixel blur from the pixel's projector depth (pixels without depth: the first bin's, as they cost 0)
-    zp = projector.camera_to_projector(rays.double() * d.double()[..., None])[..., 2]
+    zp = rays.ray[..., 2] * d.double() + rays.T[2]
     pos = ladder.position(_interp(torch.nan_to_num(zp, nan=0.0).where(ok, centres[0]), centres, sigmas).float())
     deltas = np.arange(-half_range_mm, half_range_mm + 1e-9, step_mm)
     k = 2 * radius + 1
@@ -348,7 +356,7 @@ def refine_depth(depth: np.ndarray, camera, projector, images: np.ndarray, patte
         dl = all_deltas[j0 : j0 + chunk]
         c = dl.numel()
         shifted = d0[None] + dl[:, None, None]  # [C, H, W] float32, as depth + float32(delta)
-        uv = _projector_uv(rays[None] * shifted[..., None], projector)  # [C, H, W, 2]
+        uv = _projector_uv(rays.ray32 * shifted[..., None] + rays.T32, projector)  # [C, H, W, 2]
         codes = ladder.sample(uv, pos.expand(c, *shape))  # [N, C, H, W]
         r = least_squares_residual(img4, codes, b4)
         cost = r.abs().mean(0) * inv_b  # [C, H, W]
