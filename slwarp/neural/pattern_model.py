@@ -318,8 +318,8 @@ def refine_depth(depth: np.ndarray, camera, projector, images: np.ndarray, patte
 
     Runs in torch on `device` (default CPU; the trainer's device at extraction), numpy in and out: the offsets
     `chunk` at a time with a running argmin and no host synchronisation inside the loop over the offsets.
-    Memory: about 150 bytes per pixel and offset of a chunk with N = 6 frames (measured on the CPU: 200 MB
-    more for 16 more offsets on the small rig's 82k pixels), so ~1.6 GB for the default rig (1.3 M pixels)
+    Memory: about 110 bytes per pixel and offset of a chunk with N = 6 frames (measured on the CPU: 145 MB
+    more for 16 more offsets on the small rig's 82k pixels), so ~1.2 GB for the default rig (1.3 M pixels)
     with chunk 8, plus the blur ladder (13 N Hp Wp floats: 0.33 GB for 6 frames of 1280 x 800)."""
     if not half_range_mm > 0 or not step_mm > 0:
         raise ValueError(f"refine_depth: half_range_mm and step_mm must be > 0, got {half_range_mm}, {step_mm}")
