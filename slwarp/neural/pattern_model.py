@@ -10,7 +10,9 @@ search and the blur fit) when it is lit with contrast: b(r) > CONTRAST_THRESHOLD
 
 This module holds that model for the host side (numpy, OpenCV) and the pattern blur (torch):
 offset and modulation, the contrast test, the blur, projector coordinates of a depth map, patterns
-sampled there, the photometric residual and filter of a depth map, and the fit of the blur. The fused
+sampled there, the photometric residual and filter of a depth map, and the fit of the blur; the
+photometric refinement of a depth map (`refine_depth`) and its blur fit per projector depth run in torch on
+any device (numpy in and out). The fused
 renderer evaluates the same model per sample in Warp (slwarp.kernels.render) and its twin in torch
 (slwarp.neural.twin).
 """
@@ -183,71 +185,111 @@ def estimate_pattern_blur(camera, projector, images, patterns, depth, sigmas=Non
     return round(best, 3), mse
 
 
-def least_squares_residual(images: np.ndarray, codes: np.ndarray, b_prior: np.ndarray, ridge: float = LS_RIDGE) -> np.ndarray:
+def least_squares_residual(images, codes, b_prior, ridge: float = LS_RIDGE):
     """[N, ...]: I - (a + b Q) with the offset a and modulation b solved per pixel in closed form, least
     squares over the frames (axis 0) of images [N, ...] and pattern values codes [N, ...]:
     b = (cov(Q, I) + ridge b_prior) / (var(Q) + ridge), clamped at >= 0 (a wrong depth must not explain the
     images by inverting the codes), a = mean(I) - b mean(Q). b_prior [...]: max - min of the images.
-    Unlike min/max, this is exact for textured albedo and for codes that never reach 0 or 1 at a pixel."""
+    Unlike min/max, this is exact for textured albedo and for codes that never reach 0 or 1 at a pixel.
+    numpy arrays or torch tensors (broadcasting over the axes after the first), the same kind back."""
     mq, mi = codes.mean(0), images.mean(0)
     cov = (codes * images).mean(0) - mq * mi
     var = (codes * codes).mean(0) - mq * mq
-    b = np.maximum((cov + ridge * b_prior) / (var + ridge), 0.0)
+    b = (cov + ridge * b_prior) / (var + ridge)
+    b = b.clamp_min(0.0) if isinstance(b, torch.Tensor) else np.maximum(b, 0.0)
     return images - (mi - b * mq) - b * codes
 
 
-def _projector_depth(depth: np.ndarray, camera, projector) -> np.ndarray:
-    """[H, W] projector-frame z (mm) of each pixel's depth point; NaN where depth is NaN."""
-    rays = camera.pixel_to_ray(camera.pixel_grid())
-    with np.errstate(invalid="ignore"):
-        X = rays * (np.asarray(depth, np.float64) / rays[..., 2])[..., None]
-    return np.asarray(projector.camera_to_projector(X.reshape(-1, 3)), np.float64)[:, 2].reshape(depth.shape)
+class _Rays:
+    """Each camera pixel's ray scaled to camera z = 1, in the projector frame: the pixel's point at depth d
+    (camera z, mm) is d ray + T in the projector frame (X_p = R X_c + T), one multiply-add per depth instead
+    of a rotation. `ray` [H, W, 3] float64 on the device (computed on the host through the scanner's geometry),
+    `ray32` its float32 copy, `T` [3]."""
+
+    def __init__(self, camera, projector, device):
+        rays = camera.pixel_to_ray(camera.pixel_grid())
+        self.ray = torch.as_tensor(np.asarray(rays / rays[..., 2:3], np.float64) @ projector.R.T, device=device)
+        self.ray32 = self.ray.float()
+        self.T = torch.as_tensor(projector.T, dtype=torch.float64, device=device)
+        self.T32 = self.T.float()
+
+
+def _projector_uv(points: torch.Tensor, projector) -> torch.Tensor:
+    """[..., 2] projector pixels of projector-frame points [..., 3] (the scanner's torch path: OpenCV
+    distortion, NaN behind the lens or outside the trusted field), OFF_IMAGE_PX where NaN (as
+    `projector_coords`)."""
+    uv = projector.project(points)
+    return torch.where(torch.isfinite(uv), uv, torch.full_like(uv, OFF_IMAGE_PX))
 
 
 class _BlurLadder:
-    """The patterns blurred at every sigma of BLUR_LADDER, sampled with a per-pixel sigma (linear between
-    the two nearest rungs)."""
+    """The patterns blurred at every sigma of BLUR_LADDER as one volume [1, N, R, Hp, Wp] on a device, sampled
+    at projector pixels with a per-pixel sigma: one trilinear grid_sample, bilinear in the pixel (pixel centres
+    at integer coordinates, zeros outside the image: cv2.remap INTER_LINEAR with BORDER_CONSTANT 0, without
+    its 1/32 px fixed-point rounding of the coordinates) and linear between the two nearest rungs."""
 
-    def __init__(self, patterns: np.ndarray):
-        pats = torch.as_tensor(np.asarray(patterns, np.float32))
-        self.rungs = [blur_patterns(pats, float(s)).numpy() for s in BLUR_LADDER]
+    def __init__(self, patterns, device):
+        pats = torch.as_tensor(patterns, dtype=torch.float32, device=device)
+        tf32 = torch.backends.cudnn.allow_tf32  # the trainer switches TF32 on: 10-bit mantissas in the blur's convolutions
+        torch.backends.cudnn.allow_tf32 = False
+        try:
+            self.rungs = torch.stack([blur_patterns(pats, float(s)) for s in BLUR_LADDER], dim=1)[None]
+        finally:
+            torch.backends.cudnn.allow_tf32 = tf32
+        _, self.n, self.r, self.hp, self.wp = self.rungs.shape
 
-    def sample(self, uv: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-        """[N, H, W] at projector pixels uv [H, W, 2] with blur sigma [H, W] (px)."""
-        pos = np.clip(sigma / BLUR_LADDER_STEP, 0, len(self.rungs) - 1 - 1e-6)
-        lo = np.floor(pos).astype(np.int64)
-        t = (pos - lo).astype(np.float32)
-        out = 0.0
-        for rung in np.unique(np.concatenate([np.unique(lo), np.unique(lo) + 1])):
-            w = np.where(lo == rung, 1 - t, 0) + np.where(lo + 1 == rung, t, 0)
-            if w.any():
-                out = out + w * sample_patterns(self.rungs[rung], uv)
-        return np.asarray(out, np.float32)
+    def sample(self, uv: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
+        """[N, *S]: the patterns at projector pixels uv [*S, 2] and ladder positions pos [*S] (sigma /
+        BLUR_LADDER_STEP, in [0, R - 1]). S: up to 3 dimensions."""
+        shape = pos.shape
+        uv3 = uv.reshape((1,) * (3 - len(shape)) + tuple(shape) + (2,))
+        p3 = pos.reshape(uv3.shape[:-1])
+        # align_corners=False: normalised -1 and 1 are the outer edges of the first and last pixel
+        grid = torch.stack([(2.0 * uv3[..., 0] + 1.0) / self.wp - 1.0, (2.0 * uv3[..., 1] + 1.0) / self.hp - 1.0,
+                            (2.0 * p3 + 1.0) / self.r - 1.0], dim=-1)
+        out = torch.nn.functional.grid_sample(self.rungs, grid[None], mode="bilinear", padding_mode="zeros",
+                                              align_corners=False)
+        return out[0].reshape((self.n,) + tuple(shape))
+
+    def position(self, sigma: torch.Tensor) -> torch.Tensor:
+        """Ladder position of a blur sigma (px), clamped to the ladder as the rungs' interpolation needs."""
+        return (sigma / BLUR_LADDER_STEP).clamp(0.0, self.r - 1 - 1e-6)
 
 
-def fit_blur_by_projector_depth(depth: np.ndarray, camera, projector, images: np.ndarray, patterns: np.ndarray,
-                                bins: int = BLUR_BINS) -> tuple[np.ndarray, np.ndarray]:
-    """(z_p [K], sigma [K]): the pattern blur (projector px) that best explains the images at a depth map
-    [H, W] (mm), one per projector-depth bin (equal pixel counts; fewer bins below 200 pixels each), at the
-    bins' median projector z (mm). The projector's defocus grows with the distance from its focus plane, so
-    one global sigma is too sharp at one end of the volume and too soft at the other. Each bin's sigma: the
-    BLUR_LADDER rung of least mean squared least-squares residual, refined by a parabola.
-    patterns [N, Hp, Wp] unblurred."""
-    images = np.asarray(images, np.float32)
-    _, b = offset_and_modulation(images)
-    ok = np.isfinite(depth) & lit_with_contrast(b)
-    if ok.sum() < 100:
-        raise ValueError(f"fit_blur_by_projector_depth: only {int(ok.sum())} pixels with depth and contrast")
-    bins = int(max(1, min(bins, ok.sum() // 200)))
-    zp = _projector_depth(np.where(ok, depth, np.nan), camera, projector)[ok]
-    edges = np.quantile(zp, np.linspace(0.0, 1.0, bins + 1))
-    which = np.clip(np.searchsorted(edges, zp, side="right") - 1, 0, bins - 1)
-    uv = projector_coords(np.where(ok, depth, np.nan), camera, projector)
-    pats = torch.as_tensor(np.asarray(patterns, np.float32))
-    mse = np.empty((len(BLUR_LADDER), bins))
-    for j, s in enumerate(BLUR_LADDER):
-        r = least_squares_residual(images[:, ok], sample_patterns(blur_patterns(pats, float(s)).numpy(), uv)[:, ok], b[ok])
-        mse[j] = np.bincount(which, (r**2).mean(0), bins) / np.maximum(np.bincount(which, minlength=bins), 1)
+def _interp(x: torch.Tensor, xp: torch.Tensor, fp: torch.Tensor) -> torch.Tensor:
+    """np.interp in torch: piecewise linear through (xp, fp) (xp increasing), constant beyond the ends."""
+    if xp.numel() == 1:
+        return fp[0].expand_as(x).clone()
+    i = torch.searchsorted(xp, x.contiguous(), right=True).clamp(1, xp.numel() - 1)
+    x0, x1, f0, f1 = xp[i - 1], xp[i], fp[i - 1], fp[i]
+    dx = x1 - x0
+    t = torch.where(dx > 0, (x - x0) / torch.where(dx > 0, dx, torch.ones_like(dx)), torch.zeros_like(x))
+    out = f0 + t.clamp(0.0, 1.0) * (f1 - f0)
+    return torch.where(x <= xp[0], fp[0], torch.where(x >= xp[-1], fp[-1], out))
+
+
+def _fit_blur(depth: torch.Tensor, ok: torch.Tensor, rays: _Rays, projector, images: torch.Tensor,
+              b: torch.Tensor, ladder: _BlurLadder, bins: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """`fit_blur_by_projector_depth` on tensors: (z_p [K], sigma [K]) float64 on the device. One host
+    synchronisation (the pixel count), and the per-bin parabola on the K x R costs on the host."""
+    n_ok = int(ok.sum())
+    if n_ok < 100:
+        raise ValueError(f"fit_blur_by_projector_depth: only {n_ok} pixels with depth and contrast")
+    bins = int(max(1, min(bins, n_ok // 200)))
+    X = rays.ray[ok] * depth[ok].double()[:, None] + rays.T  # [P, 3] projector frame
+    zp = X[:, 2]
+    edges = torch.quantile(zp, torch.linspace(0.0, 1.0, bins + 1, dtype=zp.dtype, device=zp.device))
+    which = (torch.searchsorted(edges, zp.contiguous(), right=True) - 1).clamp(0, bins - 1)
+    uv = _projector_uv(X.float(), projector)
+    count = torch.bincount(which, minlength=bins).clamp_min(1).double()
+    img, bb = images[:, ok], b[ok]
+    mse = []
+    for j in range(len(BLUR_LADDER)):
+        codes = ladder.sample(uv, torch.full_like(bb, min(float(j), ladder.r - 1 - 1e-6)))  # rung j (the last: inside)
+        r = least_squares_residual(img, codes, bb)
+        mse.append(torch.bincount(which, (r * r).mean(0).double(), bins) / count)
+    centres = torch.stack([torch.quantile(zp[which == k], 0.5) for k in range(bins)])
+    mse = torch.stack(mse).cpu().numpy()  # [R, K]
     sigma = np.empty(bins)
     for k in range(bins):
         j = int(np.argmin(mse[:, k]))
@@ -256,12 +298,33 @@ def fit_blur_by_projector_depth(depth: np.ndarray, camera, projector, images: np
             den = mse[j - 1, k] - 2 * mse[j, k] + mse[j + 1, k]
             if den > 0:
                 sigma[k] += 0.5 * BLUR_LADDER_STEP * (mse[j - 1, k] - mse[j + 1, k]) / den
-    centres = np.array([np.median(zp[which == k]) for k in range(bins)])
-    return centres, sigma
+    return centres, torch.as_tensor(sigma, device=centres.device)
+
+
+def _device(device) -> torch.device:
+    return torch.device(device) if device is not None else torch.device("cpu")
+
+
+def fit_blur_by_projector_depth(depth: np.ndarray, camera, projector, images: np.ndarray, patterns: np.ndarray,
+                                bins: int = BLUR_BINS, device=None) -> tuple[np.ndarray, np.ndarray]:
+    """(z_p [K], sigma [K]): the pattern blur (projector px) that best explains the images at a depth map
+    [H, W] (mm), one per projector-depth bin (equal pixel counts; fewer bins below 200 pixels each), at the
+    bins' median projector z (mm). The projector's defocus grows with the distance from its focus plane, so
+    one global sigma is too sharp at one end of the volume and too soft at the other. Each bin's sigma: the
+    BLUR_LADDER rung of least mean squared least-squares residual, refined by a parabola.
+    patterns [N, Hp, Wp] unblurred. Computed in torch on `device` (default CPU)."""
+    dev = _device(device)
+    d = torch.as_tensor(np.asarray(depth, np.float32), device=dev)
+    img = torch.as_tensor(images, dtype=torch.float32, device=dev)
+    _, b = offset_and_modulation(img)
+    ok = torch.isfinite(d) & lit_with_contrast(b)
+    centres, sigma = _fit_blur(d, ok, _Rays(camera, projector, dev), projector, img, b, _BlurLadder(patterns, dev), bins)
+    return centres.cpu().numpy(), sigma.cpu().numpy()
 
 
 def refine_depth(depth: np.ndarray, camera, projector, images: np.ndarray, patterns: np.ndarray, half_range_mm: float,
-                 radius: int = REFINE_RADIUS, step_mm: float = REFINE_STEP_MM) -> np.ndarray:
+                 radius: int = REFINE_RADIUS, step_mm: float = REFINE_STEP_MM, device=None,
+                 chunk: int = 8) -> np.ndarray:
     """Photometric refinement of a depth map [H, W] (mm, NaN: none): every pixel moves by the offset
     delta in +-half_range_mm (grid of step_mm, refined by a parabola) that, added to the depth of every pixel
     of its (2 radius + 1)^2 window, minimises the window's summed L1 model cost relative to b.
@@ -271,43 +334,65 @@ def refine_depth(depth: np.ndarray, camera, projector, images: np.ndarray, patte
     (`fit_blur_by_projector_depth`, fitted at `depth` itself). Each pixel keeps its own depth plus the common
     offset (no planarity assumption), so it corrects the smooth part of the field's error the way a local
     decoder would; pixels without depth stay NaN. images [N, H, W], patterns [N, Hp, Wp] unblurred.
-    """
+
+    Runs in torch on `device` (default CPU; the trainer's device at extraction), numpy in and out: the offsets
+    `chunk` at a time with a running argmin and no host synchronisation inside the loop over the offsets.
+    Memory: about 110 bytes per pixel and offset of a chunk with N = 6 frames (measured on the CPU: 145 MB
+    more for 16 more offsets on the small rig's 82k pixels), so ~1.2 GB for the default rig (1.3 M pixels)
+    with chunk 8, plus the blur ladder (13 N Hp Wp floats: 0.33 GB for 6 frames of 1280 x 800)."""
     if not half_range_mm > 0 or not step_mm > 0:
         raise ValueError(f"refine_depth: half_range_mm and step_mm must be > 0, got {half_range_mm}, {step_mm}")
     depth = np.asarray(depth, np.float32)
-    ok = np.isfinite(depth)
-    if not ok.any():
+    if not np.isfinite(depth).any():
         return depth.copy()
-    import cv2
-
-    images = np.asarray(images, np.float32)
-    _, b = offset_and_modulation(images)
-    centres, sigmas = fit_blur_by_projector_depth(depth, camera, projector, images, patterns)
-    sigma = np.interp(np.nan_to_num(_projector_depth(depth, camera, projector), nan=float(centres[0])), centres, sigmas)
-    ladder = _BlurLadder(patterns)
+    dev = _device(device)
+    d = torch.as_tensor(depth, device=dev)
+    ok = torch.isfinite(d)
+    img = torch.as_tensor(images, dtype=torch.float32, device=dev)
+    _, b = offset_and_modulation(img)
+    rays = _Rays(camera, projector, dev)
+    ladder = _BlurLadder(patterns, dev)
+    centres, sigmas = _fit_blur(d, ok & lit_with_contrast(b), rays, projector, img, b, ladder, BLUR_BINS)
+    # per-pixel blur from the pixel's projector depth (pixels without depth: the first bin's, as they cost 0)
+    zp = rays.ray[..., 2] * d.double() + rays.T[2]
+    pos = ladder.position(_interp(torch.nan_to_num(zp, nan=0.0).where(ok, centres[0]), centres, sigmas).float())
     deltas = np.arange(-half_range_mm, half_range_mm + 1e-9, step_mm)
     k = 2 * radius + 1
+    inv_b = torch.where(ok, 1.0 / b.clamp_min(MIN_MODULATION), torch.zeros_like(b))  # 0: no cost without depth
+    d0 = torch.where(ok, d, torch.zeros_like(d))
+    img4, b4 = img[:, None], b[None]  # [N, 1, H, W], [1, H, W]
+    shape = depth.shape
     # running argmin with the costs on either side of the best offset (for the parabola): O(H W) memory
-    best = np.full(depth.shape, np.inf, np.float32)
-    best_j = np.zeros(depth.shape, np.int64)
-    left = np.full(depth.shape, np.nan, np.float32)
-    right = np.full(depth.shape, np.nan, np.float32)
-    prev = np.full(depth.shape, np.nan, np.float32)
-    for j, delta in enumerate(deltas):
-        shifted = np.where(ok, depth + np.float32(delta), np.nan)
-        codes = ladder.sample(projector_coords(shifted, camera, projector), sigma)
-        r = least_squares_residual(images, codes, b)
-        cost = np.where(ok, np.abs(r).mean(0) / np.maximum(b, MIN_MODULATION), 0.0).astype(np.float32)
-        cost = cv2.boxFilter(cost, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
-        right = np.where(best_j == j - 1, cost, right)
-        better = cost < best
-        best = np.where(better, cost, best)
-        best_j = np.where(better, j, best_j)
-        left = np.where(better, prev, left)
-        right = np.where(better, np.nan, right)
-        prev = cost
+    best = torch.full(shape, float("inf"), device=dev)
+    best_j = torch.zeros(shape, dtype=torch.int64, device=dev)
+    left = torch.full(shape, float("nan"), device=dev)
+    right = torch.full(shape, float("nan"), device=dev)
+    prev = torch.full(shape, float("nan"), device=dev)
+    nan1 = torch.full((1,) + shape, float("nan"), device=dev)
+    all_deltas = torch.as_tensor(deltas.astype(np.float32), device=dev)
+    chunk = max(1, int(chunk))
+    for j0 in range(0, len(deltas), chunk):
+        dl = all_deltas[j0 : j0 + chunk]
+        c = dl.numel()
+        shifted = d0[None] + dl[:, None, None]  # [C, H, W] float32, as depth + float32(delta)
+        uv = _projector_uv(rays.ray32 * shifted[..., None] + rays.T32, projector)  # [C, H, W, 2]
+        codes = ladder.sample(uv, pos.expand(c, *shape))  # [N, C, H, W]
+        r = least_squares_residual(img4, codes, b4)
+        cost = r.abs().mean(0) * inv_b  # [C, H, W]
+        cost = torch.nn.functional.avg_pool2d(cost[:, None], k, stride=1, padding=radius,
+                                              count_include_pad=True)[:, 0] * float(k * k)  # zero-padded box sum
+        ext = torch.cat([prev[None], cost, nan1])  # [C + 2]: the offsets j0 - 1 .. j0 + C
+        cmin, cidx = cost.min(dim=0)  # the first of equal minima, as the sequential scan keeps
+        right = torch.where(best_j == j0 - 1, cost[0], right)
+        better = cmin < best
+        best = torch.where(better, cmin, best)
+        best_j = torch.where(better, cidx + j0, best_j)
+        left = torch.where(better, ext.gather(0, cidx[None])[0], left)
+        right = torch.where(better, ext.gather(0, (cidx + 2)[None])[0], right)
+        prev = cost[-1]
     den = left - 2 * best + right
-    inner = np.isfinite(den) & (den > 0)
-    frac = np.where(inner, 0.5 * (left - right) / np.where(inner, den, 1.0), 0.0)
-    offset = deltas[best_j] + step_mm * frac
-    return np.where(ok, depth + offset, np.nan).astype(np.float32)
+    inner = torch.isfinite(den) & (den > 0)
+    frac = torch.where(inner, 0.5 * (left - right) / torch.where(inner, den, torch.ones_like(den)), torch.zeros_like(den))
+    offset = torch.as_tensor(deltas, device=dev)[best_j] + step_mm * frac.double()
+    out = torch.where(ok, d.double() + offset, torch.full_like(offset, float("nan"))).float()
+    return out.cpu().numpy()

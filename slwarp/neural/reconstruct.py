@@ -81,7 +81,7 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     t3 = time.perf_counter()
     if ex.refine_range > 0:
         depth = refine_depth(depth, cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames],
-                             trainer.scan.patterns[: trainer.n_frames], ex.refine_range)
+                             trainer.scan.patterns[: trainer.n_frames], ex.refine_range, device=trainer.device)
     return depth, confidence, mesh, {"marching_cubes_s": t1 - t0, "depth_s": t2 - t1, "confidence_s": t3 - t2,
                                      "refine_s": time.perf_counter() - t3}
 
