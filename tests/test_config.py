@@ -33,8 +33,8 @@ FLAT_PRESETS = {
                  search_stride=3, mc_resolution=128, checkpoint_every=100, log_every=25),
     "fast": dict(matmul="tf32", iters=1000, init_iters=200, grid_start_levels=2, grid_level_every=50, mc_resolution=256,
                  checkpoint_every=1000, **HASHGRID),
-    "accurate": dict(matmul="tf32", grid_start_levels=2, grid_level_every=200, **HASHGRID),
-    "cpu-hashgrid": dict(iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, search_step_mm=2.0,
+    "accurate": dict(matmul="tf32", grid_start_levels=2, grid_level_every=200, refine_range=3.0, **HASHGRID),
+    "cpu-hashgrid": dict(refine_range=3.0, iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, search_step_mm=2.0,
                          mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
                          **HASHGRID),
 }

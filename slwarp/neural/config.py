@@ -487,18 +487,19 @@ _preset("fast", "hash-grid field, 200 + 1000 iterations, 16 levels switched on q
         "possible (GPU)", matmul="tf32", iters=1000, init_iters=200, grid_start_levels=2, grid_level_every=50,
         mc_resolution=256, checkpoint_every=1000, **_HASHGRID)
 # the accurate hash-grid recipe: the GPU default candidate
-_preset("accurate", "hash-grid field, the paper's 4000 iterations and batch, levels coarse to fine: the accurate "
-        "GPU recipe", matmul="tf32", grid_start_levels=2, grid_level_every=200, **_HASHGRID)
+_preset("accurate", "hash-grid field, the paper's 4000 iterations and batch, levels coarse to fine, photometric "
+        "depth refinement (+-3 mm): the accurate GPU recipe", matmul="tf32", grid_start_levels=2, grid_level_every=200,
+        refine_range=3.0, **_HASHGRID)
 # CPU: the cpu preset's step on a small hash grid (8 levels of 2^15 entries; finer tables are cache-bound on
 # one thread): small rig, bunny/vase/boxes mean MAE 0.575 mm against 0.749 for cpu at about its time per step
-_preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries): better MAE at about cpu's time "
-        "(small rig)", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, search_step_mm=2.0,
+_preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries) and photometric depth refinement "
+        "(+-3 mm): better MAE at about cpu's time (small rig)", refine_range=3.0, iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, search_step_mm=2.0,
         mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15, **_HASHGRID)
 
 # the preset a run gets when it names none, per device type. GPU: the lead's accuracy sweep chooses (accurate is
 # the candidate). CPU: cpu-hashgrid, measured on the small rig with the trainer (bunny MAE 0.479 mm against 0.606
 # for cpu; phase 1: mean of bunny, vase, boxes 0.575 against 0.749 mm at 0.95x cpu's time per step)
-DEFAULT_PRESET = {"cuda": "paper", "cpu": "cpu-hashgrid"}
+DEFAULT_PRESET = {"cuda": "accurate", "cpu": "cpu-hashgrid"}
 
 
 def preset(name: str, **options) -> TrainConfig:
