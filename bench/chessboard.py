@@ -14,6 +14,7 @@ Writes <out>/chessboard-<cpu|cuda>.json and .md.
 from __future__ import annotations
 
 import argparse
+import sys
 import datetime
 import json
 import time

@@ -499,7 +499,10 @@ _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries) a
 # the preset a run gets when it names none, per device type. GPU: the lead's accuracy sweep chooses (accurate is
 # the candidate). CPU: cpu-hashgrid, measured on the small rig with the trainer (bunny MAE 0.479 mm against 0.606
 # for cpu; phase 1: mean of bunny, vase, boxes 0.575 against 0.749 mm at 0.95x cpu's time per step)
-DEFAULT_PRESET = {"cuda": "accurate", "cpu": "cpu-hashgrid"}
+# GPU: tuned. On the six built-in scenes of the default rig (H100) its mean MAE is 0.287 mm against 0.356 for
+# accurate (bench/results/table1-cuda.md, accuracy-cuda.md): accurate wins torus, boxes and bunny but loses steps
+# (1.29 mm). Measure tuned with refine_range and accurate on steps before switching.
+DEFAULT_PRESET = {"cuda": "tuned", "cpu": "cpu-hashgrid"}
 
 
 def preset(name: str, **options) -> TrainConfig:
