@@ -39,6 +39,8 @@ from pathlib import Path
 
 import torch
 
+from bench_kernels import graphed  # the bench folder is on sys.path when run as a script
+
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
@@ -209,20 +211,6 @@ def timeit(fn, device, reps: int, warmup: int = 2) -> float:
             fn()
             ts.append(time.perf_counter() - t0)
     return statistics.median(ts)
-
-
-def graphed(fn, device):
-    """fn captured once as a CUDA graph (warm-up on a side stream first, as torch requires): its replay."""
-    s = torch.cuda.Stream(device)
-    s.wait_stream(torch.cuda.current_stream(device))
-    with torch.cuda.stream(s):
-        for _ in range(3):
-            fn()
-    torch.cuda.current_stream(device).wait_stream(s)
-    g = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(g):
-        fn()
-    return g.replay
 
 
 def time_field(name: str, device, P: int, reps: int, modes: list[str]) -> list[dict]:

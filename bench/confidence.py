@@ -20,13 +20,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import re
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+from classical_baselines import cpu_name  # the bench folder is on sys.path when run as a script
 
 REPO = Path(__file__).resolve().parents[1]
 DATE = "2026-11-22"
@@ -41,16 +42,6 @@ BASELINES = [  # (label, method, frames)
 PHOTOMETRIC_CHECK = 0.6  # the photometric check of old: min_confidence 0.6 on the photometric kind
 # geometric means of terms, measured beside the library's kinds (gm:a+b rows)
 PRODUCTS = [("photometric", "agreement"), ("photometric", "uniqueness"), ("photometric", "peak", "uniqueness")]
-
-
-def cpu_name() -> str:
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def trained(scan, config, work: Path, progress: bool):

@@ -66,6 +66,26 @@ class PositionalEncoding(nn.Module):
         return torch.cat([x, enc.flatten(-3)], dim=-1)
 
 
+def geometric_init(lin: nn.Linear, i: int, n: int, radius: float, residual: bool, coords_only: bool) -> None:
+    """NeuS/SAL geometric initialisation of layer i of n (in place): the network starts as |x| - radius in
+    normalised units, or near 0 when it is a residual on a prior. coords_only: the first layer reads only the
+    first 3 inputs (the coordinates; encodings and grid features start at weight 0)."""
+    with torch.no_grad():
+        out_dim, in_dim = lin.weight.shape
+        if i == n - 1:
+            if residual:
+                lin.weight.normal_(0.0, 1e-4)
+                lin.bias.zero_()
+            else:
+                lin.weight.normal_(math.sqrt(math.pi) / math.sqrt(in_dim), 1e-4)
+                lin.bias.fill_(-radius)
+            return
+        lin.bias.zero_()
+        lin.weight.normal_(0.0, math.sqrt(2.0) / math.sqrt(out_dim))
+        if i == 0 and coords_only:
+            lin.weight[:, 3:] = 0.0  # start from the raw coordinates only
+
+
 class NeuSField(nn.Module):
     """NeuS's SDF MLP in mm (see module docstring).
 
@@ -104,27 +124,12 @@ class NeuSField(nn.Module):
         for i in range(len(dims) - 1):
             out_dim = dims[i + 1] - d_in if self.skip is not None and i + 1 == self.skip else dims[i + 1]
             lin = nn.Linear(dims[i], out_dim)
-            self._geometric_init(lin, i, len(dims) - 1, d_in, init_radius, residual=self.prior_radius is not None)
+            geometric_init(lin, i, len(dims) - 1, init_radius, residual=self.prior_radius is not None,
+                           coords_only=self.encoding is not None)
+            if self.skip is not None and i == self.skip and self.encoding is not None:
+                with torch.no_grad():  # the skip input's encoding starts at weight 0 too
+                    lin.weight[:, -(d_in - 3):] = 0.0
             self.linears.append(parametrizations.weight_norm(lin) if weight_norm else lin)
-
-    def _geometric_init(self, lin: nn.Linear, i: int, n: int, d_in: int, radius: float, residual: bool):
-        """NeuS/SAL geometric initialisation: the network starts as |x| - radius (or ~0 as a residual)."""
-        with torch.no_grad():
-            out_dim, in_dim = lin.weight.shape
-            if i == n - 1:
-                if residual:
-                    lin.weight.normal_(0.0, 1e-4)
-                    lin.bias.zero_()
-                else:
-                    lin.weight.normal_(math.sqrt(math.pi) / math.sqrt(in_dim), 1e-4)
-                    lin.bias.fill_(-radius)
-                return
-            lin.bias.zero_()
-            lin.weight.normal_(0.0, math.sqrt(2.0) / math.sqrt(out_dim))
-            if i == 0 and self.encoding is not None:
-                lin.weight[:, 3:] = 0.0  # start from the raw coordinates only
-            elif self.skip is not None and i == self.skip and self.encoding is not None:
-                lin.weight[:, -(d_in - 3):] = 0.0
 
     def normalized_sdf(self, xn: torch.Tensor) -> torch.Tensor:
         """SDF in normalised units at normalised points [..., 3] -> [...]."""

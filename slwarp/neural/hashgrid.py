@@ -37,14 +37,13 @@ pure-torch twin (gathers, any dtype, differentiable by autograd) with the same s
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .field import Volume
+from .field import Volume, geometric_init
 from . import ops
 from slwarp.kernels import runtime
 
@@ -424,22 +423,8 @@ class HashGridSDF(nn.Module):
     def _geometric_init(self, radius: float, residual: bool):
         """NeuS/SAL geometric initialisation on the coordinates (feature inputs start at weight 0): the
         network starts as |x_n| - radius, or near 0 as a residual of the camera prior."""
-        n = len(self.linears)
-        with torch.no_grad():
-            for i, lin in enumerate(self.linears):
-                out_dim, in_dim = lin.weight.shape
-                if i == n - 1:
-                    if residual:
-                        lin.weight.normal_(0.0, 1e-4)
-                        lin.bias.zero_()
-                    else:
-                        lin.weight.normal_(math.sqrt(math.pi) / math.sqrt(in_dim), 1e-4)
-                        lin.bias.fill_(-radius)
-                    continue
-                lin.bias.zero_()
-                lin.weight.normal_(0.0, math.sqrt(2.0) / math.sqrt(out_dim))
-                if i == 0:
-                    lin.weight[:, 3:] = 0.0
+        for i, lin in enumerate(self.linears):
+            geometric_init(lin, i, len(self.linears), radius, residual, coords_only=True)
 
     # --- levels -------------------------------------------------------------------------------
     @property
