@@ -243,7 +243,10 @@ def test_hashgrid_cuda_graph_step_matches_plain_launches(small_scan, backend):
     assert runs[True][2].graph_captured, "the step was not captured"
     assert runs[True][2].field.n_active == 6
     np.testing.assert_allclose(runs[True][0], runs[False][0], rtol=2e-4, atol=1e-6)
-    torch.testing.assert_close(runs[True][1], runs[False][1], rtol=1e-3, atol=1e-5)
+    # the tables' gradients are scattered with atomic adds (Warp kernels and torch's index_add_ on CUDA), so their
+    # summation order differs between any two runs; after 26 Adam steps at the tables' lr (1e-2) an entry with a
+    # near-zero gradient can move by a few 1e-5 (H200: 139 of 50242 entries, at most 4.0e-5)
+    torch.testing.assert_close(runs[True][1], runs[False][1], rtol=1e-3, atol=2e-4)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
