@@ -193,6 +193,8 @@ def markdown(doc: dict) -> str:
     s = doc["setup"]
     unit = "CPU" if s["cpu"] else "GPU"
     lines = [f"# Batch throughput, {doc['device']}, {doc['date']}", ""]
+    if doc.get("bench_command"):
+        lines += [f"`{doc['bench_command']}`", ""]
     if s.get("smoke"):
         lines += ["Smoke test (`--smoke`): tiny settings that check the commands run; the numbers say nothing of the "
                   "throughput of real scans.", ""]
@@ -329,7 +331,8 @@ def main(argv=None) -> int:
     rows.sort(key=lambda r: (r["gpus"], r["per_gpu"], order[(r["gpus"], r["per_gpu"], r["launcher"])]))
     add_scaling(rows)
     doc = {"device": info["device"], "gpus": gpus if not cpu else 1, "date": datetime.date.today().isoformat(),
-           "setup": setup, "configs": rows}
+           "setup": setup, "configs": rows,
+           "bench_command": " ".join(["python bench/batch_throughput.py", *(sys.argv[1:] if argv is None else argv)])}
     path.write_text(json.dumps(doc, indent=1) + "\n")
     text = markdown(doc)
     path.with_suffix(".md").write_text(text)
