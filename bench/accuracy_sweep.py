@@ -34,16 +34,18 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 CLASSICAL = (("GC(7) interp", "bit=0-6"), ("GC(6) interp", "bit=0-5"))
-KEYS = ("mae", "median", "over_5mm", "completeness")
+KEYS = ("mae", "median", "over_5mm", "completeness", "mae_within_5mm", "outlier_mae")
 
 _DEVICE = None  # this worker process's device, set by _init_worker
+_KEEP = None  # the folder for error maps (--keep), set by _init_worker
 
 
-def _init_worker(devices, threads: int) -> None:
-    global _DEVICE
+def _init_worker(devices, threads: int, keep: str | None = None) -> None:
+    global _DEVICE, _KEEP
     import torch
 
     _DEVICE = devices.get()
+    _KEEP = keep
     torch.set_num_threads(threads)
     if _DEVICE.startswith("cuda"):
         torch.cuda.set_device(torch.device(_DEVICE))
@@ -61,8 +63,35 @@ def _scan(rig: str, scene: str, seed: int, axis_hint: str | None = None):
     return simulate_scene(scene, f"random6+{gray}", rig, SimOptions(seed=seed), device=sim_device), axis
 
 
+def error_split(depth: np.ndarray, scan) -> dict:
+    """Where a mean error comes from: mae_within_5mm (MAE of the compared pixels off by <= 5 mm) and outlier_mae
+    (the part of the MAE, mm, that the pixels off by > 5 mm contribute: MAE = inliers' share + outlier_mae)."""
+    ref = np.isfinite(scan.gt_depth) & (scan.gt_depth > 0) & scan.mask & np.isfinite(depth)
+    err = np.abs(depth[ref] - scan.gt_depth[ref])
+    if err.size == 0:
+        return {"mae_within_5mm": float("nan"), "outlier_mae": float("nan")}
+    small = err <= 5.0
+    return {"mae_within_5mm": float(err[small].mean()) if small.any() else float("nan"),
+            "outlier_mae": float(err[~small].sum() / err.size)}
+
+
+def keep_error_map(job: dict, label: str, depth: np.ndarray, scan) -> None:
+    """Save the absolute error map of one run as <--keep>/<job key>__<method>.png (0-5 mm colour scale)."""
+    keep = _KEEP
+    if not keep:
+        return
+    from slwarp.evaluation.viz import save_error_map
+
+    Path(keep).mkdir(parents=True, exist_ok=True)
+    name = f"{job_key(job)}__{label}".replace("/", "_").replace(":", "_").replace("=", "-").replace(" ", "")
+    name = name.replace("(", "").replace(")", "")
+    save_error_map(Path(keep) / f"{name}.png", depth, np.where(scan.mask, scan.gt_depth, np.nan),
+                   title=f"{label}: {job['scene']} on {job['rig']}")
+
+
 def run_job(job: dict) -> dict:
-    """One run: {"kind": "classical" | "neural", rig, scene, seed, preset, overrides} -> metrics per method."""
+    """One run: {"kind": "classical" | "neural", rig, scene, seed, preset, overrides} -> metrics per method
+    (and the error maps in the --keep folder when one is given)."""
     t0 = time.perf_counter()
     try:
         scan, axis = _scan(job["rig"], job["scene"], job["seed"])
@@ -75,7 +104,9 @@ def run_job(job: dict) -> dict:
                 depth, _, dec = reconstruct_depth(scan, "gc-interp", frames=f"gray:{axis}:{bits}:noinv")
                 m = depth_metrics(depth, scan.gt_depth, scan.mask)
                 m["frames"] = len(dec.frames)
+                m.update(error_split(depth, scan))
                 out["methods"][label] = m
+                keep_error_map(job, label, depth, scan)
         else:
             from slwarp.neural.config import preset
             from slwarp.neural.reconstruct import reconstruct
@@ -83,6 +114,8 @@ def run_job(job: dict) -> dict:
             cfg = preset(job["preset"], device=_DEVICE, **job["overrides"])
             rec = reconstruct(scan.select("rand*"), cfg, progress=False)
             m = dict(rec.metrics)
+            m.update(error_split(rec.depth, scan))
+            keep_error_map(job, job["label"], rec.depth, scan)
             m.update(train_s=rec.timings.get("train_s"), total_s=rec.timings.get("total_s"),
                      iterations=rec.timings.get("iterations"))
             out["methods"][job["label"]] = m
@@ -99,10 +132,14 @@ def job_key(job: dict) -> str:
 
 
 def parse_overrides(text: str | None) -> dict:
-    """'iters=200,rays=512' -> {"iters": 200, "rays": 512} (numbers parsed, the rest kept as text)."""
+    """'iters=200,rays=512,compile=false' -> {"iters": 200, "rays": 512, "compile": False} (numbers and
+    true/false parsed, the rest kept as text)."""
     out = {}
     for item in filter(None, (text or "").split(",")):
         k, _, v = item.partition("=")
+        if v.lower() in ("true", "false"):
+            out[k.strip()] = v.lower() == "true"
+            continue
         for cast in (int, float):
             try:
                 v = cast(v)
@@ -127,7 +164,7 @@ def summarise(results: list[dict], rigs: list[str], scenes: list[str], labels: l
             done = [s for s in scenes if s in d["per_scene"]]
             d["scenes"] = done
             if len(done) == len(scenes):
-                d["mean"] = {k: float(np.mean([d["per_scene"][s][k] for s in scenes])) for k in KEYS}
+                d["mean"] = {k: float(np.mean([d["per_scene"][s].get(k, np.nan) for s in scenes])) for k in KEYS}
                 for k in ("train_s", "total_s"):
                     vals = [d["per_scene"][s].get(k) for s in scenes]
                     if all(v is not None for v in vals):
@@ -182,7 +219,9 @@ def markdown(doc: dict) -> str:
         md += ["", f"## {r}", ""]
         cols = [(s, s, "{:.3f}") for s in scenes] + [("mean", "mean", "{:.3f}")]
         for k, title, fmt in (("mae", "MAE mm", "{:.3f}"), ("completeness", "completeness", "{:.1%}"),
-                              ("over_5mm", "share > 5 mm", "{:.2%}")):
+                              ("over_5mm", "share > 5 mm", "{:.2%}"),
+                              ("mae_within_5mm", "MAE of the pixels off by <= 5 mm", "{:.3f}"),
+                              ("outlier_mae", "part of the MAE from the pixels off by > 5 mm (mm)", "{:.3f}")):
             md += [f"{title} per scene:", ""]
             md.append(format_table([(lab, {**{s: t[r].get(lab, {}).get("per_scene", {}).get(s, {}).get(k, float("nan"))
                                               for s in scenes}, "mean": mean(r, lab, k)}) for lab in methods],
@@ -211,6 +250,7 @@ def main(argv=None) -> int:
     ap.add_argument("--max-minutes", type=float, default=None,
                     help="stop submitting runs after this many minutes (finished runs are kept; run again to go on)")
     ap.add_argument("--out", default=str(REPO / "bench" / "results"))
+    ap.add_argument("--keep", default=None, help="folder for each run's absolute error map (PNG, 0-5 mm)")
     args = ap.parse_args(argv)
 
     import multiprocessing as mp
@@ -262,7 +302,7 @@ def main(argv=None) -> int:
         queue.put(d)
     if todo:
         with ProcessPoolExecutor(max_workers=len(devices), mp_context=ctx, initializer=_init_worker,
-                                 initargs=(queue, threads)) as pool:
+                                 initargs=(queue, threads, args.keep)) as pool:
             futures = {pool.submit(run_job, j): j for j in todo}
             for i, fut in enumerate(as_completed(futures), 1):
                 res = fut.result()
