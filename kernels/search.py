@@ -24,7 +24,8 @@ def search_kernel(N: int):
         observed: wp.array3d(dtype=float),  # [H, W, N]
         a: wp.array2d(dtype=float),
         b: wp.array2d(dtype=float),
-        valid: wp.array2d(dtype=wp.int32),
+        valid: wp.array2d(dtype=wp.int32),  # the pixels a window counts
+        centre: wp.array2d(dtype=wp.int32),  # the pixels to search (a window centred elsewhere is skipped: NaN)
         pat: wp.array3d(dtype=float),  # [Hp, Wp, N]
         prm: ProjectorParams,
         z_near: float,
@@ -42,6 +43,11 @@ def search_kernel(N: int):
         W = rays.shape[1]
         v = i * stride
         u = j * stride
+        if v >= H or u >= W or centre[wp.min(v, H - 1), wp.min(u, W - 1)] == 0:
+            depth[i, j] = wp.nan
+            best_cost[i, j] = wp.nan
+            second_cost[i, j] = wp.nan
+            return
         best = float(NO_COST)
         best_h = int(-1)
         costs_far = float(NO_COST)

@@ -18,13 +18,13 @@ FLAT_DEFAULTS = dict(iters=4000, rays=2048, n_samples=32, n_importance=32, up_sa
                      n_freqs=6, init="search", init_iters=300, search_step_mm=1.0, search_stride=2, seed=0, backend="warp",
                      device="auto", matmul="fp32", compile=True, cuda_graph=True, incremental=False, start_frames=3,
                      add_every=500, checkpoint_every=500, log_every=50, mc_resolution=384, depth_method="mesh",
-                     edge_filter=10.0, refine_range=0.0, field="mlp", grid_levels=16, grid_log2_table=19, grid_base=16, grid_finest="auto",
+                     edge_filter=10.0, refine_range=0.0, search_repair=False, field="mlp", grid_levels=16, grid_log2_table=19, grid_base=16, grid_finest="auto",
                      grid_hidden=64, grid_layers=1, grid_activation="softplus", grid_gradient="finite_difference",
                      grid_table_lr_factor=10.0, grid_start_levels=2, grid_level_every=150)
 HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, grid_table_lr_factor=10.0)
 FLAT_PRESETS = {
     "paper": dict(matmul="tf32"),
-    "tuned": dict(matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0),
+    "tuned": dict(matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0, refine_range=3.0, search_repair=True),
     "cpu": dict(iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, lr=5e-4, lr_decay="cosine",
                 lambda_sc=0.0, hidden=64, layers=4, skip=2, n_freqs=6, search_step_mm=2.0, mc_resolution=192,
                 checkpoint_every=250, log_every=25),
@@ -33,8 +33,9 @@ FLAT_PRESETS = {
                  search_stride=3, mc_resolution=128, checkpoint_every=100, log_every=25),
     "fast": dict(matmul="tf32", iters=1000, init_iters=200, grid_start_levels=2, grid_level_every=50, mc_resolution=256,
                  checkpoint_every=1000, **HASHGRID),
-    "accurate": dict(matmul="tf32", grid_start_levels=2, grid_level_every=200, refine_range=3.0, **HASHGRID),
-    "cpu-hashgrid": dict(refine_range=3.0, iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, search_step_mm=2.0,
+    "accurate": dict(matmul="tf32", grid_start_levels=2, grid_level_every=200, refine_range=3.0, search_repair=True,
+                     **HASHGRID),
+    "cpu-hashgrid": dict(refine_range=3.0, search_repair=True, iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, search_step_mm=2.0,
                          mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
                          **HASHGRID),
 }

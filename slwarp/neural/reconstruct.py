@@ -28,6 +28,7 @@ from ..evaluation.outputs import (check_output_folder, staged_outputs, write_con
 from .extract import depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, sphere_trace_depth
 from .confidence import depth_confidence
 from .pattern_model import refine_depth
+from .search import repair_by_search
 from .config import TrainConfig, save_config
 from .train import Trainer
 
@@ -51,7 +52,8 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     """(depth [H, W], confidence [H, W], mesh, timings) from a trained field as its config's extraction section
     says: marching cubes, then the mesh ray-cast (or sphere tracing when depth_method is 'sphere'), the depth
     range, the flying-pixel filter, the confidence map (`extraction.confidence`) and the pixels below
-    `extraction.min_confidence` dropped, then the photometric refinement of the depth when refine_range > 0 (the
+    `extraction.min_confidence` dropped, the search repair when `search_repair` is on (holes filled, contradicted
+    depths replaced: slwarp.neural.search.repair_by_search), then the photometric refinement of the depth when refine_range > 0 (the
     confidence is that of the depth before refinement); depth is kept only inside `valid`. Both maps are NaN
     where no depth."""
     ex = trainer.cfg.extraction
@@ -79,11 +81,30 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
         depth[drop] = np.nan
         confidence[drop] = np.nan
     t3 = time.perf_counter()
+    repair_s, repair = 0.0, None
+    if ex.search_repair and valid is not None:
+        # where a per-pixel depth search contradicts the field or fills its holes (thin parts it missed):
+        # slwarp.neural.search.repair_by_search
+        before = depth
+        depth, repair = repair_by_search(depth, cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames],
+                                         trainer.renderer.rendered_patterns.detach().cpu().numpy(),
+                                         trainer.depth_range, valid, ex.min_confidence,
+                                         step_mm=trainer.cfg.init.search_step_mm, device=trainer.device)
+        # no flying-pixel filter on the changed pixels: a search has no smoothness to bend it across a depth edge,
+        # and a thin part is all edge
+        changed = np.isfinite(depth) & ~(depth == before)
+        if changed.any():
+            confidence = np.where(changed, depth_confidence(trainer, np.where(changed, depth, np.nan).astype(np.float32),
+                                                            ex.confidence), confidence).astype(np.float32)
+        confidence[~np.isfinite(depth)] = np.nan
+        repair["kept"] = int(changed.sum())
+        repair_s = time.perf_counter() - t3
+        t3 = time.perf_counter()
     if ex.refine_range > 0:
         depth = refine_depth(depth, cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames],
                              trainer.scan.patterns[: trainer.n_frames], ex.refine_range, device=trainer.device)
-    return depth, confidence, mesh, {"marching_cubes_s": t1 - t0, "depth_s": t2 - t1, "confidence_s": t3 - t2,
-                                     "refine_s": time.perf_counter() - t3}
+    return depth, confidence, mesh, {"marching_cubes_s": t1 - t0, "depth_s": t2 - t1, "confidence_s": t3 - t2 - repair_s,
+                                     "repair_s": repair_s, "repair": repair, "refine_s": time.perf_counter() - t3}
 
 
 def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, depth_range=None,

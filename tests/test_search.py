@@ -1,0 +1,97 @@
+"""The depth search (slwarp.neural.search): the search along each ray, its `centres` option, and the search repair
+at extraction (repair_by_search: holes filled, contradicted depths replaced, isolated changes refused)."""
+import numpy as np
+import pytest
+import torch
+
+from slwarp.neural.pattern_model import blur_patterns, lit_with_contrast, offset_and_modulation
+from slwarp.neural.search import _neighbours_within, repair_by_search, search_depth
+from slwarp.sim.simulate import SimOptions, simulate_scene
+
+BLUR = 1.0  # projector px: the simulated defocus, and the blur the patterns are rendered with
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """(scan, rendered patterns, valid pixels) of the small-rig steps scene: a depth-independent projector blur,
+    no noise, flat albedo."""
+    opts = SimOptions(noise=False, bits=0, defocus_sigma=BLUR, defocus_slope=0.0, shading=False, texture=False)
+    scan = simulate_scene("steps", "random6", rig="small", options=opts, device="cpu")
+    patterns = blur_patterns(torch.as_tensor(scan.patterns), BLUR).numpy()
+    _, b = offset_and_modulation(scan.images)
+    valid = lit_with_contrast(b) & np.isfinite(scan.gt_depth)
+    return scan, patterns, valid
+
+
+def _search(scan, patterns, valid, **kw):
+    return search_depth(scan.camera, scan.projector, scan.images, patterns, scan.depth_range, valid=valid, device="cpu",
+                        **kw)[0]
+
+
+def test_search_finds_the_depth_of_most_pixels(scene):
+    scan, patterns, valid = scene
+    depth = _search(scan, patterns, valid, radius=2, stride=1, step_mm=1.0)
+    found = np.isfinite(depth)
+    assert found[valid].mean() > 0.8
+    err = np.abs(depth - scan.gt_depth)[found]
+    assert np.mean(err < 2.0) > 0.95  # hypotheses 1 mm apart; the rest sit on depth edges
+
+
+def test_search_centres_limit_where_it_searches_but_not_the_windows(scene):
+    scan, patterns, valid = scene
+    centres = np.zeros_like(valid)
+    centres[100:140, 150:200] = True
+    full = _search(scan, patterns, valid, radius=1, stride=1, median=False)
+    part = _search(scan, patterns, valid, radius=1, stride=1, median=False, centres=centres)
+    inside = centres & valid
+    assert inside.sum() > 1000
+    np.testing.assert_array_equal(part[inside], full[inside])
+    assert np.isnan(part[~inside]).all()
+
+
+def test_repair_fills_holes_and_replaces_contradicted_depths(scene):
+    scan, patterns, valid = scene
+    gt = np.where(valid, scan.gt_depth, np.nan).astype(np.float32)
+    depth = gt.copy()
+    # two 30 x 30 blocks of lit pixels on one surface each (no depth edge inside)
+    blocks = [(y, x) for y in range(10, 220, 15) for x in range(10, 290, 15)
+              if valid[y : y + 30, x : x + 30].all()
+              and np.ptp(scan.gt_depth[y : y + 30, x : x + 30]) < 15.0]
+    (y0, x0), (y1, x1) = blocks[0], next(b for b in blocks if abs(b[0] - blocks[0][0]) >= 30 or abs(b[1] - blocks[0][1]) >= 30)
+    hole = np.zeros_like(valid)
+    hole[y0 : y0 + 30, x0 : x0 + 30] = True
+    wrong = np.zeros_like(valid)
+    wrong[y1 : y1 + 30, x1 : x1 + 30] = True
+    depth[hole] = np.nan
+    depth[wrong] += 40.0  # a surface 40 mm behind the true one: another code, the field's kind of mistake
+    out, info = repair_by_search(depth, scan.camera, scan.projector, scan.images, patterns, scan.depth_range, valid,
+                                 min_confidence=0.6, step_mm=1.0, device="cpu")
+    assert info["filled"] > 0 and info["switched"] > 0
+    assert np.mean(np.abs(out[hole] - gt[hole]) < 2.0) > 0.8
+    assert np.mean(np.abs(out[wrong] - gt[wrong]) < 2.0) > 0.8
+    # the right depths elsewhere stay as they were (a rare confident wrong search may not overrule them)
+    rest = valid & ~hole & ~wrong
+    assert np.mean(out[rest] != depth[rest]) < 0.005
+    # nothing changes outside `valid`
+    assert np.isnan(out[~valid]).all()
+
+
+def test_repair_changes_nothing_on_a_right_depth_map(scene):
+    scan, patterns, valid = scene
+    gt = np.where(valid, scan.gt_depth, np.nan).astype(np.float32)
+    out, info = repair_by_search(gt, scan.camera, scan.projector, scan.images, patterns, scan.depth_range, valid,
+                                 min_confidence=0.6, step_mm=1.0, device="cpu")
+    assert info["filled"] == 0
+    assert info["switched"] <= 0.001 * valid.sum()
+    assert np.mean(out[valid] != gt[valid]) <= 0.001
+
+
+def test_neighbours_within_counts_the_agreeing_neighbours():
+    d = np.full((4, 4), 100.0, np.float32)
+    d[1, 1] = 150.0  # an isolated different depth: no neighbour agrees
+    d[3, 3] = np.nan
+    n = _neighbours_within(d, 3.0)
+    assert n[1, 1] == 0
+    assert n[0, 0] == 2  # (0, 1), (1, 0) agree; (1, 1) does not
+    assert n[2, 2] == 6  # 8 neighbours less (1, 1) and the NaN (3, 3)
+    assert n[3, 3] == 0
