@@ -86,6 +86,14 @@ def mesh_depth(mesh, camera, device=None, hits: int = 1, eps_mm: float = 1.0) ->
         return depth.numpy().reshape(shape)
 
 
+def neighbour_stack(depth: np.ndarray) -> np.ndarray:
+    """[8, H, W] float64: each pixel's 8 neighbours' depths (NaN outside the image)."""
+    d = np.asarray(depth, np.float64)
+    H, W = d.shape
+    pad = np.pad(d, 1, constant_values=np.nan)
+    return np.stack([pad[dy : dy + H, dx : dx + W] for dy in range(3) for dx in range(3) if (dy, dx) != (1, 1)])
+
+
 def flying_pixel_filter(depth: np.ndarray, camera, footprints: float = 10.0) -> np.ndarray:
     """Depth with "flying pixels" removed (NaN): pixels whose depth differs from one of their 8 neighbours
     by more than `footprints` pixel footprints (z / f mm each) lie on a depth edge.
@@ -96,16 +104,8 @@ def flying_pixel_filter(depth: np.ndarray, camera, footprints: float = 10.0) -> 
     edge). A slanted surface changes depth by a few footprints per pixel at most, so it is kept.
     """
     d = np.asarray(depth, np.float64)
-    H, W = d.shape
     limit = footprints * d / min(camera.fx, camera.fy)
-    pad = np.pad(d, 1, constant_values=np.nan)
-    jump = np.zeros_like(d)
-    for dy in range(3):
-        for dx in range(3):
-            if dy == 1 and dx == 1:
-                continue
-            diff = np.abs(pad[dy : dy + H, dx : dx + W] - d)
-            jump = np.fmax(jump, np.nan_to_num(diff, nan=0.0))
+    jump = np.nan_to_num(np.abs(neighbour_stack(d) - d), nan=0.0).max(0)
     out = np.where(jump > limit, np.nan, d)
     return out.astype(np.float32)
 

@@ -16,6 +16,7 @@ import time
 import numpy as np
 
 from ..devices import warp_device
+from .extract import neighbour_stack
 from .pattern_model import lit_with_contrast, offset_and_modulation
 from slwarp.kernels import runtime
 from slwarp.kernels.geometry import projector_params
@@ -157,12 +158,5 @@ def repair_by_search(depth: np.ndarray, camera, projector, images, patterns, dep
 
 def _neighbours_within(depth: np.ndarray, tol_mm: float) -> np.ndarray:
     """[H, W] int: how many of each pixel's 8 neighbours have a depth within tol_mm of its own."""
-    H, W = depth.shape
-    pad = np.pad(depth, 1, constant_values=np.nan)
-    count = np.zeros((H, W), np.int32)
     with np.errstate(invalid="ignore"):
-        for dy in range(3):
-            for dx in range(3):
-                if dy != 1 or dx != 1:
-                    count += np.abs(pad[dy : dy + H, dx : dx + W] - depth) < tol_mm
-    return count
+        return (np.abs(neighbour_stack(depth) - depth) < tol_mm).sum(0).astype(np.int32)
