@@ -24,7 +24,6 @@ Writes bench/results/extraction-cpu.{json,md} (or --out) and prints the tables.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import sys
 import time
@@ -36,7 +35,8 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "bench"))
 
-from study_common import DATE, gray_code_yardstick, markdown_table, simulate_study_scan, train_cached  # noqa: E402
+from study_common import (DATE, gray_code_yardstick, markdown_table, simulate_study_scan,  # noqa: E402
+                          train_cached, write_study)
 
 
 def edge_pixels(gt: np.ndarray, camera, radius: int = 2, footprints: float = 10.0) -> np.ndarray:
@@ -208,12 +208,7 @@ def main(argv=None) -> int:
         doc["runs"].append(res)
         k = res["stages"]["kept"]
         print(f"{scene}: kept {k['share']:.1%} MAE {k['mae']:.3f} ({res['seconds']:.0f} s)", flush=True)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(doc, indent=1, default=float))
-    md = render_markdown(doc)
-    out.with_suffix(".md").write_text(md)
-    print(md)
+    write_study(args.out, doc, render_markdown)
     return 0
 
 

@@ -36,7 +36,8 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "bench"))
 
-from study_common import DATE, gray_code_yardstick, markdown_table, simulate_study_scan, train_cached  # noqa: E402
+from study_common import (DATE, gray_code_yardstick, markdown_table, simulate_study_scan,  # noqa: E402
+                          train_cached, write_study)
 
 KEYS = (("mae", "MAE mm", "{:.3f}"), ("median", "median mm", "{:.3f}"), ("over_5mm", ">5 mm", "{:.2%}"),
         ("completeness", "complete", "{:.1%}"))
@@ -82,12 +83,7 @@ def main(argv=None) -> int:
         print(f"{scene:8s} today MAE {t['mae']:.3f} median {t['median']:.3f} | refined MAE {r['mae']:.3f} median "
               f"{r['median']:.3f} ({r['extract_s'] - t['extract_s']:.0f} s more) | GC7 {gray['GC(7) interp']['mae']:.3f}",
               flush=True)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(doc, indent=1, default=float))
-    md = render_markdown(doc)
-    out.with_suffix(".md").write_text(md)
-    print(md)
+    write_study(args.out, doc, render_markdown)
     return 0
 
 

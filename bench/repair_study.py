@@ -14,7 +14,6 @@ Writes bench/results/repair-cpu.{json,md} (or --out) and prints the table.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import sys
 import time
@@ -27,7 +26,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "bench"))
 
 from accuracy_sweep import error_split  # noqa: E402
-from study_common import DATE, GRAY_FRAMES, markdown_table, simulate_study_scan, train_cached  # noqa: E402
+from study_common import DATE, GRAY_FRAMES, markdown_table, simulate_study_scan, train_cached, write_study  # noqa: E402
 
 COLUMNS = (("mae", "MAE mm", "{:.3f}"), ("mae_within_5mm", "MAE <= 5 mm", "{:.3f}"),
            ("outlier_mae", "MAE part > 5 mm", "{:.3f}"), ("over_5mm", ">5 mm", "{:.2%}"),
@@ -68,12 +67,7 @@ def main(argv=None) -> int:
         print(f"{scene:8s} no repair MAE {p['mae']:.3f} complete {p['completeness']:.3f} | repair MAE {r['mae']:.3f} "
               f"complete {r['completeness']:.3f} ({r['repair_s']:.1f} s) | GC7 {row['GC(7) interp']['mae']:.3f} "
               f"complete {row['GC(7) interp']['completeness']:.3f}", flush=True)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(doc, indent=1, default=float))
-    md = render_markdown(doc)
-    out.with_suffix(".md").write_text(md)
-    print(md)
+    write_study(args.out, doc, render_markdown)
     return 0
 
 

@@ -8,6 +8,7 @@ GC(6) and GC(7) with interpolation from its Gray code frames.
 """
 from __future__ import annotations
 
+import json
 import sys
 import time
 from pathlib import Path
@@ -63,3 +64,13 @@ def train_cached(scan, preset_name: str, variant: str, cache: Path, key: str, tr
     t0 = time.perf_counter()
     trainer.train()
     return trainer, cfg, (time.perf_counter() - t0) if not resume else trainer.elapsed
+
+
+def write_study(out, doc: dict, render) -> None:
+    """Write a study's results: <out>.json (doc), <out>.md (render(doc)), and print the markdown."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".json").write_text(json.dumps(doc, indent=1, default=float))
+    md = render(doc)
+    out.with_suffix(".md").write_text(md)
+    print(md)

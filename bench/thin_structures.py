@@ -18,7 +18,6 @@ Writes bench/results/thin-structures-cpu.{json,md}.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -30,7 +29,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "bench"))
 
 from image_model import PatternStack, fit_model, model_residual, projector_uv_z, refine_depth  # noqa: E402
-from study_common import DATE, gray_code_yardstick, markdown_table, simulate_study_scan, train_cached  # noqa: E402
+from study_common import (DATE, gray_code_yardstick, markdown_table, simulate_study_scan,  # noqa: E402
+                          train_cached, write_study)
 
 ROD_DEPTH_MM = 685.0  # every rod of the scene lies nearer than this, every other surface farther
 SQUARE = [(dy, dx) for dy in range(-2, 3) for dx in range(-2, 3)]
@@ -155,12 +155,7 @@ def main(argv=None) -> int:
         doc["runs"].append({"scene": scene, "search": search_rows, "pipelines": pipelines, "gray": gray_code_yardstick(full),
                             "seconds": time.perf_counter() - t0})
         print(f"{scene}: done in {time.perf_counter() - t0:.0f} s", flush=True)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(doc, indent=1, default=float))
-    md = render_markdown(doc)
-    out.with_suffix(".md").write_text(md)
-    print(md)
+    write_study(args.out, doc, render_markdown)
     return 0
 
 
