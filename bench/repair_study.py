@@ -61,7 +61,8 @@ def main(argv=None) -> int:
             t0 = time.perf_counter()
             depth, _, _, timings = extract_depth(trainer, valid=trainer.renderer.valid_map.cpu().numpy())
             row[name] = {**depth_metrics(depth, scan.gt_depth, scan.mask), **error_split(depth, scan),
-                         "extract_s": time.perf_counter() - t0, "repair_s": timings.get("repair_s", 0.0), "repair": timings.get("repair")}
+                         "extract_s": time.perf_counter() - t0, "repair_s": timings.get("repair_s", 0.0),
+                         "repair": timings.get("repair")}
         doc["runs"].append(row)
         p, r = row["no repair"], row["search_repair"]
         print(f"{scene:8s} no repair MAE {p['mae']:.3f} complete {p['completeness']:.3f} | repair MAE {r['mae']:.3f} "
@@ -87,7 +88,8 @@ def render_markdown(doc: dict) -> str:
             mean = np.mean([v for v in vals if v is not None])
             rows.append([m] + cells + [fmt.format(mean)])
         if rows:
-            md += [f"{title}:", ""] + markdown_table(["method"] + [r["scene"] for r in doc["runs"]] + ["mean"], rows) + [""]
+            header = ["method"] + [r["scene"] for r in doc["runs"]] + ["mean"]
+            md += [f"{title}:", ""] + markdown_table(header, rows) + [""]
     return "\n".join(md) + "\n"
 
 

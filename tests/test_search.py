@@ -57,7 +57,8 @@ def test_repair_fills_holes_and_replaces_contradicted_depths(scene):
     blocks = [(y, x) for y in range(10, 220, 15) for x in range(10, 290, 15)
               if valid[y : y + 30, x : x + 30].all()
               and np.ptp(scan.gt_depth[y : y + 30, x : x + 30]) < 15.0]
-    (y0, x0), (y1, x1) = blocks[0], next(b for b in blocks if abs(b[0] - blocks[0][0]) >= 30 or abs(b[1] - blocks[0][1]) >= 30)
+    y0, x0 = blocks[0]
+    y1, x1 = next(b for b in blocks if abs(b[0] - y0) >= 30 or abs(b[1] - x0) >= 30)  # not overlapping
     hole = np.zeros_like(valid)
     hole[y0 : y0 + 30, x0 : x0 + 30] = True
     wrong = np.zeros_like(valid)

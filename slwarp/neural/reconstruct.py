@@ -53,9 +53,9 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     says: marching cubes, then the mesh ray-cast (or sphere tracing when depth_method is 'sphere'), the depth
     range, the flying-pixel filter, the confidence map (`extraction.confidence`) and the pixels below
     `extraction.min_confidence` dropped, the search repair when `search_repair` is on (holes filled, contradicted
-    depths replaced: slwarp.neural.search.repair_by_search), then the photometric refinement of the depth when refine_range > 0 (the
-    confidence is that of the depth before refinement); depth is kept only inside `valid`. Both maps are NaN
-    where no depth."""
+    depths replaced: slwarp.neural.search.repair_by_search), then the photometric refinement of the depth when
+    refine_range > 0 (the confidence is that of the depth before refinement); depth is kept only inside `valid`.
+    Both maps are NaN where no depth."""
     ex = trainer.cfg.extraction
     t0 = time.perf_counter()
     cam = trainer.scan.camera
@@ -94,8 +94,8 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
         # and a thin part is all edge
         changed = np.isfinite(depth) & ~(depth == before)
         if changed.any():
-            confidence = np.where(changed, depth_confidence(trainer, np.where(changed, depth, np.nan).astype(np.float32),
-                                                            ex.confidence), confidence).astype(np.float32)
+            new = depth_confidence(trainer, np.where(changed, depth, np.nan).astype(np.float32), ex.confidence)
+            confidence = np.where(changed, new, confidence).astype(np.float32)
         confidence[~np.isfinite(depth)] = np.nan
         repair["kept"] = int(changed.sum())
         repair_s = time.perf_counter() - t3
@@ -103,8 +103,9 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     if ex.refine_range > 0:
         depth = refine_depth(depth, cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames],
                              trainer.scan.patterns[: trainer.n_frames], ex.refine_range, device=trainer.device)
-    return depth, confidence, mesh, {"marching_cubes_s": t1 - t0, "depth_s": t2 - t1, "confidence_s": t3 - t2 - repair_s,
-                                     "repair_s": repair_s, "repair": repair, "refine_s": time.perf_counter() - t3}
+    return depth, confidence, mesh, {"marching_cubes_s": t1 - t0, "depth_s": t2 - t1,
+                                     "confidence_s": t3 - t2 - repair_s, "repair_s": repair_s, "repair": repair,
+                                     "refine_s": time.perf_counter() - t3}
 
 
 def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, depth_range=None,

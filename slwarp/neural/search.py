@@ -16,6 +16,7 @@ import time
 import numpy as np
 
 from ..devices import warp_device
+from .confidence import photometric_confidence
 from .extract import neighbour_stack
 from .pattern_model import lit_with_contrast, offset_and_modulation
 from slwarp.kernels import runtime
@@ -90,7 +91,6 @@ def _median3(x: np.ndarray) -> np.ndarray:
     return out
 
 
-
 # a pixel's depth and a confident search's answer "disagree" beyond this (mm): the search's own exclusion zone
 DISAGREE_MM = 6.0
 # the 3x3 and 5x5 searches "agree" within this (mm)
@@ -107,7 +107,8 @@ SWITCH_MARGIN = 0.1
 
 def repair_by_search(depth: np.ndarray, camera, projector, images, patterns, depth_range, valid: np.ndarray,
                      min_confidence: float, *, step_mm: float = 1.0, margin: float = SWITCH_MARGIN,
-                     fill_confidence: float = FILL_CONFIDENCE, support: int = SUPPORT, device=None) -> tuple[np.ndarray, dict]:
+                     fill_confidence: float = FILL_CONFIDENCE, support: int = SUPPORT,
+                     device=None) -> tuple[np.ndarray, dict]:
     """(depth [H, W] repaired, info) where a per-pixel depth search contradicts the field.
 
     Why: a field can miss what few rays saw (rods a few pixels wide, small parts behind a depth edge). Its
@@ -120,11 +121,11 @@ def repair_by_search(depth: np.ndarray, camera, projector, images, patterns, dep
     - holes: a lit pixel in `valid` without depth takes the search's depth when its confidence there is
       >= max(min_confidence, fill_confidence);
     - contradictions: a pixel whose depth is more than DISAGREE_MM from the search's takes the search's depth when
-      the search's confidence beats the pixel's by `margin`.
+      the search's confidence beats the pixel's by `margin`;
+    - either change stays only where `support` of the pixel's 8 neighbours end within AGREE_MM of it (an isolated
+      change is a chance match of the codes).
     The caller refines the result (`pattern_model.refine_depth`). info: counts of holes, filled, contested and
     switched pixels."""
-    from .confidence import photometric_confidence
-
     depth = np.asarray(depth, np.float32)
     valid = np.asarray(valid, bool)
     out = depth.copy()
