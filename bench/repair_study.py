@@ -8,6 +8,8 @@ same scan's Gray code frames are the yardstick.
 
     python bench/repair_study.py                                     # rods, torus, steps, bunny; small rig
     python bench/repair_study.py --scenes rods --preset tiny --out /tmp/repair   # a quick look
+    python bench/repair_study.py --scenes spheres --rig small-oblique --preset cpu --set refine_range=3 \
+        --out bench/results/repair-small-oblique-cpu                # the MLP, refined, on the oblique rig
 
 Writes bench/results/repair-cpu.{json,md} (or --out) and prints the table.
 """
@@ -25,7 +27,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "bench"))
 
-from accuracy_sweep import error_split  # noqa: E402
+from accuracy_sweep import error_split, parse_overrides  # noqa: E402
 from study_common import DATE, GRAY_FRAMES, markdown_table, simulate_study_scan, train_cached, write_study  # noqa: E402
 
 COLUMNS = (("mae", "MAE mm", "{:.3f}"), ("mae_within_5mm", "MAE <= 5 mm", "{:.3f}"),
@@ -43,6 +45,8 @@ def main(argv=None) -> int:
     ap.add_argument("--rig", default="small")
     ap.add_argument("--preset", default="cpu-hashgrid")
     ap.add_argument("--cache", default="/tmp/slwarp-study-fields")
+    ap.add_argument("--set", default=None, help="extraction options over the preset's, e.g. 'refine_range=3' (the "
+                    "field is trained, or reloaded from --cache, with the preset as it is)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", default=str(REPO / "bench" / "results" / "repair-cpu"), help="output path without suffix")
     args = ap.parse_args(argv)
@@ -57,7 +61,7 @@ def main(argv=None) -> int:
         trainer, cfg, row["train_s"] = train_cached(scan.select("rand*"), args.preset, "base", Path(args.cache),
                                                     key=f"{scene}-{args.rig}")
         for name, repair in (("no repair", False), ("search_repair", True)):
-            trainer.cfg = cfg.with_options(search_repair=repair)
+            trainer.cfg = cfg.with_options(**{**parse_overrides(args.set), "search_repair": repair})
             t0 = time.perf_counter()
             depth, _, _, timings = extract_depth(trainer, valid=trainer.renderer.valid_map.cpu().numpy())
             row[name] = {**depth_metrics(depth, scan.gt_depth, scan.mask), **error_split(depth, scan),
@@ -75,7 +79,8 @@ def main(argv=None) -> int:
 def render_markdown(doc: dict) -> str:
     a = doc["args"]
     md = [f"# Search repair at extraction ({a['preset']} preset, {a['rig']} rig, CPU, {doc['date']})", "",
-          f"`python bench/repair_study.py --scenes {a['scenes']} --rig {a['rig']} --preset {a['preset']}`: the same "
+          f"`python bench/repair_study.py --scenes {a['scenes']} --rig {a['rig']} --preset {a['preset']}"
+          + (f" --set {a['set']}" if a.get("set") else "") + "`: the same "
           "trained field extracted without and with `search_repair`; metrics over the GT mask.", ""]
     methods = ("GC(7) interp", "GC(6) interp", "no repair", "search_repair")
     for key, title, fmt in COLUMNS:
