@@ -84,7 +84,10 @@ def test_repair_changes_nothing_on_a_right_depth_map(scene):
                                  min_confidence=0.6, step_mm=1.0, device="cpu")
     assert info["filled"] == 0
     assert info["switched"] <= 0.001 * valid.sum()
-    assert np.mean(out[valid] != gt[valid]) <= 0.001
+    kept = np.isfinite(out[valid])
+    assert np.mean(out[valid][kept] != gt[valid][kept]) <= 0.001
+    # the doubt rule drops a few right pixels that a confident wrong search contradicts (mostly at depth edges)
+    assert (~kept).sum() == info["dropped"] <= 0.005 * valid.sum()
 
 
 def test_neighbours_within_counts_the_agreeing_neighbours():
