@@ -32,14 +32,13 @@ import contextlib
 import datetime
 import json
 import platform
-import statistics
 import sys
 import time
 from pathlib import Path
 
 import torch
 
-from bench_kernels import graphed  # the bench folder is on sys.path when run as a script
+from bench_kernels import graphed, timeit  # the bench folder is on sys.path when run as a script
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -192,27 +191,6 @@ def gradient_accuracy(n: int, fit_steps: int, device) -> dict:
     return out
 
 
-def timeit(fn, device, reps: int, warmup: int = 2) -> float:
-    """Median seconds per call after warm-up (CUDA events on GPU, perf_counter on CPU)."""
-    for _ in range(warmup):
-        fn()
-    sync(device)
-    ts = []
-    for _ in range(reps):
-        if device.type == "cuda":
-            s, e = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-            s.record()
-            fn()
-            e.record()
-            e.synchronize()
-            ts.append(s.elapsed_time(e) / 1e3)
-        else:
-            t0 = time.perf_counter()
-            fn()
-            ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
-
-
 def time_field(name: str, device, P: int, reps: int, modes: list[str]) -> list[dict]:
     torch.manual_seed(0)
     field = FIELDS[name](DEFAULT_VOLUME).to(device)
@@ -249,8 +227,8 @@ def time_field(name: str, device, P: int, reps: int, modes: list[str]) -> list[d
             fwd_bwd()
             sync(device)
             peak_mb = (torch.cuda.max_memory_allocated(device) - base) / 2**20
-        t_f = timeit(run_fwd, device, reps)
-        t_fb = timeit(run_fb, device, reps)
+        t_f = timeit(run_fwd, device, reps, warmup=2)
+        t_fb = timeit(run_fb, device, reps, warmup=2)
         rows.append({"field": name, "mode": mode, "points": P, "params": n_params, "fwd_ms": t_f * 1e3,
                      "fwd_bwd_ms": t_fb * 1e3, "peak_mb": peak_mb, "first_call_s": first_s})
         print(f"  {name:20s} {mode:14s} fwd {t_f * 1e3:9.3f} ms   fwd+bwd {t_fb * 1e3:9.3f} ms"

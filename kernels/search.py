@@ -43,7 +43,7 @@ def search_kernel(N: int):
         W = rays.shape[1]
         v = i * stride
         u = j * stride
-        if v >= H or u >= W or centre[wp.min(v, H - 1), wp.min(u, W - 1)] == 0:
+        if centre[v, u] == 0:  # v < H and u < W: the grid is ceil(H / stride) x ceil(W / stride)
             depth[i, j] = wp.nan
             best_cost[i, j] = wp.nan
             second_cost[i, j] = wp.nan
