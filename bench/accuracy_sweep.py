@@ -35,6 +35,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 CLASSICAL = (("GC(7) interp", "bit=0-6"), ("GC(6) interp", "bit=0-5"))
 KEYS = ("mae", "median", "over_5mm", "completeness", "mae_within_5mm", "outlier_mae")
+LOST = ("unlit", "no_surface", "out_of_range", "flying_pixel", "low_confidence")  # the `lost` keys of a neural run
 
 _DEVICE = None  # this worker process's device, set by _init_worker
 _KEEP = None  # the folder for error maps (--keep), set by _init_worker
@@ -111,14 +112,37 @@ def run_job(job: dict) -> dict:
             from slwarp.neural.config import preset
             from slwarp.neural.reconstruct import reconstruct
 
+            from slwarp.evaluation.metrics import depth_metrics
+            from slwarp.neural.reconstruct import extract_depth
+
             cfg = preset(job["preset"], device=_DEVICE, **job["overrides"])
             rec = reconstruct(scan.select("rand*"), cfg, progress=False)
             m = dict(rec.metrics)
             m.update(error_split(rec.depth, scan))
             keep_error_map(job, job["label"], rec.depth, scan)
             m.update(train_s=rec.timings.get("train_s"), total_s=rec.timings.get("total_s"),
-                     iterations=rec.timings.get("iterations"))
+                     iterations=rec.timings.get("iterations"), extract_s=rec.timings.get("total_s", 0.0)
+                     - rec.timings.get("train_s", 0.0) - rec.timings.get("setup_s", 0.0))
+            # where the missing pixels went: share of the GT mask unlit (outside the decoders' valid map) and
+            # dropped by each extraction stage
+            valid = rec.trainer.renderer.valid_map.cpu().numpy()
+            n_mask = max(int(scan.mask.sum()), 1)
+            lost_unlit = float((scan.mask & ~valid).sum() / n_mask)
+            m["lost"] = {"unlit": lost_unlit,
+                         **{k: v / n_mask for k, v in rec.timings.get("dropped", {}).items()}}
             out["methods"][job["label"]] = m
+            # the same trained field extracted again with other extraction options (--also-extract)
+            trainer = rec.trainer
+            for variant in job.get("also_extract", []):
+                trainer.cfg = cfg.with_options(**parse_overrides(variant.replace(":", ",")))
+                t1 = time.perf_counter()
+                depth, _, _, ext_t = extract_depth(trainer, valid)
+                label = f"{job['label']}+{variant}"
+                m = {**depth_metrics(depth, scan.gt_depth, scan.mask), **error_split(depth, scan),
+                     "train_s": rec.timings.get("train_s"), "extract_s": time.perf_counter() - t1,
+                     "lost": {"unlit": lost_unlit, **{k: v / n_mask for k, v in ext_t.get("dropped", {}).items()}}}
+                keep_error_map(job, label, depth, scan)
+                out["methods"][label] = m
         out["wall_s"] = time.perf_counter() - t0
         return out
     except Exception as e:  # noqa: BLE001 - one failed run is reported, the sweep goes on
@@ -227,6 +251,15 @@ def markdown(doc: dict) -> str:
                                               for s in scenes}, "mean": mean(r, lab, k)}) for lab in methods],
                                    [(c[0], c[1], fmt) for c in cols], "method"))
             md.append("")
+        lost = []
+        for lab in labels:
+            per = [t[r].get(lab, {}).get("per_scene", {}).get(s, {}).get("lost") for s in scenes]
+            if any(per):
+                lost.append((lab, {k: 100 * float(np.mean([p.get(k, 0.0) for p in per if p])) for k in LOST}))
+        if lost:
+            md += ["Where the missing pixels went (% of the GT mask, mean over the scenes; a dropped pixel may be "
+                   "outside the mask, so these bound the loss from above):", "",
+                   format_table(lost, [(k, k.replace("_", " "), "{:.2f}") for k in LOST], "method"), ""]
         secs = [(lab, {"train": mean(r, lab, "train_s"), "total": mean(r, lab, "total_s")}) for lab in labels]
         md += ["Time per scan (s, mean; runs shared the device, see the header):", "",
                format_table(secs, [("train", "training", "{:.1f}"), ("total", "scan to depth map", "{:.1f}")], "preset")]
@@ -251,6 +284,10 @@ def main(argv=None) -> int:
                     help="stop submitting runs after this many minutes (finished runs are kept; run again to go on)")
     ap.add_argument("--out", default=str(REPO / "bench" / "results"))
     ap.add_argument("--keep", default=None, help="folder for each run's absolute error map (PNG, 0-5 mm)")
+    ap.add_argument("--also-extract", default=None,
+                    help="extraction variants, comma-separated, each key=value:key=value, applied to each neural run's "
+                    "trained field after its own extraction and reported as PRESET+VARIANT (e.g. 'search_repair=true': "
+                    "the repair's effect on the very same fields, at the cost of one extraction)")
     args = ap.parse_args(argv)
 
     import multiprocessing as mp
@@ -266,6 +303,7 @@ def main(argv=None) -> int:
     devices = [f"cuda:{i}" for i in range(n_gpu) for _ in range(args.workers_per_gpu)] if cuda else \
         ["cpu"] * (args.workers or 1)
     labels = args.presets.split(",") if args.presets else [default_preset_name("cuda" if cuda else "cpu")]
+    also = args.also_extract.split(",") if args.also_extract else []
     overrides = parse_overrides(args.set)
     rigs = [rig_name(g, args.small) for g in (args.rigs.split(",") if args.rigs else GEOMETRIES)]
     scenes = args.scenes.split(",") if args.scenes else list(SCENE_NAMES)
@@ -280,7 +318,7 @@ def main(argv=None) -> int:
                 name, *variant = label.split(":")
                 jobs.append({"kind": "neural", "label": label, "preset": name,
                              "overrides": {**overrides, **parse_overrides(",".join(variant))}, "rig": r, "scene": s,
-                             "seed": args.seed})
+                             "seed": args.seed, **({"also_extract": also} if also else {})})
             jobs.append({"kind": "classical", "rig": r, "scene": s, "seed": args.seed})
     results, todo = [], []
     for j in jobs:
@@ -322,11 +360,12 @@ def main(argv=None) -> int:
                         f.cancel()
                     break
     errors = [{"key": job_key(r["job"]), "error": r["error"]} for r in results if "error" in r]
+    all_labels = labels + [f"{lab}+{v}" for lab in labels for v in also]
     command = " ".join(["python bench/accuracy_sweep.py"] + list(sys.argv[1:] if argv is None else argv))
     doc = {"date": datetime.date.today().isoformat(), "device": "cuda" if cuda else "cpu", "device_name": name,
            "gpus": n_gpu, "workers": len(devices), "command": command, "seed": args.seed, "rigs": rigs,
-           "scenes": scenes, "labels": labels, "overrides": overrides, "wall_s": time.perf_counter() - t0,
-           "table": summarise(results, rigs, scenes, labels), "errors": errors}
+           "scenes": scenes, "labels": all_labels, "overrides": overrides, "wall_s": time.perf_counter() - t0,
+           "table": summarise(results, rigs, scenes, all_labels), "errors": errors}
     out.mkdir(parents=True, exist_ok=True)
     stem = f"accuracy-{doc['device']}"
     (out / f"{stem}.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")

@@ -9,6 +9,8 @@ bits for contrast: their plane nearly contains the camera rays, so their depth i
     python bench/chessboard.py --skip-neural                 # classical rows only (CPU, a minute)
     python bench/chessboard.py --preset paper                # with the neural SDF: needs a GPU
     python bench/chessboard.py --preset tiny --out /tmp/cb   # smoke check of the neural path on a CPU
+    python bench/chessboard.py --preset tuned --also-extract refine_range=0,search_repair=true
+                                                             # one field, extracted three ways
 Writes <out>/chessboard-<cpu|cuda>.json and .md.
 """
 from __future__ import annotations
@@ -23,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "bench"))
 DEFAULT_DATA = REPO.parent / "shared" / "data" / "procam_chessboard"
 DEPTH_RANGE = (1050.0, 1750.0)  # the full decode spans 1117 to 1649 mm (0.5 and 99.5 percentiles)
 SEVEN_ROWS = "gray:row:bit=0-6:noinv"  # the 7 most significant row bits, no inverses (role selector)
@@ -42,7 +45,10 @@ def main(argv=None):
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", default=str(DEFAULT_DATA))
-    p.add_argument("--preset", default=None, help="neural preset (default: paper on a GPU, cpu otherwise)")
+    p.add_argument("--preset", default=None, help="neural presets, comma-separated, each PRESET or "
+                   "PRESET:key=value:key=value (default: the device's default preset)")
+    p.add_argument("--also-extract", default=None, help="extraction variants (comma-separated, each "
+                   "key=value:key=value) applied to each trained field after its own extraction")
     p.add_argument("--iters", type=int, default=None)
     p.add_argument("--skip-neural", action="store_true")
     p.add_argument("--out", default=str(REPO / "bench" / "results"))
@@ -68,12 +74,25 @@ def main(argv=None):
         d, _, dec = reconstruct_depth(scan, method, frames=frames, depth_range=DEPTH_RANGE)
         record(name, d, time.perf_counter() - t, len(dec.frames), dec.extra["triangulation"])
     if not args.skip_neural:
-        name = args.preset or default_preset_name(torch_device("auto"))
-        cfg = preset(name, **({"iters": args.iters} if args.iters is not None else {}))
+        from accuracy_sweep import parse_overrides
+        from slwarp.neural.reconstruct import extract_depth
+
         seven = scan.select(SEVEN_ROWS)
-        t = time.perf_counter()
-        res = reconstruct(seven, cfg, out_dir=None, depth_range=DEPTH_RANGE, progress=False, log_every_s=30)
-        record(f"neural SDF, 7 row bits ({name} preset)", res.depth, time.perf_counter() - t, len(seven), "-")
+        for label in (args.preset or default_preset_name(torch_device("auto"))).split(","):
+            name, *variant = label.split(":")
+            cfg = preset(name, **parse_overrides(",".join(variant)),
+                         **({"iters": args.iters} if args.iters is not None else {}))
+            t = time.perf_counter()
+            res = reconstruct(seven, cfg, out_dir=None, depth_range=DEPTH_RANGE, progress=False, log_every_s=30)
+            record(f"neural SDF, 7 row bits (`{label}`)", res.depth, time.perf_counter() - t, len(seven), "-")
+            valid = res.trainer.renderer.valid_map.cpu().numpy()
+            for extra in filter(None, (args.also_extract or "").split(",")):
+                # the same field, other extraction options
+                res.trainer.cfg = cfg.with_options(**parse_overrides(extra.replace(":", ",")))
+                t = time.perf_counter()
+                depth = extract_depth(res.trainer, valid)[0]
+                record(f"neural SDF, 7 row bits (`{label}`, extracted with `{extra}`)", depth,
+                       time.perf_counter() - t, len(seven), "-")
     device = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "CPU"
     lines = [f"# Real capture: chessboard plate planarity, {device}, {datetime.date.today()}", "",
              "RMS distance (mm) of the reconstructed points inside the 9x7 inner-corner quadrilateral to their plane. "

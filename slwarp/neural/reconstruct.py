@@ -55,7 +55,8 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     `extraction.min_confidence` dropped, the search repair when `search_repair` is on (holes filled, contradicted
     depths replaced: slwarp.neural.search.repair_by_search), then the photometric refinement of the depth when
     refine_range > 0 (the confidence is that of the depth before refinement); depth is kept only inside `valid`.
-    Both maps are NaN where no depth."""
+    Both maps are NaN where no depth. timings["dropped"] counts the pixels each stage left without depth
+    (no_surface inside `valid`, out_of_range, flying_pixel, low_confidence)."""
     ex = trainer.cfg.extraction
     t0 = time.perf_counter()
     cam = trainer.scan.camera
@@ -68,16 +69,23 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
         depth = mesh_depth(mesh, cam, trainer.device)
     if valid is not None:
         depth = np.where(valid, depth, np.nan).astype(np.float32)
+    # why pixels end without depth: counted per stage over the pixels that still had one before it
+    dropped = {"no_surface": int((~np.isfinite(depth) & (valid if valid is not None else True)).sum())}
     near, far = trainer.depth_range
-    depth[(depth < near) | (depth > far)] = np.nan
+    out_of_range = (depth < near) | (depth > far)
+    dropped["out_of_range"] = int(out_of_range.sum())
+    depth[out_of_range] = np.nan
     if ex.edge_filter > 0:
+        had = np.isfinite(depth)
         depth = flying_pixel_filter(depth, cam, ex.edge_filter)
+        dropped["flying_pixel"] = int((had & ~np.isfinite(depth)).sum())
     field_.train()
     t2 = time.perf_counter()
     # confidence (slwarp.neural.confidence): the map beside the depth, and the filter of the pixels below min_confidence
     confidence = depth_confidence(trainer, depth, ex.confidence)
     if ex.min_confidence > 0:
         drop = ~(confidence >= ex.min_confidence)
+        dropped["low_confidence"] = int((drop & np.isfinite(depth)).sum())
         depth[drop] = np.nan
         confidence[drop] = np.nan
     t3 = time.perf_counter()
@@ -105,7 +113,7 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
                              trainer.scan.patterns[: trainer.n_frames], ex.refine_range, device=trainer.device)
     return depth, confidence, mesh, {"marching_cubes_s": t1 - t0, "depth_s": t2 - t1,
                                      "confidence_s": t3 - t2 - repair_s, "repair_s": repair_s, "repair": repair,
-                                     "refine_s": time.perf_counter() - t3}
+                                     "refine_s": time.perf_counter() - t3, "dropped": dropped}
 
 
 def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, depth_range=None,
