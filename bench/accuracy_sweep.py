@@ -35,7 +35,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 CLASSICAL = (("GC(7) interp", "bit=0-6"), ("GC(6) interp", "bit=0-5"))
 KEYS = ("mae", "median", "over_5mm", "completeness", "mae_within_5mm", "outlier_mae")
-LOST = ("unlit", "no_surface", "out_of_range", "flying_pixel", "low_confidence")  # the `lost` keys of a neural run
+LOST = ("unlit", "no_surface", "out_of_range", "flying_pixel", "low_confidence", "search_doubt")  # the `lost` keys of a neural run
 
 _DEVICE = None  # this worker process's device, set by _init_worker
 _KEEP = None  # the folder for error maps (--keep), set by _init_worker

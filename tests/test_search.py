@@ -1,11 +1,12 @@
 """The depth search (slwarp.neural.search): the search along each ray, its `centres` option, and the search repair
-at extraction (repair_by_search: holes filled, contradicted depths replaced, isolated changes refused)."""
+at extraction (repair_by_search: holes filled, contradicted depths replaced, isolated changes refused) and its
+doubt rule alone (doubt_by_search: contradicted depths the codes do not support dropped)."""
 import numpy as np
 import pytest
 import torch
 
 from slwarp.neural.pattern_model import blur_patterns, lit_with_contrast, offset_and_modulation
-from slwarp.neural.search import _neighbours_within, repair_by_search, search_depth
+from slwarp.neural.search import _neighbours_within, doubt_by_search, repair_by_search, search_depth
 from slwarp.sim.simulate import SimOptions, simulate_scene
 
 BLUR = 1.0  # projector px: the simulated defocus, and the blur the patterns are rendered with
@@ -88,6 +89,29 @@ def test_repair_changes_nothing_on_a_right_depth_map(scene):
     assert np.mean(out[valid][kept] != gt[valid][kept]) <= 0.001
     # the doubt rule drops a few right pixels that a confident wrong search contradicts (mostly at depth edges)
     assert (~kept).sum() == info["dropped"] <= 0.005 * valid.sum()
+
+
+def test_doubt_drops_wrong_depths_and_keeps_right_ones(scene):
+    scan, patterns, valid = scene
+    gt = np.where(valid, scan.gt_depth, np.nan).astype(np.float32)
+    depth = gt.copy()
+    ys, xs = np.nonzero(valid)
+    wrong = np.zeros_like(valid)
+    # a 20 x 20 block of lit pixels given a surface 40 mm behind: another code (the field's kind of mistake)
+    y, x = next((y, x) for y, x in zip(ys[::97], xs[::97]) if valid[y : y + 20, x : x + 20].all())
+    wrong[y : y + 20, x : x + 20] = True
+    depth[wrong] += 40.0
+    out, info = doubt_by_search(depth, scan.camera, scan.projector, scan.images, patterns, scan.depth_range, valid,
+                                step_mm=1.0, device="cpu")
+    # about half the block: the others' codes 40 mm off still fit with confidence >= 0.7 (6 patterns, no noise)
+    assert np.isnan(out[wrong]).mean() > 0.4
+    kept = wrong & np.isfinite(out)
+    np.testing.assert_array_equal(out[kept], depth[kept])  # dropped or left, never replaced
+    assert np.isfinite(out).sum() <= np.isfinite(depth).sum()  # nothing is filled
+    rest = valid & ~wrong
+    np.testing.assert_array_equal(out[rest][np.isfinite(out[rest])], depth[rest][np.isfinite(out[rest])])
+    assert np.isnan(out[rest]).mean() <= 0.005  # few right pixels lost (a confident wrong search at depth edges)
+    assert info["dropped"] == int(np.isnan(out[valid]).sum())
 
 
 def test_neighbours_within_counts_the_agreeing_neighbours():

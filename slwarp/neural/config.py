@@ -207,6 +207,9 @@ class ExtractionConfig:
     search_repair: bool = option(False, "a per-pixel depth search (3x3 and 5x5 windows) fills the lit pixels left "
                                  "without depth and replaces depths it clearly contradicts (thin parts the field "
                                  "missed), judged by the photometric confidence", resumable=True)
+    search_doubt: bool = option(False, "drop depths that a per-pixel depth search (3x3 window) contradicts by more "
+                                "than 6 mm and whose photometric confidence is below 0.7 (the background's depth on "
+                                "a thin part); fills and replaces nothing (search_repair includes it)", resumable=True)
     refine_range: float = option(0.0, "photometric refinement after the filters: each pixel's depth moves by the offset "
                                  "within +- this many mm that best explains its 7x7 window's images (offset and "
                                  "modulation by least squares, blur per projector depth; 0: off)", min=0.0,

@@ -28,7 +28,7 @@ from ..evaluation.outputs import (check_output_folder, staged_outputs, write_con
 from .extract import depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, sphere_trace_depth
 from .confidence import depth_confidence
 from .pattern_model import refine_depth
-from .search import repair_by_search
+from .search import doubt_by_search, repair_by_search
 from .config import TrainConfig, save_config
 from .train import Trainer
 
@@ -106,6 +106,16 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
             confidence = np.where(changed, new, confidence).astype(np.float32)
         confidence[~np.isfinite(depth)] = np.nan
         repair["kept"] = int(changed.sum())
+        repair_s = time.perf_counter() - t3
+        t3 = time.perf_counter()
+    elif ex.search_doubt and valid is not None:
+        # only the repair's doubt rule: drop what a search contradicts and the codes do not support
+        depth, repair = doubt_by_search(depth, cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames],
+                                        trainer.renderer.rendered_patterns.detach().cpu().numpy(),
+                                        trainer.depth_range, valid, step_mm=trainer.cfg.init.search_step_mm,
+                                        device=trainer.device)
+        confidence[~np.isfinite(depth)] = np.nan
+        dropped["search_doubt"] = repair["dropped"]
         repair_s = time.perf_counter() - t3
         t3 = time.perf_counter()
     if ex.refine_range > 0:

@@ -135,10 +135,9 @@ def repair_by_search(depth: np.ndarray, camera, projector, images, patterns, dep
     valid = np.asarray(valid, bool)
     out = depth.copy()
     common = dict(step_mm=step_mm, stride=1, device=device)
-    s1, _ = search_depth(camera, projector, images, patterns, depth_range, valid=valid, radius=1, **common)
+    s1, contested = _contested(depth, camera, projector, images, patterns, depth_range, valid, **common)
     has = np.isfinite(depth)
     holes = valid & ~has & np.isfinite(s1)
-    contested = valid & has & np.isfinite(s1) & (np.abs(s1 - depth) > DISAGREE_MM)
     info = {"holes": int((valid & ~has).sum()), "filled": 0, "contested": int(contested.sum()), "switched": 0}
     if not (holes.any() or contested.any()):
         return out, info
@@ -162,6 +161,37 @@ def repair_by_search(depth: np.ndarray, camera, projector, images, patterns, dep
         switch &= ~drop
     info.update(filled=int(fill.sum()), switched=int(switch.sum()), dropped=int(doubt.sum()))
     return out, info
+
+
+def _contested(depth, camera, projector, images, patterns, depth_range, valid, **common):
+    """(s1 [H, W], contested [H, W] bool): the 3x3-window search's depth and the pixels in `valid` whose depth
+    it contradicts by more than DISAGREE_MM."""
+    s1, _ = search_depth(camera, projector, images, patterns, depth_range, valid=valid, radius=1, **common)
+    with np.errstate(invalid="ignore"):
+        contested = valid & np.isfinite(depth) & np.isfinite(s1) & (np.abs(s1 - depth) > DISAGREE_MM)
+    return s1, contested
+
+
+def doubt_by_search(depth: np.ndarray, camera, projector, images, patterns, depth_range, valid: np.ndarray, *,
+                    step_mm: float = 1.0, doubt_confidence: float = DOUBT_CONFIDENCE,
+                    device=None) -> tuple[np.ndarray, dict]:
+    """(depth [H, W] with its doubtful pixels NaN, info): the search repair's doubt rule alone.
+
+    A pixel whose depth a 3x3-window depth search contradicts by more than DISAGREE_MM and whose photometric
+    confidence is below `doubt_confidence` is dropped; nothing is filled or replaced. Why without the rest: a
+    search's fills and switches are single-pixel chance matches of 6 codes that neighbouring windows repeat
+    (on the full-resolution GPU sweep they put 0.2-0.5% of the pixels of every smooth scene off by > 5 mm),
+    while the doubt rule only removes depth: on thin parts, the background's depth the field left there.
+    info: counts of contested and dropped pixels."""
+    depth = np.asarray(depth, np.float32)
+    valid = np.asarray(valid, bool)
+    _, contested = _contested(depth, camera, projector, images, patterns, depth_range, valid, step_mm=step_mm,
+                              stride=1, device=device)
+    conf_d = photometric_confidence(np.where(contested, depth, np.nan), camera, projector, images, patterns)
+    doubt = contested & (conf_d < doubt_confidence)
+    out = depth.copy()
+    out[doubt] = np.nan
+    return out, {"contested": int(contested.sum()), "dropped": int(doubt.sum())}
 
 
 def _neighbours_within(depth: np.ndarray, tol_mm: float) -> np.ndarray:
