@@ -15,6 +15,10 @@ finished run is kept in --state (one JSON per run), so an interrupted sweep cont
     python bench/accuracy_sweep.py --presets accurate,tuned               # GPU: every rig and scene
     python bench/accuracy_sweep.py --small --presets tiny --scenes bunny,steps --rigs default,rolled \\
         --workers 2 --out /tmp/sweep                                      # CPU smoke run
+    python bench/accuracy_sweep.py --presets tuned --also-extract refine_range=0,search_doubt=true
+                                          # extraction variants on the same trained fields (one training each)
+    python bench/accuracy_sweep.py --report --device-name "NVIDIA H200" --presets tuned --state merged/ \\
+        --stem accuracy-cuda-merged                                       # tables from runs made elsewhere
 
 Writes <out>/accuracy-<cpu|cuda>.json and .md (the tables) and prints the markdown.
 """
@@ -214,7 +218,9 @@ def markdown(doc: dict) -> str:
     methods = [lab for lab, _ in CLASSICAL] + labels
     t = doc["table"]
     md = [f"# Accuracy sweep: presets against Gray code on every rig ({doc['device_name']}, {doc['date']})", "",
-          f"`{doc['command']}`; {doc['workers']} runs at a time on {max(doc['gpus'], 1)} device(s); {doc['wall_s'] / 60:.1f} min. Scans: `random6+gray7` (rows on the vertical rig), "
+          (f"`{doc['command']}`: the tables of the finished runs in its --state. " if doc.get("report") else
+           f"`{doc['command']}`; {doc['workers']} runs at a time on {max(doc['gpus'], 1)} device(s); {doc['wall_s'] / 60:.1f} min. ")
+          + (f"{doc['note']} " if doc.get("note") else "") + "Scans: `random6+gray7` (rows on the vertical rig), "
           f"SimOptions(seed={doc['seed']}); ours trains on the 6 random patterns; GC(k) interp decodes k Gray code "
           "images without inverses. Metrics over the GT mask, means over the scenes "
           f"({', '.join(scenes)}).", ""]
@@ -288,6 +294,11 @@ def main(argv=None) -> int:
                     help="extraction variants, comma-separated, each key=value:key=value, applied to each neural run's "
                     "trained field after its own extraction and reported as PRESET+VARIANT (e.g. 'search_repair=true': "
                     "the repair's effect on the very same fields, at the cost of one extraction)")
+    ap.add_argument("--report", action="store_true", help="run nothing: write the tables from the finished runs in "
+                    "--state (e.g. states merged from several machines)")
+    ap.add_argument("--device-name", default=None, help="with --report: the device the runs ran on (for the header)")
+    ap.add_argument("--note", default=None, help="a sentence for the tables' header (e.g. how the runs were made)")
+    ap.add_argument("--stem", default=None, help="output file name without suffix (default accuracy-<cpu|cuda>)")
     args = ap.parse_args(argv)
 
     import multiprocessing as mp
@@ -298,8 +309,8 @@ def main(argv=None) -> int:
     from slwarp.sim.rigs import GEOMETRIES, rig_name
     from slwarp.sim.scenes import SCENE_NAMES
 
-    cuda = torch.cuda.is_available()
-    n_gpu = torch.cuda.device_count() if cuda else 0
+    cuda = torch.cuda.is_available() or (args.report and bool(args.device_name) and args.device_name != "CPU")
+    n_gpu = torch.cuda.device_count() if torch.cuda.is_available() else 0
     devices = [f"cuda:{i}" for i in range(n_gpu) for _ in range(args.workers_per_gpu)] if cuda else \
         ["cpu"] * (args.workers or 1)
     labels = args.presets.split(",") if args.presets else [default_preset_name("cuda" if cuda else "cpu")]
@@ -329,7 +340,9 @@ def main(argv=None) -> int:
                 results.append(prev)
                 continue
         todo.append(j)
-    name = torch.cuda.get_device_name(0) if cuda else "CPU"
+    name = args.device_name or (torch.cuda.get_device_name(0) if n_gpu else "CPU")
+    if args.report:
+        todo = []
     print(f"{len(jobs)} runs ({len(jobs) - len(todo)} already done in {state}); {len(devices)} workers on "
           f"{n_gpu or 'no'} GPU ({name})", flush=True)
     t0 = time.perf_counter()
@@ -365,9 +378,10 @@ def main(argv=None) -> int:
     doc = {"date": datetime.date.today().isoformat(), "device": "cuda" if cuda else "cpu", "device_name": name,
            "gpus": n_gpu, "workers": len(devices), "command": command, "seed": args.seed, "rigs": rigs,
            "scenes": scenes, "labels": all_labels, "overrides": overrides, "wall_s": time.perf_counter() - t0,
-           "table": summarise(results, rigs, scenes, all_labels), "errors": errors}
+           "table": summarise(results, rigs, scenes, all_labels), "errors": errors, "report": args.report,
+           "note": args.note}
     out.mkdir(parents=True, exist_ok=True)
-    stem = f"accuracy-{doc['device']}"
+    stem = args.stem or f"accuracy-{doc['device']}"
     (out / f"{stem}.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
     text = markdown(doc)
     (out / f"{stem}.md").write_text(text)

@@ -123,3 +123,26 @@ def test_neighbours_within_counts_the_agreeing_neighbours():
     assert n[0, 0] == 2  # (0, 1), (1, 0) agree; (1, 1) does not
     assert n[2, 2] == 6  # 8 neighbours less (1, 1) and the NaN (3, 3)
     assert n[3, 3] == 0
+
+
+def test_extract_depth_applies_the_doubt_rule_only_by_dropping():
+    """extract_depth with search_doubt: the same field's depth map, minus the pixels the rule drops (counted in
+    timings["dropped"]["search_doubt"]), nothing added or moved (tiny has no refinement)."""
+    from slwarp.neural.config import preset
+    from slwarp.neural.reconstruct import extract_depth
+    from slwarp.neural.train import Trainer
+
+    scan = simulate_scene("rods", "random6", rig="small", options=SimOptions(seed=0), device="cpu")
+    cfg = preset("tiny", device="cpu", iters=60, init_iters=30)
+    trainer = Trainer(scan, cfg, progress=False)
+    trainer.train()
+    valid = trainer.renderer.valid_map.cpu().numpy()
+    plain, _, _, t_plain = extract_depth(trainer, valid)
+    trainer.cfg = cfg.with_options(search_doubt=True)
+    doubted, conf, _, t_doubt = extract_depth(trainer, valid)
+    assert "search_doubt" not in t_plain["dropped"]
+    kept = np.isfinite(doubted)
+    assert not (kept & ~np.isfinite(plain)).any()
+    np.testing.assert_array_equal(doubted[kept], plain[kept])
+    assert t_doubt["dropped"]["search_doubt"] == int((np.isfinite(plain) & ~kept).sum())
+    assert np.isnan(conf[~kept]).all()

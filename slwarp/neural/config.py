@@ -471,14 +471,15 @@ _preset("paper", "the paper's recipe, unchanged: 4000 iterations, 2048 rays, 32+
 # measured better on the virtual scanner (default-rig bunny: MAE 0.77 mm against 2.0 mm for "paper"): NeuS's
 # learning rate 5e-4 with cosine decay, and no surface-colour loss (it samples the sharp pattern at one point and
 # disagrees with the blurred edges the camera sees)
-# its extraction adds the photometric refinement (+-3 mm): on the default and vertical rigs (8 scenes, H200) its mean
-# MAE is 0.295 / 0.306 mm against 0.539 / 0.367 for accurate, and the MAE of its pixels within 5 mm 0.114 mm, half of
-# GC(7)'s. The search repair (--search-repair) stays off on the GPU presets: it took the rods from 1.35 to 0.83 mm
-# there, but that run had isolated wrong changes all over the image (before the neighbour rule) and the repair with
-# the rule has not been measured on a GPU yet
-_preset("tuned", "paper with lr 5e-4, cosine decay, no surface-colour loss and photometric depth refinement (+-3 mm): "
-        "the most accurate measured on the default and vertical rigs (GPU default)",
-        matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0, refine_range=3.0)
+# its extraction adds the photometric refinement (+-3 mm) and the search doubt rule. On the default rig (8 scenes,
+# H200, bench/results/accuracy-cuda-doubt-default.md) the mean MAE is 0.186 mm against 0.298 with refinement alone,
+# 0.386 with neither and 0.310 for GC(7); the doubt rule lowered the MAE on each of the 12 scenes measured on the
+# default and vertical rigs (rods 1.352 -> 0.600 and 1.414 -> 0.764) for 0.1 to 0.5 points of completeness. The
+# search repair (fills and switches) stays off: on the oblique and rolled rigs it added 0.2 to 0.6 mm on every
+# smooth scene (bench/results/accuracy-cuda-oblique-rolled.md)
+_preset("tuned", "paper with lr 5e-4, cosine decay, no surface-colour loss, photometric depth refinement (+-3 mm) "
+        "and the search doubt rule: the most accurate measured on the virtual scanner (GPU default)",
+        matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0, refine_range=3.0, search_doubt=True)
 # CPU: the tuned recipe with a smaller field and batch, minutes on two cores (small rig)
 _preset("cpu", "tuned with a 4x64 field, 384 rays, 1500 iterations: minutes on two CPU cores (small rig)",
         iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, lr=5e-4, lr_decay="cosine",
@@ -504,16 +505,17 @@ _preset("accurate", "hash-grid field, the paper's 4000 iterations and batch, lev
         refine_range=3.0, **_HASHGRID)
 # CPU: the cpu preset's step on a small hash grid (8 levels of 2^15 entries; finer tables are cache-bound on
 # one thread): small rig, bunny/vase/boxes mean MAE 0.575 mm against 0.749 for cpu at about its time per step
-_preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries) and photometric depth refinement "
-        "(+-3 mm) and the search repair: better MAE at about cpu's time (small rig)", refine_range=3.0, search_repair=True, iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, search_step_mm=2.0,
+# its extraction: the refinement and the search doubt rule, as tuned (the full search repair measured worse on the
+# CPU demo: 0.268 mm against 0.260 without it)
+_preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries), photometric depth refinement "
+        "(+-3 mm) and the search doubt rule: better MAE at about cpu's time (small rig)", refine_range=3.0,
+        search_doubt=True, iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, search_step_mm=2.0,
         mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15, **_HASHGRID)
 
 # the preset a run gets when it names none, per device type. CPU: cpu-hashgrid, measured on the small rig with the
 # trainer (bunny MAE 0.479 mm against 0.606 for cpu; mean of bunny, vase, boxes 0.575 against 0.749 mm at 0.95x cpu's
-# time per step), with the search repair (bench/results/repair-cpu.md). GPU: tuned, with refinement: on the 8 scenes
-# of the default and vertical rigs (H200) its mean MAE is 0.295 / 0.306 mm against 0.539 / 0.367 for accurate
-# (bench/results/accuracy-cuda-refine.md). On the oblique rig, tuned with refinement and the first search repair
-# measured worse than accurate (README, GPU results): run tuned there without the repair before trusting it.
+# time per step). GPU: tuned (see its comment). Real capture: the refinement made the chessboard plate 2.4x less
+# flat (bench/results/chessboard-cuda.md); `--refine-range 0` there until the pattern model has a camera response.
 DEFAULT_PRESET = {"cuda": "tuned", "cpu": "cpu-hashgrid"}
 
 

@@ -1,0 +1,64 @@
+"""bench/accuracy_sweep.py without running anything: --report writes the tables (means, targets, where the missing
+pixels went) from the finished runs in --state, --also-extract variants included; runs that do not match the
+command's jobs are not taken."""
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+import accuracy_sweep  # noqa: E402
+
+SCENES = ("bunny", "rods")
+
+
+def _metrics(mae, complete, **extra):
+    return {"mae": mae, "median": mae / 2, "over_5mm": 0.001, "completeness": complete, "mae_within_5mm": mae / 2,
+            "outlier_mae": mae / 2, **extra}
+
+
+def _state(folder: Path, stale: bool = False):
+    folder.mkdir()
+    for i, scene in enumerate(SCENES):
+        job = {"kind": "neural", "label": "tiny", "preset": "tiny", "overrides": {}, "rig": "default", "scene": scene,
+               "seed": 0, "also_extract": ["search_doubt=true"]}
+        if stale:
+            job["also_extract"] = []  # another command's run: not this sweep's job
+        lost = {"unlit": 0.03, "flying_pixel": 0.01, "low_confidence": 0.02}
+        methods = {"tiny": _metrics(0.4 + i, 0.95, lost=lost, train_s=10.0, total_s=12.0),
+                   "tiny+search_doubt=true": _metrics(0.2 + i, 0.94, lost={**lost, "search_doubt": 0.01})}
+        (folder / f"{accuracy_sweep.job_key(job)}.json").write_text(json.dumps({"job": job, "methods": methods}))
+        cjob = {"kind": "classical", "rig": "default", "scene": scene, "seed": 0}
+        (folder / f"{accuracy_sweep.job_key(cjob)}.json").write_text(json.dumps(
+            {"job": cjob, "methods": {"GC(7) interp": _metrics(1.0, 0.97), "GC(6) interp": _metrics(2.0, 0.96)}}))
+
+
+def _report(tmp_path, state):
+    return accuracy_sweep.main(["--report", "--device-name", "Test GPU", "--presets", "tiny", "--also-extract",
+                                "search_doubt=true", "--rigs", "default", "--scenes", ",".join(SCENES), "--state",
+                                str(state), "--out", str(tmp_path / "out"), "--stem", "sweep"])
+
+
+def test_report_writes_the_tables_of_finished_runs(tmp_path):
+    _state(tmp_path / "state")
+    assert _report(tmp_path, tmp_path / "state") == 0
+    doc = json.loads((tmp_path / "out" / "sweep.json").read_text())
+    means = {lab: d["mean"]["mae"] for lab, d in doc["table"]["default"].items()}
+    assert means["tiny"] == pytest.approx(0.9) and means["tiny+search_doubt=true"] == pytest.approx(0.7)
+    assert doc["table"]["default"]["tiny+search_doubt=true"]["targets"]["mae_over_gc7"] == pytest.approx(0.7)
+    md = (tmp_path / "out" / "sweep.md").read_text()
+    assert "Test GPU" in md and "the tables of the finished runs" in md
+    lost = md[md.index("Where the missing pixels went"):]
+    cells = next([c.strip() for c in line.strip("|").split("|")] for line in lost.splitlines()
+                 if line.startswith("| tiny+search_doubt=true "))
+    # unlit, no surface, out of range, flying pixel, low confidence, search doubt: % of the mask
+    assert cells[1:] == ["3.00", "0.00", "0.00", "1.00", "2.00", "1.00"]
+
+
+def test_report_ignores_runs_of_other_jobs(tmp_path):
+    _state(tmp_path / "state", stale=True)
+    assert _report(tmp_path, tmp_path / "state") == 0
+    doc = json.loads((tmp_path / "out" / "sweep.json").read_text())
+    assert "tiny" not in doc["table"]["default"]
+    assert "mean" in doc["table"]["default"]["GC(7) interp"]
