@@ -113,11 +113,9 @@ def run_job(job: dict) -> dict:
                 out["methods"][label] = m
                 keep_error_map(job, label, depth, scan)
         else:
-            from slwarp.neural.config import preset
-            from slwarp.neural.reconstruct import reconstruct
-
             from slwarp.evaluation.metrics import depth_metrics
-            from slwarp.neural.reconstruct import extract_depth
+            from slwarp.neural.config import preset
+            from slwarp.neural.reconstruct import extract_depth, reconstruct
 
             cfg = preset(job["preset"], device=_DEVICE, **job["overrides"])
             rec = reconstruct(scan.select("rand*"), cfg, progress=False)

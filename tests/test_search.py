@@ -144,5 +144,6 @@ def test_extract_depth_applies_the_doubt_rule_only_by_dropping():
     kept = np.isfinite(doubted)
     assert not (kept & ~np.isfinite(plain)).any()
     np.testing.assert_array_equal(doubted[kept], plain[kept])
-    assert t_doubt["dropped"]["search_doubt"] == int((np.isfinite(plain) & ~kept).sum())
+    # a 60-iteration field leaves wrong depths on the rods for the rule to drop
+    assert t_doubt["dropped"]["search_doubt"] == int((np.isfinite(plain) & ~kept).sum()) > 0
     assert np.isnan(conf[~kept]).all()

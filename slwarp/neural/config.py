@@ -515,7 +515,7 @@ _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries), 
 # the preset a run gets when it names none, per device type. CPU: cpu-hashgrid, measured on the small rig with the
 # trainer (bunny MAE 0.479 mm against 0.606 for cpu; mean of bunny, vase, boxes 0.575 against 0.749 mm at 0.95x cpu's
 # time per step). GPU: tuned (see its comment). Real capture: the refinement made the chessboard plate 2.4x less
-# flat (bench/results/chessboard-cuda.md); `--refine-range 0` there until the pattern model has a camera response.
+# flat (bench/results/chessboard-cuda.md): `--refine-range 0` there (why: notes/accuracy.md, section 7).
 DEFAULT_PRESET = {"cuda": "tuned", "cpu": "cpu-hashgrid"}
 
 

@@ -53,10 +53,11 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     says: marching cubes, then the mesh ray-cast (or sphere tracing when depth_method is 'sphere'), the depth
     range, the flying-pixel filter, the confidence map (`extraction.confidence`) and the pixels below
     `extraction.min_confidence` dropped, the search repair when `search_repair` is on (holes filled, contradicted
-    depths replaced: slwarp.neural.search.repair_by_search), then the photometric refinement of the depth when
-    refine_range > 0 (the confidence is that of the depth before refinement); depth is kept only inside `valid`.
-    Both maps are NaN where no depth. timings["dropped"] counts the pixels each stage left without depth
-    (no_surface inside `valid`, out_of_range, flying_pixel, low_confidence)."""
+    depths replaced: slwarp.neural.search.repair_by_search) or else its doubt rule alone when `search_doubt` is on
+    (slwarp.neural.search.doubt_by_search), then the photometric refinement of the depth when refine_range > 0
+    (the confidence is that of the depth before refinement); depth is kept only inside `valid`. Both maps are NaN
+    where no depth. timings["dropped"] counts the pixels each stage left without depth (no_surface inside `valid`,
+    out_of_range, flying_pixel, low_confidence, search_doubt)."""
     ex = trainer.cfg.extraction
     t0 = time.perf_counter()
     cam = trainer.scan.camera
