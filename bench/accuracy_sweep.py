@@ -80,6 +80,14 @@ def error_split(depth: np.ndarray, scan) -> dict:
             "outlier_mae": float(err[~small].sum() / err.size)}
 
 
+def lost_pixels(mask: np.ndarray, valid: np.ndarray, timings: dict) -> dict:
+    """Where a run's missing pixels went, as shares of the GT mask: unlit (outside the decoders' valid map) and
+    each extraction stage's drops (`extract_depth` timings["dropped"])."""
+    n_mask = max(int(mask.sum()), 1)
+    return {"unlit": float((mask & ~valid).sum() / n_mask),
+            **{k: v / n_mask for k, v in timings.get("dropped", {}).items()}}
+
+
 def keep_error_map(job: dict, label: str, depth: np.ndarray, scan) -> None:
     """Save the absolute error map of one run as <--keep>/<job key>__<method>.png (0-5 mm colour scale)."""
     keep = _KEEP
@@ -128,10 +136,7 @@ def run_job(job: dict) -> dict:
             # where the missing pixels went: share of the GT mask unlit (outside the decoders' valid map) and
             # dropped by each extraction stage
             valid = rec.trainer.renderer.valid_map.cpu().numpy()
-            n_mask = max(int(scan.mask.sum()), 1)
-            lost_unlit = float((scan.mask & ~valid).sum() / n_mask)
-            m["lost"] = {"unlit": lost_unlit,
-                         **{k: v / n_mask for k, v in rec.timings.get("dropped", {}).items()}}
+            m["lost"] = lost_pixels(scan.mask, valid, rec.timings)
             out["methods"][job["label"]] = m
             # the same trained field extracted again with other extraction options (--also-extract)
             trainer = rec.trainer
@@ -142,7 +147,7 @@ def run_job(job: dict) -> dict:
                 label = f"{job['label']}+{variant}"
                 m = {**depth_metrics(depth, scan.gt_depth, scan.mask), **error_split(depth, scan),
                      "train_s": rec.timings.get("train_s"), "extract_s": time.perf_counter() - t1,
-                     "lost": {"unlit": lost_unlit, **{k: v / n_mask for k, v in ext_t.get("dropped", {}).items()}}}
+                     "lost": lost_pixels(scan.mask, valid, ext_t)}
                 keep_error_map(job, label, depth, scan)
                 out["methods"][label] = m
         out["wall_s"] = time.perf_counter() - t0
@@ -307,8 +312,8 @@ def main(argv=None) -> int:
     from slwarp.sim.rigs import GEOMETRIES, rig_name
     from slwarp.sim.scenes import SCENE_NAMES
 
-    cuda = torch.cuda.is_available() or (args.report and bool(args.device_name) and args.device_name != "CPU")
-    n_gpu = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    cuda = torch.cuda.is_available()
+    n_gpu = torch.cuda.device_count() if cuda else 0
     devices = [f"cuda:{i}" for i in range(n_gpu) for _ in range(args.workers_per_gpu)] if cuda else \
         ["cpu"] * (args.workers or 1)
     labels = args.presets.split(",") if args.presets else [default_preset_name("cuda" if cuda else "cpu")]
@@ -341,6 +346,7 @@ def main(argv=None) -> int:
     name = args.device_name or (torch.cuda.get_device_name(0) if n_gpu else "CPU")
     if args.report:
         todo = []
+        cuda = any(str(r.get("device", "")).startswith("cuda") for r in results)  # where the runs ran
     print(f"{len(jobs)} runs ({len(jobs) - len(todo)} already done in {state}); {len(devices)} workers on "
           f"{n_gpu or 'no'} GPU ({name})", flush=True)
     t0 = time.perf_counter()

@@ -91,32 +91,27 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
         confidence[drop] = np.nan
     t3 = time.perf_counter()
     repair_s, repair = 0.0, None
-    if ex.search_repair and valid is not None:
-        # where a per-pixel depth search contradicts the field or fills its holes (thin parts it missed):
-        # slwarp.neural.search.repair_by_search
-        before = depth
-        depth, repair = repair_by_search(depth, cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames],
-                                         trainer.renderer.rendered_patterns.detach().cpu().numpy(),
-                                         trainer.depth_range, valid, ex.min_confidence,
-                                         step_mm=trainer.cfg.init.search_step_mm, device=trainer.device)
-        # no flying-pixel filter on the changed pixels: a search has no smoothness to bend it across a depth edge,
-        # and a thin part is all edge
-        changed = np.isfinite(depth) & ~(depth == before)
-        if changed.any():
-            new = depth_confidence(trainer, np.where(changed, depth, np.nan).astype(np.float32), ex.confidence)
-            confidence = np.where(changed, new, confidence).astype(np.float32)
+    if (ex.search_repair or ex.search_doubt) and valid is not None:
+        search_inputs = (cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames],
+                         trainer.renderer.rendered_patterns.detach().cpu().numpy(), trainer.depth_range, valid)
+        search_options = dict(step_mm=trainer.cfg.init.search_step_mm, device=trainer.device)
+        if ex.search_repair:
+            # where a per-pixel depth search contradicts the field or fills its holes (thin parts it missed):
+            # slwarp.neural.search.repair_by_search
+            before = depth
+            depth, repair = repair_by_search(depth, *search_inputs, ex.min_confidence, **search_options)
+            # no flying-pixel filter on the changed pixels: a search has no smoothness to bend it across a depth
+            # edge, and a thin part is all edge
+            changed = np.isfinite(depth) & ~(depth == before)
+            if changed.any():
+                new = depth_confidence(trainer, np.where(changed, depth, np.nan).astype(np.float32), ex.confidence)
+                confidence = np.where(changed, new, confidence).astype(np.float32)
+            repair["kept"] = int(changed.sum())
+        else:
+            # only the repair's doubt rule: drop what a search contradicts and the codes do not support
+            depth, repair = doubt_by_search(depth, *search_inputs, **search_options)
         confidence[~np.isfinite(depth)] = np.nan
-        repair["kept"] = int(changed.sum())
-        repair_s = time.perf_counter() - t3
-        t3 = time.perf_counter()
-    elif ex.search_doubt and valid is not None:
-        # only the repair's doubt rule: drop what a search contradicts and the codes do not support
-        depth, repair = doubt_by_search(depth, cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames],
-                                        trainer.renderer.rendered_patterns.detach().cpu().numpy(),
-                                        trainer.depth_range, valid, step_mm=trainer.cfg.init.search_step_mm,
-                                        device=trainer.device)
-        confidence[~np.isfinite(depth)] = np.nan
-        dropped["search_doubt"] = repair["dropped"]
+        dropped["search_doubt"] = repair.get("dropped", 0)
         repair_s = time.perf_counter() - t3
         t3 = time.perf_counter()
     if ex.refine_range > 0:
