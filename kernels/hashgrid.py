@@ -20,6 +20,9 @@ Kernels (launched with dim (L, P): one thread per level and point, consecutive t
 points of one level; levels l >= active[0] are switched off: zero features, zero gradients):
     encode             feat [P, L F]:  feat[p, l F + f] = sum_c w_c T[e_c, f]
     encode_backward    dT [E, F] +=    w_c g[p, l F + f]                                    (atomic)
+                       launched with dim (L, ceil(P / run)): a thread takes `run` consecutive points and
+                       sums their terms in registers while they stay in one cell (one atomic per corner
+                       and cell instead of one per point)
     gradient           out [P, 3] +=   sum_c (sum_f g[p, l F + f] T[e_c, f]) grad w_c      (atomic over l)
                        = sum_j g_j d feat_j / dx: the feature Jacobian contracted with a cotangent g,
                        never materialising [P, L F, 3]
@@ -81,6 +84,7 @@ def corner_factors(bit: int, t: float):
 def hashgrid_kernels(F: int):
     """(encode, encode_backward, gradient, gradient_backward) for F features per entry (see module doc)."""
     vecF = wp.types.vector(length=F, dtype=wp.float32)
+    matF = wp.types.matrix(shape=(8, F), dtype=wp.float32)  # one row per cell corner
 
     @wp.func
     def load_cotangent(g: wp.array2d(dtype=float), p: int, l: int) -> vecF:
@@ -120,35 +124,61 @@ def hashgrid_kernels(F: int):
         for f in range(F):
             feat[p, l * F + f] = acc[f]
 
+    @wp.func
+    def scatter_cell(d_table: wp.array(dtype=vecF), acc: matF, ix: int, iy: int, iz: int, res: int, offset: int,
+                     size: int, hashed: int):
+        """Add the 8 corner rows of `acc` to the table rows of cell (ix, iy, iz)'s corners (atomic)."""
+        for c in range(8):
+            e = vertex_entry(ix + (c & 1), iy + ((c >> 1) & 1), iz + ((c >> 2) & 1), res, offset, size, hashed)
+            wp.atomic_add(d_table, e, acc[c])
+
     @wp.kernel(enable_backward=False, module="unique")
     def encode_backward(
         x: wp.array(dtype=wp.vec3),
         meta: wp.array2d(dtype=int),
         active: wp.array(dtype=int),
         g_feat: wp.array2d(dtype=float),
+        run: int,
         d_table: wp.array(dtype=vecF),
     ):
-        l, p = wp.tid()
+        # one thread per level and run of `run` consecutive points: while the points stay in one cell (samples
+        # along a ray at the coarse levels) their weighted cotangents add up in registers and reach the table
+        # in one atomic per corner when the cell changes. Same-address atomics serialise, and at the coarse
+        # levels whole warps hit the same 8 rows: this is what bounded the backward (see the module doc)
+        l, q = wp.tid()
         if l >= active[0]:
             return
-        gv = load_cotangent(g_feat, p, l)
         res = meta[l, 0]
         offset = meta[l, 1]
         size = meta[l, 2]
         hashed = meta[l, 3]
-        xp = x[p]
-        ix, tx, mx = axis_coord(xp[0], res)
-        iy, ty, my = axis_coord(xp[1], res)
-        iz, tz, mz = axis_coord(xp[2], res)
-        for c in range(8):
-            bx = c & 1
-            by = (c >> 1) & 1
-            bz = (c >> 2) & 1
-            wx, sx = corner_factors(bx, tx)
-            wy, sy = corner_factors(by, ty)
-            wz, sz = corner_factors(bz, tz)
-            e = vertex_entry(ix + bx, iy + by, iz + bz, res, offset, size, hashed)
-            wp.atomic_add(d_table, e, (wx * wy * wz) * gv)
+        n = x.shape[0]
+        acc = matF()
+        cx = int(-1)
+        cy = int(-1)
+        cz = int(-1)
+        for k in range(run):
+            p = q * run + k
+            if p < n:
+                gv = load_cotangent(g_feat, p, l)
+                xp = x[p]
+                ix, tx, mx = axis_coord(xp[0], res)
+                iy, ty, my = axis_coord(xp[1], res)
+                iz, tz, mz = axis_coord(xp[2], res)
+                if ix != cx or iy != cy or iz != cz:
+                    if cx >= 0:
+                        scatter_cell(d_table, acc, cx, cy, cz, res, offset, size, hashed)
+                    acc = matF()
+                    cx = ix
+                    cy = iy
+                    cz = iz
+                for c in range(8):
+                    wx, sx = corner_factors(c & 1, tx)
+                    wy, sy = corner_factors((c >> 1) & 1, ty)
+                    wz, sz = corner_factors((c >> 2) & 1, tz)
+                    acc[c] = acc[c] + (wx * wy * wz) * gv
+        if cx >= 0:
+            scatter_cell(d_table, acc, cx, cy, cz, res, offset, size, hashed)
 
     @wp.kernel(enable_backward=False, module="unique")
     def gradient(

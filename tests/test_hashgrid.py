@@ -82,6 +82,34 @@ def test_warp_matches_twin(device, features, active):
         assert (results["warp"][0][:, active * features:] == 0).all()
 
 
+def test_backward_sums_runs_of_points_in_one_cell(device):
+    """The table gradient sums runs of consecutive points in one cell in registers (BACKWARD_RUN per thread):
+    samples along rays, many consecutive ones sharing a coarse cell, some jumping back to an earlier cell, and
+    a point count that leaves the last thread's run short, against the twin."""
+    from slwarp.neural.hashgrid import BACKWARD_RUN
+
+    g = torch.Generator().manual_seed(3)
+    rays, n = 7, 13  # 91 points: not a multiple of the run
+    origin = torch.rand(rays, 1, 3, generator=g, dtype=torch.float64) * 0.3 + 0.1
+    direction = torch.rand(rays, 1, 3, generator=g, dtype=torch.float64) * 0.5 + 0.1
+    t = torch.linspace(0, 1, n, dtype=torch.float64)[None, :, None]
+    x = (origin + t * direction).reshape(-1, 3)
+    x[20] = x[5]  # back to a cell left earlier in the run
+    assert x.shape[0] % BACKWARD_RUN != 0
+    table = torch.randn(SMALL.n_entries, SMALL.features, generator=g, dtype=torch.float64)
+    w = torch.randn(x.shape[0], SMALL.levels * SMALL.features, generator=g, dtype=torch.float64)
+    meta, act = SMALL.meta(device), active_tensor(SMALL.levels, device)
+    grads = []
+    for backend in ("warp", "torch"):
+        tt = table.to(device=device, dtype=torch.float32).requires_grad_()
+        feat = hashgrid_encode(x.to(device=device, dtype=torch.float32), tt, meta, act, backend=backend)
+        grads.append(torch.autograd.grad((feat * w.to(device=device, dtype=torch.float32)).sum(), tt)[0])
+    # the run really shares cells: at the coarsest level (4 cells) most neighbours along a ray are in one cell
+    cells = torch.floor(x * 4)
+    assert (cells[1:] == cells[:-1]).all(1).float().mean() > 0.5
+    close(grads[0], grads[1], what="d table")
+
+
 def test_twin_gradcheck_float64():
     layout = HashGridLayout(levels=3, features=2, log2_table_size=6, base_resolution=2, finest_resolution=8)
     assert layout.hashed == [False, True, True]

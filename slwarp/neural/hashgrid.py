@@ -54,6 +54,9 @@ GRADIENTS = ("analytic", "finite_difference")
 ACTIVATIONS = ("softplus", "relu")
 PRIMES = (1, 2654435761, 805459861)  # Instant-NGP's spatial hash
 # tetrahedron vertices of Neuralangelo's 4-tap gradient: sum_i e_i e_i^T = 4 I
+# consecutive points one thread of the encoding's backward takes, summing in registers while they share a cell
+# (kernels/hashgrid.py): samples along a ray share the coarse levels' cells, and same-address atomics serialise
+BACKWARD_RUN = 8
 TETRAHEDRON = ((1.0, -1.0, -1.0), (-1.0, -1.0, 1.0), (-1.0, 1.0, -1.0), (1.0, 1.0, 1.0))
 
 
@@ -220,7 +223,8 @@ def _encode_backward_impl(x, table, meta, active, g_feat):
     if P > 0:
         _, backward, _, _ = _kernels(Fe)
         d = runtime.array_desc
-        ops._launch(backward, (L, P), [d(_vec(x), 3), d(meta), d(active), d(g_feat), d(d_table, Fe)], x.device)
+        ops._launch(backward, (L, -(-P // BACKWARD_RUN)), [d(_vec(x), 3), d(meta), d(active), d(g_feat), BACKWARD_RUN,
+                                                           d(d_table, Fe)], x.device)
     return d_table
 
 

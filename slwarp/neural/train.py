@@ -458,9 +458,13 @@ class Trainer:
 
     def _configure_optimizer(self) -> None:
         """Adam as the step needs it: with CUDA graphs, capturable (step count on the GPU) and the learning
-        rate a device tensor that each replay reads; otherwise a plain float learning rate."""
+        rate a device tensor that each replay reads; otherwise a plain float learning rate. On CUDA Adam's fused
+        kernel: it took the `accurate` preset's step from 4.70 to 4.37 ms on an H100 (notes/hashgrid.md, phase 3)."""
+        fused = self.device.type == "cuda"
         for group in self.optimizer.param_groups:
             lr = float(group["lr"])
+            group["fused"] = fused
+            group["foreach"] = None if fused else group.get("foreach")
             group["capturable"] = self.use_graph
             group["lr"] = torch.tensor(lr, device=self.device) if self.use_graph else lr
         for st in self.optimizer.state.values():
