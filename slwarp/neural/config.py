@@ -499,10 +499,14 @@ _HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, gr
 _preset("fast", "hash-grid field, 200 + 1000 iterations, 16 levels switched on quickly: a depth map as soon as "
         "possible (GPU)", matmul="tf32", iters=1000, init_iters=200, grid_start_levels=2, grid_level_every=50,
         mc_resolution=256, checkpoint_every=1000, **_HASHGRID)
-# the accurate hash-grid recipe: the GPU default candidate
-_preset("accurate", "hash-grid field, the paper's 4000 iterations and batch, levels coarse to fine, photometric "
-        "depth refinement (+-3 mm): the accurate GPU recipe", matmul="tf32", grid_start_levels=2, grid_level_every=200,
-        refine_range=3.0, **_HASHGRID)
+# the accurate hash-grid recipe: 8 levels (growth 2), the refinement and the search doubt rule as tuned. On the
+# default and vertical rigs (8 scenes each, H200, bench/results/accuracy-cuda-hashgrid-levels.md) 8 levels gave a
+# mean MAE of 0.378 / 0.282 mm against 0.351 / 0.268 with 16 and 0.369 / 0.295 with 12 (better on 12 of the 16
+# scans, worse on rods and default-rig steps and bunny) at 3.51 ms per step against 4.37 with 16 (H100)
+_preset("accurate", "hash-grid field (8 levels), the paper's 4000 iterations and batch, levels coarse to fine, "
+        "photometric depth refinement (+-3 mm) and the search doubt rule: 3x faster than tuned, less accurate",
+        matmul="tf32", grid_levels=8, grid_start_levels=2, grid_level_every=200, refine_range=3.0, search_doubt=True,
+        **_HASHGRID)
 # CPU: the cpu preset's step on a small hash grid (8 levels of 2^15 entries; finer tables are cache-bound on
 # one thread): small rig, bunny/vase/boxes mean MAE 0.575 mm against 0.749 for cpu at about its time per step
 # its extraction: the refinement and the search doubt rule, as tuned (the full search repair measured worse on the
