@@ -143,6 +143,9 @@ def time_config(scan, spec: str, preset_name: str, warmup: int, iters: int, dev:
         if not hasattr(tr.field, "backend"):
             raise SystemExit(f"config {spec!r}: 'twin' needs a hash-grid field (--set field=hashgrid or a hash-grid preset)")
         tr.field.backend = "torch"  # the encoding's gathers in torch; the renderer's kernels as the config says
+    # time main-phase steps at the end of the schedule, where every hash-grid level is on (the depth-search
+    # warm-up's steps run with the coarsest levels only: timed there, a hash grid looks faster than it trains)
+    tr.iteration = tr.warmup_iters + cfg.schedule.iters
     sync = torch.cuda.synchronize if dev == "cuda" else (lambda: None)
     t0 = time.perf_counter()
     for _ in range(warmup):

@@ -85,7 +85,7 @@ def test_preset_copies_and_flat_overrides():
     ("field", "cnn", "one of mlp, hashgrid"),
     ("grid_finest", "fine", "an integer >= 1 and <= 65536 or auto"),
     ("grid_levels", 0, "an integer >= 1 and <= 64"),
-    ("grid_gradient", "exact", "one of finite_difference, analytic"),
+    ("grid_gradient", "exact", "one of finite_difference, finite_difference_4, analytic"),
     ("grid_table_lr_factor", 0.0, "a number > 0"),
 ])
 def test_validation_names_option_value_and_what_is_allowed(option, value, allowed):

@@ -288,6 +288,36 @@ def test_finite_difference_gradient():
     assert lin.finite_difference_step().item() == pytest.approx(800.0 / 4)
 
 
+def test_four_tap_value_is_the_taps_mean():
+    """finite_difference_4: the gradient of the 5-evaluation scheme, the value from the 4 taps' mean, which
+    is f + h^2 lap f / 2: exact for a linear function, h^2 / r too far out for a sphere of radius r."""
+    five = random_field("torch", gradient="finite_difference").double()
+    four = random_field("torch", gradient="finite_difference_4").double()
+    four.load_state_dict(five.state_dict())
+    x = volume_points(50, dtype=torch.float64, seed=4)
+    v5, g5 = five.value_and_gradient(x)
+    v4, g4 = four.value_and_gradient(x)
+    torch.testing.assert_close(g4, g5)
+    h = five.finite_difference_step().item()
+    e = torch.tensor([[1.0, -1, -1], [-1, -1, 1], [-1, 1, -1], [1, 1, 1]], dtype=torch.float64)
+    taps = torch.stack([five(x + h * ei) for ei in e])
+    torch.testing.assert_close(v4, taps.mean(0))
+    assert not torch.allclose(v4, v5)
+    # the sphere prior far - |x| (tables and MLP zero) at radius r: the mean lies h^2 / r below f
+    sph = HashGridSDF(VOL, init="camera", far=1000.0, gradient="finite_difference_4", levels=2, log2_table_size=8,
+                      base_resolution=4, finest_resolution=64, backend="torch").double()
+    with torch.no_grad():
+        sph.table.zero_()
+        sph.linears[-1].weight.zero_()
+        sph.linears[-1].bias.zero_()
+    r = 900.0
+    d = torch.nn.functional.normalize(torch.randn(20, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(5)), dim=-1)
+    v, _ = sph.value_and_gradient(r * d)
+    hs = sph.finite_difference_step().item()
+    assert hs == pytest.approx(12.5)  # h^2 / r = 0.17 mm; the next (third-order) term is near h^3 / r^2 = 0.002 mm
+    torch.testing.assert_close(v, torch.full_like(v, 1000.0 - r - hs**2 / r), rtol=0, atol=0.05 * hs**2 / r)
+
+
 def test_geometric_initialisation():
     c = torch.tensor(VOL.center, dtype=torch.float32)
     d = torch.nn.functional.normalize(torch.randn(500, 3, generator=torch.Generator().manual_seed(1)), dim=-1)

@@ -94,9 +94,10 @@ class FieldConfig:
     grid_hidden: int = option(64, "hash grid: width of its MLP's hidden layers", min=1)
     grid_layers: int = option(1, "hash grid: hidden layers of its MLP", min=1)
     grid_activation: Literal["softplus", "relu"] = option("softplus", "hash grid: MLP activation (softplus: beta 100)")
-    grid_gradient: Literal["finite_difference", "analytic"] = option(
+    grid_gradient: Literal["finite_difference", "finite_difference_4", "analytic"] = option(
         "finite_difference", "hash grid: spatial gradient for the Eikonal term and normals (finite_difference: "
-        "tetrahedral taps one finest active cell apart; analytic: exact, faster, lets thin sheets survive on cell faces)")
+        "tetrahedral taps one finest active cell apart; finite_difference_4: the same taps give the value too, as "
+        "their mean; analytic: exact, faster, lets thin sheets survive on cell faces)")
     grid_table_lr_factor: float = option(10.0, "hash grid: the tables' Adam learning rate as a multiple of lr",
                                          above=0.0)
     grid_start_levels: int = option(2, "hash grid: levels switched on at the start (and in the warm-up)", min=1)
