@@ -475,7 +475,9 @@ _preset("paper", "the paper's recipe, unchanged: 4000 iterations, 2048 rays, 32+
 # its extraction adds the photometric refinement (+-3 mm) and the search doubt rule. On the default rig (8 scenes,
 # H200, bench/results/accuracy-cuda-doubt-default.md) the mean MAE is 0.186 mm against 0.298 with refinement alone,
 # 0.386 with neither and 0.310 for GC(7); the doubt rule lowered the MAE on each of the 12 scenes measured on the
-# default and vertical rigs (rods 1.352 -> 0.600 and 1.414 -> 0.764) for 0.1 to 0.5 points of completeness. The
+# default and vertical rigs (rods 1.352 -> 0.600 and 1.414 -> 0.764) for 0.1 to 0.5 points of completeness. On the
+# other rigs (bench/results/accuracy-cuda-doubt-rigs.md) 0.196 (vertical), 0.147 (oblique), 0.229 mm (rolled)
+# against GC(7)'s 0.271, 0.357, 0.405. The
 # search repair (fills and switches) stays off: on the oblique and rolled rigs it added 0.2 to 0.6 mm on every
 # smooth scene (bench/results/accuracy-cuda-oblique-rolled.md)
 _preset("tuned", "paper with lr 5e-4, cosine decay, no surface-colour loss, photometric depth refinement (+-3 mm) "
@@ -496,18 +498,22 @@ _preset("tiny", "a 3x48 field for 300 iterations: tests", iters=300, rays=256, n
 # for the tables, cosine decay, no surface-colour loss, levels coarse to fine. Their iterations and level schedules
 # are first choices for the GPU: the lead's GPU accuracy sweep (bench/train_variants.py) settles them.
 _HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, grid_table_lr_factor=10.0)
-# a GPU depth map as soon as possible: 1000 iterations with all 16 levels on by iteration 200 + 700
-_preset("fast", "hash-grid field, 200 + 1000 iterations, 16 levels switched on quickly: a depth map as soon as "
-        "possible (GPU)", matmul="tf32", iters=1000, init_iters=200, grid_start_levels=2, grid_level_every=50,
-        mc_resolution=256, checkpoint_every=1000, **_HASHGRID)
-# the accurate hash-grid recipe: 8 levels (growth 2), the refinement and the search doubt rule as tuned. On the
-# default and vertical rigs (8 scenes each, H200, bench/results/accuracy-cuda-hashgrid-levels.md) 8 levels gave a
-# mean MAE of 0.378 / 0.282 mm against 0.351 / 0.268 with 16 and 0.369 / 0.295 with 12 (better on 12 of the 16
-# scans, worse on rods and default-rig steps and bunny) at 3.51 ms per step against 4.37 with 16 (H100)
-_preset("accurate", "hash-grid field (8 levels), the paper's 4000 iterations and batch, levels coarse to fine, "
-        "photometric depth refinement (+-3 mm) and the search doubt rule: 3x faster than tuned, less accurate",
-        matmul="tf32", grid_levels=8, grid_start_levels=2, grid_level_every=200, refine_range=3.0, search_doubt=True,
-        **_HASHGRID)
+# a GPU depth map as soon as possible: 1000 iterations with all 8 levels on by iteration 200 + 300; 8 levels and
+# the 4-tap gradient as accurate: on default-rig bunny, steps and torus (H100, bench/results/fast-variants-cuda.md)
+# scan to depth map 9.5 -> 7.1 s for a mean MAE of 0.665 against 0.662 mm with 16 levels and 5 evaluations
+_preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 1000 iterations, levels switched on quickly: a "
+        "depth map as soon as possible (GPU)", matmul="tf32", iters=1000, init_iters=200, grid_levels=8,
+        grid_gradient="finite_difference_4", grid_start_levels=2, grid_level_every=50, mc_resolution=256,
+        checkpoint_every=1000, **_HASHGRID)
+# the accurate hash-grid recipe: 8 levels (growth 2), the 4-tap gradient, the refinement and the search doubt
+# rule as tuned. Default and vertical rigs, 8 scenes each, H200 (bench/results/accuracy-cuda-hashgrid.md): 8
+# levels gave a mean MAE of 0.378 / 0.282 mm against 0.351 / 0.268 with 16 and 0.369 / 0.295 with 12 (better on
+# 12 of the 16 scans; worse on rods, default-rig steps and bunny); the 4-tap gradient (f from the taps' mean)
+# then 0.330 / 0.266, better on all 16 scans, with one field evaluation in five fewer
+_preset("accurate", "hash-grid field (8 levels, 4-tap gradient), the paper's 4000 iterations and batch, levels "
+        "coarse to fine, photometric depth refinement (+-3 mm) and the search doubt rule: faster than tuned, less "
+        "accurate", matmul="tf32", grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2,
+        grid_level_every=200, refine_range=3.0, search_doubt=True, **_HASHGRID)
 # CPU: the cpu preset's step on a small hash grid (8 levels of 2^15 entries; finer tables are cache-bound on
 # one thread): small rig, bunny/vase/boxes mean MAE 0.575 mm against 0.749 for cpu at about its time per step
 # its extraction: the refinement and the search doubt rule, as tuned (the full search repair measured worse on the
