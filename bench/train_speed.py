@@ -209,7 +209,8 @@ def markdown(doc: dict) -> str:
     opts = f" with {' '.join(doc['options'])}" if doc.get("options") else ""
     lines = [f"# Training speed, preset `{doc['preset']}`{opts}, {doc['scene']} ({doc['rig']} rig), {doc['device']}, {doc['date']}", ""]
     if doc["rows"]:
-        lines += [f"Per iteration ({doc['iters']} timed after {doc['warmup']} warm-up iterations; the preset runs "
+        lines += [f"Per iteration ({doc['iters']} timed after {doc['warmup']} untimed ones, at the end of the schedule "
+                  "with every hash-grid level on; the preset runs "
                   f"{doc['rows'][0]['iters_of_preset']} + the depth-search warm-up). Breakdown: GPU ms per iteration "
                   "by phase, from the profiler; 'host/idle' is the wall time the GPU had no work (Python, launches, "
                   "synchronisation)." + (" On the CPU: CPU ms per phase, our Warp kernels counted inside the phases "
