@@ -36,7 +36,7 @@ FLAT_PRESETS = {
                  checkpoint_every=1000, **HASHGRID),
     "accurate": dict(matmul="tf32", grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2, grid_level_every=200, refine_range=3.0,
                      search_doubt=True, **HASHGRID),
-    "cpu-hashgrid": dict(refine_range=3.0, search_doubt=True, iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, search_step_mm=2.0,
+    "cpu-hashgrid": dict(refine_range=3.0, search_doubt=True, grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, search_step_mm=2.0,
                          mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
                          **HASHGRID),
 }
@@ -225,7 +225,7 @@ def test_field_kind_network_and_default_presets():
     assert mlp.network() == dict(kind="mlp", hidden=64, layers=4, skip=2, n_freqs=6)  # grid options do not count
     assert grid.network() == dict(kind="hashgrid", grid_levels=8, grid_log2_table=15, grid_base=16, grid_finest="auto",
                                   grid_hidden=64, grid_layers=1, grid_activation="softplus",
-                                  grid_gradient="finite_difference", grid_table_lr_factor=10.0, grid_start_levels=2,
+                                  grid_gradient="finite_difference_4", grid_table_lr_factor=10.0, grid_start_levels=2,
                                   grid_level_every=150)
     assert default_preset_name("cuda") == DEFAULT_PRESET["cuda"] and default_preset_name("cpu") == DEFAULT_PRESET["cpu"]
     assert default_preset_name("mps") == DEFAULT_PRESET["cpu"]
