@@ -57,10 +57,11 @@ GRADIENTS = ("analytic", "finite_difference", "finite_difference_4")
 ACTIVATIONS = ("softplus", "relu")
 PRIMES = (1, 2654435761, 805459861)  # Instant-NGP's spatial hash
 # tetrahedron vertices of Neuralangelo's 4-tap gradient: sum_i e_i e_i^T = 4 I
-# consecutive points one thread of the encoding's backward takes, summing in registers while they share a cell
-# (kernels/hashgrid.py): samples along a ray share the coarse levels' cells, and same-address atomics serialise
-BACKWARD_RUN = 8
 TETRAHEDRON = ((1.0, -1.0, -1.0), (-1.0, -1.0, 1.0), (-1.0, 1.0, -1.0), (1.0, 1.0, 1.0))
+# consecutive points one thread of the encoding's backward takes, summing in registers while they share a cell
+# (kernels/hashgrid.py): samples along a ray share the coarse levels' cells, and same-address atomics serialise.
+# H100, accurate preset, all levels on: 4.39 / 4.20 / 4.19 ms per step with runs of 1 / 8 / 32
+BACKWARD_RUN = 8
 
 
 @dataclass(frozen=True)
