@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from slwarp.neural.field import Volume
-from slwarp.neural.hashgrid import (PRIMES, HashGridLayout, HashGridSDF, hashgrid_encode, hashgrid_gradient,
-                                    twin_encode, twin_gradient)
+from slwarp.neural.hashgrid import (PRIMES, TETRAHEDRON, HashGridLayout, HashGridSDF, hashgrid_encode,
+                                    hashgrid_gradient, twin_encode, twin_gradient)
 
 VOL = Volume((-400.0, -300.0, 434.0), (400.0, 300.0, 1116.0))
 # 6 levels: 4 and 7 cells dense; 12, 21, 37 and 64 hashed into 2^10 entries
@@ -262,6 +262,17 @@ def test_analytic_gradient_matches_autograd_and_finite_differences(backend):
         close(grad, fd, rel=1e-6, what="central differences")
 
 
+def prior_only_field(gradient: str, finest_resolution: int) -> HashGridSDF:
+    """The camera prior f = far - |x| (far 1000 mm) alone: zero tables, the MLP's output layer zero (float64)."""
+    f = HashGridSDF(VOL, init="camera", far=1000.0, gradient=gradient, levels=2, log2_table_size=8, base_resolution=4,
+                    finest_resolution=finest_resolution, backend="torch").double()
+    with torch.no_grad():
+        f.table.zero_()
+        f.linears[-1].weight.zero_()
+        f.linears[-1].bias.zero_()
+    return f
+
+
 def test_finite_difference_gradient():
     assert HashGridSDF(VOL, levels=2, log2_table_size=8).gradient == "finite_difference"  # the default
     analytic = random_field("torch").double()
@@ -276,11 +287,7 @@ def test_finite_difference_gradient():
     rel = ((g_f - g_a).norm(dim=-1) / g_a.norm(dim=-1)).median().item()
     assert 1e-4 < rel < 0.3
     # on a linear function the 4 taps are exact: the camera prior far - |x| far from its centre, no MLP
-    lin = HashGridSDF(VOL, init="camera", far=1000.0, gradient="finite_difference", levels=2, log2_table_size=8,
-                      base_resolution=4, finest_resolution=8, backend="torch").double()
-    with torch.no_grad():
-        lin.table.zero_()
-        lin.linears[-1].weight.zero_()
+    lin = prior_only_field("finite_difference", finest_resolution=8)
     x = volume_points(10, dtype=torch.float64) + torch.tensor([0.0, 0.0, 1e6], dtype=torch.float64)
     _, g = lin.value_and_gradient(x)
     torch.testing.assert_close(g, -x / x.norm(dim=-1, keepdim=True), rtol=1e-6, atol=1e-6)
@@ -290,7 +297,7 @@ def test_finite_difference_gradient():
 
 def test_four_tap_value_is_the_taps_mean():
     """finite_difference_4: the gradient of the 5-evaluation scheme, the value from the 4 taps' mean, which
-    is f + h^2 lap f / 2: exact for a linear function, h^2 / r too far out for a sphere of radius r."""
+    is f + h^2 lap f / 2: h^2 / r below f = far - |x| at radius r."""
     five = random_field("torch", gradient="finite_difference").double()
     four = random_field("torch", gradient="finite_difference_4").double()
     four.load_state_dict(five.state_dict())
@@ -299,17 +306,12 @@ def test_four_tap_value_is_the_taps_mean():
     v4, g4 = four.value_and_gradient(x)
     torch.testing.assert_close(g4, g5)
     h = five.finite_difference_step().item()
-    e = torch.tensor([[1.0, -1, -1], [-1, -1, 1], [-1, 1, -1], [1, 1, 1]], dtype=torch.float64)
+    e = torch.tensor(TETRAHEDRON, dtype=torch.float64)
     taps = torch.stack([five(x + h * ei) for ei in e])
     torch.testing.assert_close(v4, taps.mean(0))
     assert not torch.allclose(v4, v5)
     # the sphere prior far - |x| (tables and MLP zero) at radius r: the mean lies h^2 / r below f
-    sph = HashGridSDF(VOL, init="camera", far=1000.0, gradient="finite_difference_4", levels=2, log2_table_size=8,
-                      base_resolution=4, finest_resolution=64, backend="torch").double()
-    with torch.no_grad():
-        sph.table.zero_()
-        sph.linears[-1].weight.zero_()
-        sph.linears[-1].bias.zero_()
+    sph = prior_only_field("finite_difference_4", finest_resolution=64)
     r = 900.0
     d = torch.nn.functional.normalize(torch.randn(20, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(5)), dim=-1)
     v, _ = sph.value_and_gradient(r * d)
