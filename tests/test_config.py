@@ -18,7 +18,7 @@ FLAT_DEFAULTS = dict(iters=4000, rays=2048, n_samples=32, n_importance=32, up_sa
                      n_freqs=6, init="search", init_iters=300, search_step_mm=1.0, search_stride=2, seed=0, backend="warp",
                      device="auto", matmul="fp32", compile=True, cuda_graph=True, incremental=False, start_frames=3,
                      add_every=500, checkpoint_every=500, log_every=50, mc_resolution=384, depth_method="mesh",
-                     edge_filter=10.0, refine_range=0.0, search_repair=False, search_doubt=False, field="mlp", grid_levels=16, grid_log2_table=19, grid_base=16, grid_finest="auto",
+                     edge_filter=10.0, refine_range=0.0, search_repair=False, repair_min_component=0, search_doubt=False, field="mlp", grid_levels=16, grid_log2_table=19, grid_base=16, grid_finest="auto",
                      grid_hidden=64, grid_layers=1, grid_activation="softplus", grid_gradient="finite_difference",
                      grid_table_lr_factor=10.0, grid_start_levels=2, grid_level_every=150)
 HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, grid_table_lr_factor=10.0)

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from slwarp.neural.pattern_model import blur_patterns, lit_with_contrast, offset_and_modulation
-from slwarp.neural.search import _neighbours_within, doubt_by_search, repair_by_search, search_depth
+from slwarp.neural.search import _component_sizes, _neighbours_within, doubt_by_search, repair_by_search, search_depth
 from slwarp.sim.simulate import SimOptions, simulate_scene
 
 BLUR = 1.0  # projector px: the simulated defocus, and the blur the patterns are rendered with
@@ -76,6 +76,52 @@ def test_repair_fills_holes_and_replaces_contradicted_depths(scene):
     assert np.mean(out[rest] != depth[rest]) < 0.005
     # nothing changes outside `valid`
     assert np.isnan(out[~valid]).all()
+
+
+def test_repair_keeps_only_large_groups_of_changes_when_asked(scene):
+    scan, patterns, valid = scene
+    gt = np.where(valid, scan.gt_depth, np.nan).astype(np.float32)
+    depth = gt.copy()
+    blocks = [(y, x) for y in range(10, 220, 15) for x in range(10, 290, 15)
+              if valid[y : y + 30, x : x + 30].all() and np.ptp(scan.gt_depth[y : y + 30, x : x + 30]) < 15.0]
+    y0, x0 = blocks[0]
+    y1, x1 = next(b for b in blocks if abs(b[0] - y0) >= 30 or abs(b[1] - x0) >= 30)
+    hole, wrong = np.zeros_like(valid), np.zeros_like(valid)
+    hole[y0 : y0 + 30, x0 : x0 + 30] = True
+    wrong[y1 : y1 + 30, x1 : x1 + 30] = True
+    depth[hole] = np.nan
+    depth[wrong] += 40.0
+    common = (scan.camera, scan.projector, scan.images, patterns, scan.depth_range, valid)
+    out_big, info_big = repair_by_search(depth, *common, min_confidence=0.6, step_mm=1.0, device="cpu",
+                                         min_component=300)
+    out_none, info_none = repair_by_search(depth, *common, min_confidence=0.6, step_mm=1.0, device="cpu",
+                                           min_component=2000)
+    # a 300-pixel minimum keeps most of each 900-pixel block's change (one group each, right within 2 mm)
+    assert np.sum(hole & (np.abs(out_big - gt) < 2.0)) > 600 and np.sum(wrong & (np.abs(out_big - gt) < 2.0)) > 600
+    # a 2000-pixel minimum refuses every change: the hole stays empty, and the wrong depths whose codes fit the
+    # search's clearly better are dropped rather than kept (measured: a few pixels stay, at the wrong depth)
+    assert info_none["filled"] == info_none["switched"] == 0 and np.isnan(out_none[hole]).all()
+    assert np.isnan(out_none[wrong]).mean() > 0.9
+    kept = wrong & np.isfinite(out_none)
+    np.testing.assert_array_equal(out_none[kept], depth[kept])
+
+
+def test_component_sizes_link_neighbours_of_one_surface():
+    d = np.full((6, 8), np.nan)
+    d[0, 0:3] = 5.0
+    d[1, 3] = 5.5  # a diagonal neighbour within 3 mm: the same group
+    d[2, 0] = 50.0  # next to the group but 45 mm away: its own
+    d[3:5, 0:2] = 100.0
+    d[5, 7] = 1.0
+    sizes = _component_sizes(d, 3.0)
+    expected = np.zeros((6, 8), int)
+    expected[0, 0:3] = expected[1, 3] = 4
+    expected[2, 0] = expected[5, 7] = 1
+    expected[3:5, 0:2] = 4
+    np.testing.assert_array_equal(sizes, expected)
+    # a long diagonal band, one surface: one group, whatever the order of the unions
+    band = np.where(np.abs(np.subtract.outer(np.arange(60), np.arange(60))) < 2, 700.0, np.nan)
+    assert set(np.unique(_component_sizes(band, 3.0))) == {0, int(np.isfinite(band).sum())}
 
 
 def test_repair_changes_nothing_on_a_right_depth_map(scene):

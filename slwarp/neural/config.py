@@ -208,6 +208,9 @@ class ExtractionConfig:
     search_repair: bool = option(False, "a per-pixel depth search (3x3 and 5x5 windows) fills the lit pixels left "
                                  "without depth and replaces depths it clearly contradicts (thin parts the field "
                                  "missed), judged by the photometric confidence", resumable=True)
+    repair_min_component: int = option(0, "search repair: keep a fill or replacement only in a connected group of at "
+                                       "least this many changed pixels of one surface (0: two agreeing neighbours "
+                                       "suffice)", min=0, resumable=True)
     search_doubt: bool = option(False, "drop depths that a per-pixel depth search (3x3 window) contradicts by more "
                                 "than 6 mm and whose photometric confidence is below 0.7 (the background's depth on "
                                 "a thin part); fills and replaces nothing (search_repair includes it)", resumable=True)

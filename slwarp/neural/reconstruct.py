@@ -99,7 +99,8 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
             # where a per-pixel depth search contradicts the field or fills its holes (thin parts it missed):
             # slwarp.neural.search.repair_by_search
             before = depth
-            depth, repair = repair_by_search(depth, *search_inputs, ex.min_confidence, **search_options)
+            depth, repair = repair_by_search(depth, *search_inputs, ex.min_confidence,
+                                             min_component=ex.repair_min_component, **search_options)
             # no flying-pixel filter on the changed pixels: a search has no smoothness to bend it across a depth
             # edge, and a thin part is all edge
             changed = np.isfinite(depth) & ~(depth == before)

@@ -111,7 +111,8 @@ SWITCH_MARGIN = 0.1
 def repair_by_search(depth: np.ndarray, camera, projector, images, patterns, depth_range, valid: np.ndarray,
                      min_confidence: float, *, step_mm: float = 1.0, margin: float = SWITCH_MARGIN,
                      fill_confidence: float = FILL_CONFIDENCE, support: int = SUPPORT,
-                     doubt_confidence: float = DOUBT_CONFIDENCE, device=None) -> tuple[np.ndarray, dict]:
+                     doubt_confidence: float = DOUBT_CONFIDENCE, min_component: int = 0,
+                     device=None) -> tuple[np.ndarray, dict]:
     """(depth [H, W] repaired, info) where a per-pixel depth search contradicts the field.
 
     Why: a field can miss what few rays saw (rods a few pixels wide, small parts behind a depth edge). Its
@@ -127,8 +128,12 @@ def repair_by_search(depth: np.ndarray, camera, projector, images, patterns, dep
       the search's confidence beats the pixel's by `margin`;
     - either change stays only where `support` of the pixel's 8 neighbours end within AGREE_MM of it (an isolated
       change is a chance match of the codes);
+    - with min_component > 0, a change also stays only inside a connected group (8 neighbours, each within
+      AGREE_MM of the next) of at least min_component changed pixels: a thin part the field missed is a long
+      run of pixels, while the search's chance matches come in small clusters that overlapping windows share;
     - doubts: a contradicted depth that is not replaced is dropped when its confidence is below `doubt_confidence`
-      (on rods, the background's depth on a rod pixel the 5x5 search cannot confirm).
+      (on rods, the background's depth on a rod pixel the 5x5 search cannot confirm) or when the switch's
+      confidence test passed but the neighbour or group rule refused it.
     The caller refines the result (`pattern_model.refine_depth`). info: counts of holes, filled, contested,
     switched and dropped pixels."""
     depth = np.asarray(depth, np.float32)
@@ -147,11 +152,10 @@ def repair_by_search(depth: np.ndarray, camera, projector, images, patterns, dep
     conf_s = photometric_confidence(np.where(agree, s1, np.nan), camera, projector, images, patterns)
     fill = holes & agree & (conf_s >= max(min_confidence, fill_confidence))
     conf_d = photometric_confidence(np.where(contested, depth, np.nan), camera, projector, images, patterns)
-    switch = contested & agree & (conf_s > conf_d + margin)
+    better = contested & agree & (conf_s > conf_d + margin)  # the codes fit the search's depth clearly better
+    switch = better.copy()
     change = fill | switch
     out[change] = s1[change]
-    doubt = contested & ~switch & (conf_d < doubt_confidence)
-    out[doubt] = np.nan
     if support > 0 and change.any():
         # an isolated change is a search's chance match: keep those that `support` of their 8 neighbours agree with
         agreeing = _neighbours_within(out, AGREE_MM)
@@ -159,6 +163,16 @@ def repair_by_search(depth: np.ndarray, camera, projector, images, patterns, dep
         out[drop] = depth[drop]
         fill &= ~drop
         switch &= ~drop
+    if min_component > 0 and (fill | switch).any():
+        small = (fill | switch) & (_component_sizes(np.where(fill | switch, out, np.nan), AGREE_MM) < min_component)
+        out[small] = depth[small]
+        fill &= ~small
+        switch &= ~small
+    # a contradicted depth that stays is dropped when the codes do not support it, or when they fit the search's
+    # depth clearly better but its neighbours did not confirm the switch (rods: the background's depth on a rod
+    # pixel is otherwise left in place)
+    doubt = contested & ~switch & ((conf_d < doubt_confidence) | better)
+    out[doubt] = np.nan
     info.update(filled=int(fill.sum()), switched=int(switch.sum()), dropped=int(doubt.sum()))
     return out, info
 
@@ -198,3 +212,40 @@ def _neighbours_within(depth: np.ndarray, tol_mm: float) -> np.ndarray:
     """[H, W] int: how many of each pixel's 8 neighbours have a depth within tol_mm of its own."""
     with np.errstate(invalid="ignore"):
         return (np.abs(neighbour_stack(depth) - depth) < tol_mm).sum(0).astype(np.int32)
+
+
+def _component_sizes(depth: np.ndarray, tol_mm: float) -> np.ndarray:
+    """[H, W] int: the pixel count of each finite pixel's connected group, where two of the 8 neighbours connect
+    when their depths differ by less than tol_mm (0 where depth is NaN)."""
+    H, W = depth.shape
+    n = H * W
+    parent = np.arange(n)
+
+    def root(i):
+        while True:  # path halving, vectorised over all pixels at once
+            p = parent[i]
+            if np.array_equal(p, parent[p]):
+                return p
+            parent[i] = parent[p]
+            i = parent[i]
+
+    d = np.asarray(depth, np.float64)
+    idx = np.arange(n).reshape(H, W)
+    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):  # each neighbour pair once
+        a = idx[: H - dy, max(0, -dx) : W - max(0, dx)]
+        b = idx[dy:, max(0, dx) : W - max(0, -dx) if dx < 0 else W][:, : a.shape[1]]
+        da, db = d.reshape(-1)[a], d.reshape(-1)[b]
+        with np.errstate(invalid="ignore"):
+            link = np.abs(da - db) < tol_mm
+        a, b = a[link], b[link]
+        while a.size:  # union: hang each pair's larger root under its smaller, until both share one
+            ra, rb = root(a), root(b)
+            diff = ra != rb
+            if not diff.any():
+                break
+            lo, hi = np.minimum(ra[diff], rb[diff]), np.maximum(ra[diff], rb[diff])
+            parent[hi] = lo
+            a, b = a[diff], b[diff]
+    roots = root(np.arange(n))
+    sizes = np.bincount(roots, minlength=n)[roots].reshape(H, W)
+    return np.where(np.isfinite(d), sizes, 0)
