@@ -481,11 +481,18 @@ _preset("paper", "the paper's recipe, unchanged: 4000 iterations, 2048 rays, 32+
 # default and vertical rigs (rods 1.352 -> 0.600 and 1.414 -> 0.764) for 0.1 to 0.5 points of completeness. On the
 # other rigs (bench/results/accuracy-cuda-doubt-rigs.md) 0.196 (vertical), 0.147 (oblique), 0.229 mm (rolled)
 # against GC(7)'s 0.271, 0.357, 0.405. The
-# search repair (fills and switches) stays off: on the oblique and rolled rigs it added 0.2 to 0.6 mm on every
-# smooth scene (bench/results/accuracy-cuda-oblique-rolled.md)
+# search repair with its changes kept only in groups of >= 100 pixels (repair_min_component): the same 32 trained
+# fields (8 scenes x 4 rigs, bench/results/accuracy-cuda-component.md) give a mean MAE of 0.166 / 0.178 / 0.129 /
+# 0.206 mm (default / vertical / oblique / rolled) against 0.187 / 0.210 / 0.147 / 0.221 with the doubt rule alone,
+# and 0.6 to 1.5 points more completeness: the field never learns the 2.5 mm rods, the search finds them (rods
+# 0.59 -> 0.41 mm on the default rig). Its doubt rule then also drops a contradicted depth whose switch the group
+# rule refused (rods on the 4 rigs 0.41-0.55 -> 0.39-0.45 mm; bench/results/accuracy-cuda-doubt-fix-*.md). The
+# repair without the group rule added 0.2 to 0.6 mm on every smooth scene (accuracy-cuda-oblique-rolled.md)
 _preset("tuned", "paper with lr 5e-4, cosine decay, no surface-colour loss, photometric depth refinement (+-3 mm) "
-        "and the search doubt rule: the most accurate measured on the virtual scanner (GPU default)",
-        matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0, refine_range=3.0, search_doubt=True)
+        "and the search repair (changes in groups of >= 100 pixels): the most accurate measured on the virtual "
+        "scanner (GPU default)",
+        matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0, refine_range=3.0, search_doubt=True,
+        search_repair=True, repair_min_component=100)
 # CPU: the tuned recipe with a smaller field and batch, minutes on two cores (small rig)
 _preset("cpu", "tuned with a 4x64 field, 384 rays, 1500 iterations: minutes on two CPU cores (small rig)",
         iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, lr=5e-4, lr_decay="cosine",
