@@ -526,8 +526,8 @@ _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), the paper's 400
         grid_level_every=200, refine_range=3.0, search_doubt=True, **_HASHGRID)
 # CPU: the cpu preset's step on a small hash grid (8 levels of 2^15 entries; finer tables are cache-bound on
 # one thread): small rig, bunny/vase/boxes mean MAE 0.575 mm against 0.749 for cpu at about its time per step
-# its extraction: the refinement and the search doubt rule, as tuned (the full search repair measured worse on the
-# CPU demo: 0.268 mm against 0.260 without it)
+# its extraction: the refinement and the search doubt rule (the search repair without the group rule measured worse
+# on the CPU demo: 0.268 mm against 0.260 without it; tuned's repair in groups is not measured on the small rig)
 # the 4-tap gradient as accurate: small rig, bunny/vase/boxes mean MAE 0.345 -> 0.328 mm, training 201 -> 164 s
 # (bench/results/cpu-hashgrid-gradient-cpu.md)
 _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4-tap gradient), photometric depth "
