@@ -122,6 +122,33 @@ def test_component_sizes_link_neighbours_of_one_surface():
     # a long diagonal band, one surface: one group, whatever the order of the unions
     band = np.where(np.abs(np.subtract.outer(np.arange(60), np.arange(60))) < 2, 700.0, np.nan)
     assert set(np.unique(_component_sizes(band, 3.0))) == {0, int(np.isfinite(band).sum())}
+    # a random map of three depths and holes: the group sizes of a plain flood fill
+    rng = np.random.default_rng(1)
+    d = np.where(rng.random((40, 50)) < 0.6, 10.0 * rng.integers(0, 3, (40, 50)), np.nan)
+    np.testing.assert_array_equal(_component_sizes(d, 3.0), _flood_fill_sizes(d, 3.0))
+
+
+def _flood_fill_sizes(d, tol):
+    """The group size of every finite pixel by a flood fill over the 8 neighbours within tol (reference)."""
+    H, W = d.shape
+    sizes = np.zeros((H, W), int)
+    seen = ~np.isfinite(d)
+    for y0, x0 in zip(*np.nonzero(~seen)):
+        if seen[y0, x0]:
+            continue
+        seen[y0, x0] = True
+        stack, members = [(y0, x0)], []
+        while stack:
+            y, x = stack.pop()
+            members.append((y, x))
+            for yy in range(max(0, y - 1), min(H, y + 2)):
+                for xx in range(max(0, x - 1), min(W, x + 2)):
+                    if not seen[yy, xx] and abs(d[yy, xx] - d[y, x]) < tol:
+                        seen[yy, xx] = True
+                        stack.append((yy, xx))
+        for y, x in members:
+            sizes[y, x] = len(members)
+    return sizes
 
 
 def test_repair_changes_nothing_on_a_right_depth_map(scene):

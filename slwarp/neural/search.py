@@ -222,7 +222,7 @@ def _component_sizes(depth: np.ndarray, tol_mm: float) -> np.ndarray:
     parent = np.arange(n)
 
     def root(i):
-        while True:  # path halving, vectorised over all pixels at once
+        while True:  # up the tree, all pixels at once, halving the paths on the way
             p = parent[i]
             if np.array_equal(p, parent[p]):
                 return p
@@ -232,8 +232,8 @@ def _component_sizes(depth: np.ndarray, tol_mm: float) -> np.ndarray:
     d = np.asarray(depth, np.float64)
     idx = np.arange(n).reshape(H, W)
     for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):  # each neighbour pair once
-        a = idx[: H - dy, max(0, -dx) : W - max(0, dx)]
-        b = idx[dy:, max(0, dx) : W - max(0, -dx) if dx < 0 else W][:, : a.shape[1]]
+        a = idx[: H - dy, max(0, -dx) : W - max(0, dx)]  # each pixel ...
+        b = idx[dy:, max(0, dx) : W - max(0, -dx)]  # ... and its neighbour at (dy, dx)
         da, db = d.reshape(-1)[a], d.reshape(-1)[b]
         with np.errstate(invalid="ignore"):
             link = np.abs(da - db) < tol_mm
