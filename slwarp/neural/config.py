@@ -526,13 +526,15 @@ _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), the paper's 400
         grid_level_every=200, refine_range=3.0, search_doubt=True, **_HASHGRID)
 # CPU: the cpu preset's step on a small hash grid (8 levels of 2^15 entries; finer tables are cache-bound on
 # one thread): small rig, bunny/vase/boxes mean MAE 0.575 mm against 0.749 for cpu at about its time per step
-# its extraction: the refinement and the search doubt rule (the search repair without the group rule measured worse
-# on the CPU demo: 0.268 mm against 0.260 without it; tuned's repair in groups is not measured on the small rig)
+# its extraction: the refinement and, as tuned, the search repair in groups of >= 100 pixels: small rig, 8 scenes,
+# the same fields (bench/results/accuracy-cpu-component*.md): rods 1.088 -> 0.886 mm, steps 0.527 -> 0.501, boxes and
+# checker -0.003 / -0.001, the other four unchanged, about 2 s more extraction (the repair without the group rule
+# measured worse on the CPU demo: 0.268 mm against 0.260 without it)
 # the 4-tap gradient as accurate: small rig, bunny/vase/boxes mean MAE 0.345 -> 0.328 mm, training 201 -> 164 s
 # (bench/results/cpu-hashgrid-gradient-cpu.md)
 _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4-tap gradient), photometric depth "
-        "refinement (+-3 mm) and the search doubt rule: better MAE in less time than cpu (small rig)",
-        refine_range=3.0, search_doubt=True, grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24,
+        "refinement (+-3 mm) and the search repair in groups: better MAE in less time than cpu (small rig)",
+        refine_range=3.0, search_doubt=True, search_repair=True, repair_min_component=100, grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24,
         n_importance=16, up_sample_steps=2, search_step_mm=2.0, mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15, **_HASHGRID)
 
 # the preset a run gets when it names none, per device type. CPU: cpu-hashgrid, measured on the small rig with the
