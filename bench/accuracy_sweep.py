@@ -162,6 +162,19 @@ def job_key(job: dict) -> str:
     return f"{name}__{job['rig']}__{job['scene']}__s{job['seed']}".replace("/", "_").replace(":", "_").replace("=", "-")
 
 
+def _without_note(argv: list[str]) -> list[str]:
+    """The command's arguments less --note and its text (the header prints the note once, as prose)."""
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a == "--note":
+            skip = True
+        elif not a.startswith("--note="):
+            out.append(a)
+    return out
+
+
 def parse_overrides(text: str | None) -> dict:
     """'iters=200,rays=512,compile=false' -> {"iters": 200, "rays": 512, "compile": False} (numbers and
     true/false parsed, the rest kept as text)."""
@@ -378,7 +391,7 @@ def main(argv=None) -> int:
                     break
     errors = [{"key": job_key(r["job"]), "error": r["error"]} for r in results if "error" in r]
     all_labels = labels + [f"{lab}+{v}" for lab in labels for v in also]
-    command = " ".join(["python bench/accuracy_sweep.py"] + list(sys.argv[1:] if argv is None else argv))
+    command = " ".join(["python bench/accuracy_sweep.py"] + _without_note(list(sys.argv[1:] if argv is None else argv)))
     doc = {"date": datetime.date.today().isoformat(), "device": "cuda" if cuda else "cpu", "device_name": name,
            "gpus": n_gpu, "workers": len(devices), "command": command, "seed": args.seed, "rigs": rigs,
            "scenes": scenes, "labels": all_labels, "overrides": overrides, "wall_s": time.perf_counter() - t0,

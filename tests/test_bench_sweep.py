@@ -34,21 +34,23 @@ def _state(folder: Path, stale: bool = False):
             {"job": cjob, "methods": {"GC(7) interp": _metrics(1.0, 0.97), "GC(6) interp": _metrics(2.0, 0.96)}}))
 
 
-def _report(tmp_path, state):
+def _report(tmp_path, state, *extra):
     return accuracy_sweep.main(["--report", "--device-name", "Test GPU", "--presets", "tiny", "--also-extract",
                                 "search_doubt=true", "--rigs", "default", "--scenes", ",".join(SCENES), "--state",
-                                str(state), "--out", str(tmp_path / "out"), "--stem", "sweep"])
+                                str(state), "--out", str(tmp_path / "out"), "--stem", "sweep", *extra])
 
 
 def test_report_writes_the_tables_of_finished_runs(tmp_path):
     _state(tmp_path / "state")
-    assert _report(tmp_path, tmp_path / "state") == 0
+    assert _report(tmp_path, tmp_path / "state", "--note", "runs made on two machines") == 0
     doc = json.loads((tmp_path / "out" / "sweep.json").read_text())
     means = {lab: d["mean"]["mae"] for lab, d in doc["table"]["default"].items()}
     assert means["tiny"] == pytest.approx(0.9) and means["tiny+search_doubt=true"] == pytest.approx(0.7)
     assert doc["table"]["default"]["tiny+search_doubt=true"]["targets"]["mae_over_gc7"] == pytest.approx(0.7)
     md = (tmp_path / "out" / "sweep.md").read_text()
     assert "Test GPU" in md and "the tables of the finished runs" in md
+    # the note is said once, as prose after the command, not again inside it
+    assert md.count("runs made on two machines") == 1 and "--note" not in md and "--stem sweep`" in md
     lost = md[md.index("Where the missing pixels went"):]
     cells = next([c.strip() for c in line.strip("|").split("|")] for line in lost.splitlines()
                  if line.startswith("| tiny+search_doubt=true "))
