@@ -273,14 +273,19 @@ def prior_only_field(gradient: str, finest_resolution: int) -> HashGridSDF:
     return f
 
 
+def same_field_two_gradients(a: str, b: str, n: int, seed: int):
+    """((field_a, field_b), (value, gradient) of a, of b) at n float64 volume points: one random field (the same
+    parameters) with two gradient schemes."""
+    fa = random_field("torch", gradient=a).double()
+    fb = random_field("torch", gradient=b).double()
+    fb.load_state_dict(fa.state_dict())
+    x = volume_points(n, dtype=torch.float64, seed=seed)
+    return (fa, fb), fa.value_and_gradient(x), fb.value_and_gradient(x)
+
+
 def test_finite_difference_gradient():
     assert HashGridSDF(VOL, levels=2, log2_table_size=8).gradient == "finite_difference"  # the default
-    analytic = random_field("torch").double()
-    fd = random_field("torch", gradient="finite_difference").double()
-    fd.load_state_dict(analytic.state_dict())
-    x = volume_points(200, dtype=torch.float64, seed=2)
-    v_a, g_a = analytic.value_and_gradient(x)
-    v_f, g_f = fd.value_and_gradient(x)
+    (analytic, fd), (v_a, g_a), (v_f, g_f) = same_field_two_gradients("analytic", "finite_difference", 200, seed=2)
     torch.testing.assert_close(v_f, v_a)
     assert fd.finite_difference_step().item() == pytest.approx(800.0 / 64)  # finest cell: 2 scale / 64
     # taps one cell apart average the gradient over the cell: close to the exact one, not equal
@@ -298,12 +303,8 @@ def test_finite_difference_gradient():
 def test_four_tap_value_is_the_taps_mean():
     """finite_difference_4: the gradient of the 5-evaluation scheme, the value from the 4 taps' mean, which
     is f + h^2 lap f / 2: h^2 / r below f = far - |x| at radius r."""
-    five = random_field("torch", gradient="finite_difference").double()
-    four = random_field("torch", gradient="finite_difference_4").double()
-    four.load_state_dict(five.state_dict())
+    (five, four), (v5, g5), (v4, g4) = same_field_two_gradients("finite_difference", "finite_difference_4", 50, seed=4)
     x = volume_points(50, dtype=torch.float64, seed=4)
-    v5, g5 = five.value_and_gradient(x)
-    v4, g4 = four.value_and_gradient(x)
     torch.testing.assert_close(g4, g5)
     h = five.finite_difference_step().item()
     e = torch.tensor(TETRAHEDRON, dtype=torch.float64)

@@ -488,11 +488,13 @@ _preset("paper", "the paper's recipe, unchanged: 4000 iterations, 2048 rays, 32+
 # 0.59 -> 0.41 mm on the default rig). Its doubt rule then also drops a contradicted depth whose switch the group
 # rule refused (rods on the 4 rigs 0.41-0.55 -> 0.39-0.45 mm; bench/results/accuracy-cuda-doubt-fix-*.md). The
 # repair without the group rule added 0.2 to 0.6 mm on every smooth scene (accuracy-cuda-oblique-rolled.md)
+# the extraction of both defaults (tuned, cpu-hashgrid): refinement, then the search repair in groups (its doubt
+# rule stays on by itself when a run turns the repair off)
+_DEFAULT_EXTRACTION = dict(refine_range=3.0, search_doubt=True, search_repair=True, repair_min_component=100)
 _preset("tuned", "paper with lr 5e-4, cosine decay, no surface-colour loss, photometric depth refinement (+-3 mm) "
         "and the search repair (changes in groups of >= 100 pixels): the most accurate measured on the virtual "
         "scanner (GPU default)",
-        matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0, refine_range=3.0, search_doubt=True,
-        search_repair=True, repair_min_component=100)
+        matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0, **_DEFAULT_EXTRACTION)
 # CPU: the tuned recipe with a smaller field and batch, minutes on two cores (small rig)
 _preset("cpu", "tuned with a 4x64 field, 384 rays, 1500 iterations: minutes on two CPU cores (small rig)",
         iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, lr=5e-4, lr_decay="cosine",
@@ -534,8 +536,9 @@ _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), the paper's 400
 # (bench/results/cpu-hashgrid-gradient-cpu.md)
 _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4-tap gradient), photometric depth "
         "refinement (+-3 mm) and the search repair in groups: better MAE in less time than cpu (small rig)",
-        refine_range=3.0, search_doubt=True, search_repair=True, repair_min_component=100, grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24,
-        n_importance=16, up_sample_steps=2, search_step_mm=2.0, mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15, **_HASHGRID)
+        grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2,
+        search_step_mm=2.0, mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
+        **_DEFAULT_EXTRACTION, **_HASHGRID)
 
 # the preset a run gets when it names none, per device type. CPU: cpu-hashgrid, measured on the small rig with the
 # trainer (bunny MAE 0.479 mm against 0.606 for cpu; mean of bunny, vase, boxes 0.575 against 0.749 mm at 0.95x cpu's
