@@ -104,7 +104,7 @@ def study_field(trainer, scan, cfg) -> dict:
     t0 = time.perf_counter()
     depths = {}
     for res in (cfg.get("mc_resolution"), 2 * cfg.get("mc_resolution")):
-        mesh = extract_mesh(field, trainer.volume, res, trainer.device)
+        mesh = extract_mesh(field, trainer.volume, res, trainer.device, depth_range=trainer.depth_range)
         depths[f"mesh, marching cubes {res}"] = mesh_depth(mesh, cam, "cpu")
     depths["sphere tracing"] = sphere_trace_depth(field, cam, trainer.depth_range, trainer.device, valid=valid)
     depths["rendered expected depth"] = rendered_depth(trainer, valid)

@@ -75,7 +75,7 @@ def run(scene: str, rig: str, preset_name: str, overrides: dict, device: str) ->
 
     def mesh_stage(name):
         field = tr.field.eval()
-        stage(name, mesh_depth(extract_mesh(field, tr.volume, cfg.extraction.mc_resolution, tr.device), scan.camera, tr.device))
+        stage(name, mesh_depth(extract_mesh(field, tr.volume, cfg.extraction.mc_resolution, tr.device, depth_range=tr.depth_range), scan.camera, tr.device))
         field.train()
 
     if tr.init_depth is not None:

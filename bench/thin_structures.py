@@ -122,7 +122,7 @@ def main(argv=None) -> int:
                                      "no_answer": float(np.isnan(e[s]).mean())} for g, s in groups.items()}
         trainer, cfg, _ = train_cached(scan, args.preset, "baseline", Path(args.cache), key=f"small-linear-{scene}")
         near, far = trainer.depth_range
-        raw = mesh_depth(extract_mesh(trainer.field.eval(), trainer.volume, cfg.get("mc_resolution"), "cpu"), scan.camera, "cpu")
+        raw = mesh_depth(extract_mesh(trainer.field.eval(), trainer.volume, cfg.get("mc_resolution"), "cpu", depth_range=trainer.depth_range), scan.camera, "cpu")
         raw = np.where(valid & (raw >= near) & (raw <= far), raw, np.nan).astype(np.float32)
         pats = trainer.renderer.rendered_patterns.cpu().numpy()
 

@@ -209,7 +209,7 @@ def extract(trainer, cfg, flags: set[str]) -> dict:
     if "sphere" in flags:
         d = sphere_trace_depth(field, cam, trainer.depth_range, trainer.device, valid=valid)
     else:
-        d = mesh_depth(extract_mesh(field, trainer.volume, cfg.get("mc_resolution"), trainer.device), cam, "cpu")
+        d = mesh_depth(extract_mesh(field, trainer.volume, cfg.get("mc_resolution"), trainer.device, depth_range=trainer.depth_range), cam, "cpu")
     field.train()
     near, far = trainer.depth_range
     d = np.where(valid & (d >= near) & (d <= far), d, np.nan).astype(np.float32)

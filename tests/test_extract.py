@@ -25,3 +25,24 @@ def test_flying_pixel_filter_drops_both_sides_of_a_jump_and_keeps_a_slope():
     assert np.isfinite(out[:, :2]).all() and np.isfinite(out[:, 4:]).all()
     slope = 500.0 + 3.0 * np.arange(6, dtype=np.float32)[None, :].repeat(6, 0)  # 3 footprints per pixel
     np.testing.assert_array_equal(flying_pixel_filter(slope, CAMERA, footprints=10.0), slope)
+
+
+def test_extract_mesh_leaves_out_the_volume_outside_the_depth_range():
+    """A ball in the volume's margin before the near plane (where training never samples) is no surface; the
+    plane inside the range stays whole, and the inside behind it is not capped at the far plane."""
+    import torch
+
+    from slwarp.neural.extract import extract_mesh
+    from slwarp.neural.field import Volume
+
+    vol = Volume((-100.0, -100.0, 400.0), (100.0, 100.0, 1000.0))
+    ball_centre = torch.tensor([0.0, 0.0, 420.0])
+
+    def field(x):  # the plane z = 800 mm (positive on the camera's side) and a 30 mm ball at z = 420 mm
+        return torch.minimum(800.0 - x[..., 2], torch.linalg.norm(x - ball_centre, dim=-1) - 30.0)
+
+    full = extract_mesh(field, vol, 64)
+    cropped = extract_mesh(field, vol, 64, depth_range=(450.0, 950.0))
+    assert full.vertices[:, 2].min() < 450.0  # the ball
+    np.testing.assert_allclose(cropped.vertices[:, 2], 800.0, atol=1e-3)
+    assert len(cropped.faces) == np.sum(np.abs(full.triangles_center[:, 2] - 800.0) < 1.0)
