@@ -62,7 +62,8 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     t0 = time.perf_counter()
     cam = trainer.scan.camera
     field_ = trainer.field.eval()
-    mesh = extract_mesh(field_, trainer.volume, ex.mc_resolution, trainer.device, progress=progress)
+    mesh = extract_mesh(field_, trainer.volume, ex.mc_resolution, trainer.device, progress=progress,
+                        depth_range=trainer.depth_range)
     t1 = time.perf_counter()
     if ex.depth_method == "sphere":
         depth = sphere_trace_depth(field_, cam, trainer.depth_range, trainer.device, valid=valid)
