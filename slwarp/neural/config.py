@@ -211,6 +211,9 @@ class ExtractionConfig:
     repair_min_component: int = option(0, "search repair: keep a fill or replacement only in a connected group of at "
                                        "least this many changed pixels of one surface (0: two agreeing neighbours "
                                        "suffice)", min=0, resumable=True)
+    search_confirm: bool = option(False, "search repair: give the field's own depth back to pixels that the flying-"
+                                  "pixel filter or the photometric check dropped, where the 3x3 and 5x5 depth "
+                                  "searches both agree with it within 3 mm (needs search_repair)", resumable=True)
     search_doubt: bool = option(False, "drop depths that a per-pixel depth search (3x3 window) contradicts by more "
                                 "than 6 mm and whose photometric confidence is below 0.7 (the background's depth on "
                                 "a thin part); fills and replaces nothing (search_repair includes it)", resumable=True)
@@ -409,6 +412,9 @@ class TrainConfig:
                               f"({f.grid_levels})")
         if f.grid_finest != "auto" and f.grid_finest < f.grid_base:
             raise ConfigError(f"option grid_finest: {f.grid_finest} must not be below grid_base ({f.grid_base}), or auto")
+        if self.extraction.search_confirm and not self.extraction.search_repair:
+            raise ConfigError("option search_confirm: true needs search_repair: true (the confirmations are part of "
+                              "the search repair)")
         return self
 
     def fixed_options(self) -> dict:

@@ -77,6 +77,7 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     out_of_range = (depth < near) | (depth > far)
     dropped["out_of_range"] = int(out_of_range.sum())
     depth[out_of_range] = np.nan
+    unfiltered = depth.copy()  # what the filters below drop, for the search repair's confirmations
     if ex.edge_filter > 0:
         had = np.isfinite(depth)
         depth = flying_pixel_filter(depth, cam, ex.edge_filter)
@@ -100,8 +101,10 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
             # where a per-pixel depth search contradicts the field or fills its holes (thin parts it missed):
             # slwarp.neural.search.repair_by_search
             before = depth
+            candidates = np.where(np.isfinite(depth), np.nan, unfiltered) if ex.search_confirm else None
             depth, repair = repair_by_search(depth, *search_inputs, ex.min_confidence,
-                                             min_component=ex.repair_min_component, **search_options)
+                                             min_component=ex.repair_min_component, candidates=candidates,
+                                             **search_options)
             # no flying-pixel filter on the changed pixels: a search has no smoothness to bend it across a depth
             # edge, and a thin part is all edge
             changed = np.isfinite(depth) & ~(depth == before)
