@@ -18,7 +18,9 @@ FLAT_DEFAULTS = dict(iters=4000, rays=2048, n_samples=32, n_importance=32, up_sa
                      n_freqs=6, init="search", init_iters=300, search_step_mm=1.0, search_stride=2, seed=0, backend="warp",
                      device="auto", matmul="fp32", compile=True, cuda_graph=True, incremental=False, start_frames=3,
                      add_every=500, checkpoint_every=500, log_every=50, mc_resolution=384, depth_method="mesh",
-                     edge_filter=10.0, refine_range=0.0, search_repair=False, repair_min_component=0, search_doubt=False, field="mlp", grid_levels=16, grid_log2_table=19, grid_base=16, grid_finest="auto",
+                     edge_filter=10.0, refine_range=0.0, search_repair=False, repair_min_component=0, search_doubt=False,
+                     search_confirm=False, surface_weight=0.0, surface_after=0.0, surface_band_mm=0.5,
+                     field="mlp", grid_levels=16, grid_log2_table=19, grid_base=16, grid_finest="auto",
                      grid_hidden=64, grid_layers=1, grid_activation="softplus", grid_gradient="finite_difference",
                      grid_table_lr_factor=10.0, grid_start_levels=2, grid_level_every=150)
 HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, grid_table_lr_factor=10.0)
@@ -107,6 +109,9 @@ def test_rules_between_options():
         preset("cpu-hashgrid", grid_start_levels=9)
     with pytest.raises(ConfigError, match="grid_finest: 8 must not be below grid_base \\(16\\), or auto"):
         preset("accurate", grid_finest=8)
+    with pytest.raises(ConfigError, match="search_confirm: true needs search_repair: true"):
+        preset("paper", search_confirm=True)
+    assert preset("paper", search_confirm=True, search_repair=True).extraction.search_confirm
     cfg = preset("paper")
     cfg.schedule.lr_decay = "exp"  # set by hand: validate() (which Trainer calls) still catches it
     with pytest.raises(ConfigError, match="lr_decay"):
@@ -158,12 +163,14 @@ def test_cli_flags_are_generated_for_every_option():
         elif name == "device":
             argv, expect = [flag, "cpu"], "cpu"
         else:  # a value that differs from tiny's and satisfies the rules between options
-            expect = {"grid_start_levels": 3, "grid_finest": 64, "grid_log2_table": 12}.get(name, {int: 2, float: 0.5}[opt._numeric()])
+            expect = {"grid_start_levels": 3, "grid_finest": 64, "grid_log2_table": 12,
+                      "surface_band_mm": 1.0}.get(name, {int: 2, float: 0.5}[opt._numeric()])
             if opt.min is not None and expect < opt.min:  # e.g. mc_resolution >= 16
                 expect = {int: int, float: float}[opt._numeric()](opt.min) + 1
             assert expect != default
             argv = [flag, str(expect)]
-        _, cfg, _ = parse(["reconstruct", "scan", "--out", "o", "--preset", "tiny", *argv])
+        needs = ["--search-repair"] if name == "search_confirm" else []  # a rule between options
+        _, cfg, _ = parse(["reconstruct", "scan", "--out", "o", "--preset", "tiny", *argv, *needs])
         assert cfg.get(name) == expect, name
 
 

@@ -270,3 +270,77 @@ def test_cuda_graph_step_matches_plain_launches(small_scan, backend):
     assert runs[True][2].graph_captured, "the step was not captured"
     np.testing.assert_allclose(runs[True][0], runs[False][0], rtol=2e-4, atol=1e-6)
     torch.testing.assert_close(runs[True][1], runs[False][1], rtol=1e-3, atol=1e-5)
+
+
+class PlaneSDF(torch.nn.Module):
+    """The SDF (mm) of the plane z = z0 (mm), positive on the camera's side."""
+
+    def __init__(self, z0: float):
+        super().__init__()
+        self.z0 = torch.nn.Parameter(torch.tensor(float(z0)))
+
+    def forward(self, x):
+        return self.z0 - x[..., 2]
+
+
+def test_surface_term_by_hand(small_scan):
+    """On a plane at 700 mm: zero for map points on it; for a point 10 mm behind or in front, |f| = 10 at the
+    point plus 10 - band cos at the point band mm in front (behind) along the ray, whose sign is wrong."""
+    from slwarp.neural import ops
+
+    band = 0.5
+    tr = Trainer(small_scan.select("0:6"), tiny(init="sphere", surface_weight=1.0, surface_band_mm=band),
+                 sdf=PlaneSDF(700.0), progress=False)
+    batch = tr.renderer.sample_pixels(16, torch.Generator().manual_seed(0))
+    _, d, _, _ = ops.camera_rays(batch.uv, small_scan.camera, tr.depth_range, backend="torch")
+    w = torch.ones(16)
+    n = torch.tensor(16.0)
+    on = torch.full((16,), 700.0)
+    assert tr._surface_term(batch, on, w, n).item() == pytest.approx(0.0, abs=1e-5)
+    expected = float((20.0 - band * d[:, 2]).mean()) / tr.volume.scale
+    for offset in (10.0, -10.0):
+        got = tr._surface_term(batch, on + offset, w, n)
+        assert got.item() == pytest.approx(expected, rel=1e-4)
+    # a pixel of weight 0 counts nothing; its gradient reaches the field where the rendered depth's would not
+    half = torch.where(torch.arange(16) < 8, 1.0, 0.0)
+    assert tr._surface_term(batch, on + 10.0, half, n).item() == pytest.approx(
+        float((20.0 - band * d[:8, 2]).sum()) / 16 / tr.volume.scale, rel=1e-4)
+    tr.field.zero_grad()
+    tr._surface_term(batch, on - 300.0, w, n).backward()
+    assert float(tr.field.z0.grad) > 0  # a surface 300 mm in front: the plane is pulled toward the camera
+
+
+def test_surface_term_weights_warm_up_and_after():
+    from slwarp.neural.train import MISSED_MM, surface_term_weights
+
+    target = torch.tensor([600.0, 600.0, 600.0, float("nan")])
+    rendered = torch.tensor([600.5, 600.0 + MISSED_MM + 1.0, 590.0, 900.0])
+    # warm-up: every pixel with a target
+    assert surface_term_weights(target, rendered, 1.0, 2.0, 0.5).tolist() == [2.0, 2.0, 2.0, 0.0]
+    # after: only where the field shows a surface more than MISSED_MM behind the map's
+    assert surface_term_weights(target, rendered, 0.0, 2.0, 0.5).tolist() == [0.0, 0.5, 0.0, 0.0]
+    # as a captured step computes it (warm a 0-d tensor)
+    got = surface_term_weights(target, rendered, torch.tensor(0.0), 2.0, 0.5)
+    assert got.tolist() == [0.0, 0.5, 0.0, 0.0]
+
+
+def test_surface_term_uses_only_the_map_depths_the_codes_confirm(small_scan):
+    """The surface term's depths: the initial map's where the pixel's own codes fit (right depths), not a
+    block moved 40 mm (another code's depth) nor the pixels without depth; the warm-up's depth loss keeps the
+    whole map."""
+    scan = small_scan.select("0:6")
+    gt = np.where(np.isfinite(scan.gt_depth), scan.gt_depth, np.nan).astype(np.float32)
+    init = gt.copy()
+    ys, xs = np.nonzero(np.isfinite(gt))
+    y, x = next((y, x) for y, x in zip(ys[::101], xs[::101]) if np.isfinite(gt[y : y + 20, x : x + 20]).all())
+    wrong = np.zeros(gt.shape, bool)
+    wrong[y : y + 20, x : x + 20] = True
+    init[wrong] += 40.0
+    tr = Trainer(scan, tiny(surface_weight=1.0), init_depth=init, progress=False)
+    kept = np.isfinite(tr.surface_depth.cpu().numpy().reshape(gt.shape))
+    right = np.isfinite(gt) & ~wrong & tr.renderer.valid_map.cpu().numpy()
+    assert kept[right].mean() > 0.9
+    assert kept[wrong].mean() < 0.2
+    assert not kept[~np.isfinite(init)].any()
+    assert torch.equal(torch.isfinite(tr.init_depth), torch.as_tensor(np.isfinite(init).reshape(-1)))
+    assert Trainer(scan, tiny(), init_depth=init, progress=False).surface_depth is None  # the term is off

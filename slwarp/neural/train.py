@@ -9,7 +9,9 @@ lambda_reg throughout; Adam at a constant learning rate (or cosine decay). Befor
 default), `init.iters` warm-up iterations pull the volume-rendered depth onto a depth-search map
 (slwarp.neural.search): the photometric loss is not convex in depth, and NeuS's sphere initialisation leaves
 surfaces hundreds of mm from the truth stuck in other minima (measured: 232 mm MAE on the small-rig bunny
-without it). Incremental mode (paper Fig. 8): start with `start_frames` frames and add the next one every
+without it). With init.surface_weight > 0 the warm-up also puts the field's zero level at the map's points
+(`Trainer._surface_term`), and init.surface_after > 0 keeps that term after the warm-up where the field lost a
+surface in front of the one it shows (thin parts: bench/thin_stages.py). Incremental mode (paper Fig. 8): start with `start_frames` frames and add the next one every
 `add_every` iterations without restarting; `Trainer.add_frames` lets a caller add captured frames to a
 running optimisation.
 
@@ -47,12 +49,29 @@ from ..devices import torch_device
 from ..scans.scan import ScanError
 from .config import TrainConfig
 from .field import Volume, make_field
+from .confidence import photometric_confidence
 from .pattern_model import blur_patterns, estimate_pattern_blur, lit_with_contrast, offset_and_modulation
 from .progress import Progress
+from . import ops
 from .render import StructuredLightRenderer
 from .search import search_depth
 
-__all__ = ["Trainer", "TrainingDiverged", "TrainingInterrupted", "CheckpointError", "CheckpointExists", "RunMismatch",
+MISSED_MM = 5.0  # after the warm-up, the surface term acts where the field's depth is this far behind the map's
+SURFACE_CONFIDENCE = 0.8  # the surface term's depths: the map's where the pixel's own codes fit this well
+
+
+def surface_term_weights(target: torch.Tensor, rendered: torch.Tensor, warm, during: float, after: float) -> torch.Tensor:
+    """Per-pixel weights [R] of the surface term (Trainer._surface_term): `during` on every pixel with a target
+    in the warm-up (warm 1), and after it (warm 0) `after` only where the rendered depth [R] (mm) lies more than
+    MISSED_MM behind the target [R] (mm, NaN: none): a thin part in front that the field lost. Where the field
+    agrees with the map, or lies in front of it, the photometric loss alone decides. warm: a float or a 0-d
+    tensor in [0, 1]."""
+    ok = torch.isfinite(target)
+    missed = ok & (torch.nan_to_num(target) < rendered - MISSED_MM)
+    return ok.to(rendered.dtype) * (warm * during) + missed.to(rendered.dtype) * ((1.0 - warm) * after)
+
+
+__all__ = ["Trainer", "surface_term_weights", "TrainingDiverged", "TrainingInterrupted", "CheckpointError", "CheckpointExists", "RunMismatch",
            "History", "run_identity"]
 
 
@@ -316,6 +335,23 @@ class Trainer:
         self.elapsed = 0.0
         if checkpoint is not None:
             self.load_checkpoint(ck_path, checkpoint)
+        self.surface_depth = self._surface_depth()
+
+    def _surface_depth(self) -> torch.Tensor | None:
+        """[H W] (mm, NaN: none) the initial map's depths that the surface term pulls the field onto: those that
+        their own pixel's codes confirm (photometric confidence >= SURFACE_CONFIDENCE, patterns as rendered);
+        None when the term is off or there is no map. Why: its gradient does not vanish far from the field's
+        surface, so a wrong depth of the map would raise a wrong surface; a 5x5 window's chance match, or its
+        foreground depth spread over the background beside a depth edge, fits the pixel's own codes poorly."""
+        init = self.cfg.init
+        if self.init_depth is None or not (init.surface_weight > 0 or init.surface_after > 0):
+            return None
+        cam = self.scan.camera
+        d = self.init_depth.reshape(cam.height, cam.width).cpu().numpy()
+        conf = photometric_confidence(d, cam, self.scan.projector, self.scan.images[: self.n_frames],
+                                      self.renderer.rendered_patterns.detach().cpu().numpy())
+        kept = np.where(conf >= SURFACE_CONFIDENCE, d, np.nan).astype(np.float32)
+        return torch.as_tensor(kept.reshape(-1), device=self.device)
 
     # --- frames -------------------------------------------------------------------------------
     def add_frames(self, images=None, patterns=None, count: int = 1):
@@ -524,14 +560,21 @@ class Trainer:
         warm, w_sc = weights["warmup"], weights["lambda_sc"]
         captured = torch.is_tensor(warm)
         loss = self.cfg.schedule.lambda_reg * losses.eikonal
-        if self.init_depth is not None and (captured or warm != 0.0):
-            # warm-up: pull the rendered depth (and full opacity) onto the initial depth map
+        init = self.cfg.init
+        if self.init_depth is not None and (captured or warm != 0.0 or init.surface_after > 0):
             target = self.init_depth[batch.index]
             ok = torch.isfinite(target).to(target.dtype)
             n = ok.sum().clamp(min=1.0)
-            depth_err = ((losses.output.depth - torch.nan_to_num(target)).abs() * ok).sum() / n
-            opacity = ((1.0 - losses.output.weight_sum).abs() * ok).sum() / n
-            loss = loss + warm * (depth_err / self.volume.scale + opacity)
+            if captured or warm != 0.0:
+                # warm-up: pull the rendered depth (and full opacity) onto the initial depth map
+                depth_err = ((losses.output.depth - torch.nan_to_num(target)).abs() * ok).sum() / n
+                opacity = ((1.0 - losses.output.weight_sum).abs() * ok).sum() / n
+                loss = loss + warm * (depth_err / self.volume.scale + opacity)
+            if self.surface_depth is not None:
+                surface = self.surface_depth[batch.index]
+                per_pixel = surface_term_weights(surface, losses.output.depth.detach(), warm, init.surface_weight,
+                                                 init.surface_after)
+                loss = loss + self._surface_term(batch, surface, per_pixel, n)
         if captured or warm != 1.0:
             photometric = self.cfg.schedule.lambda_rc * losses.color
             if captured or w_sc != 0.0:
@@ -545,6 +588,21 @@ class Trainer:
         r.mark_phase("end")
         return {"loss": loss.detach(), "color": losses.color.detach(), "surface": losses.surface.detach(),
                 "eikonal": losses.eikonal.detach()}
+
+    def _surface_term(self, batch, target: torch.Tensor, weight: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
+        """The SDF term at the initial map's points (dimensionless: mm over the volume's scale), summed over the
+        batch's pixels with per-pixel weights [R] (0 where no target) over n: |f(p)| at the point p of camera
+        depth target [R] (mm) on each pixel's ray, plus relu(-f) at band mm before it and relu(f) at band mm
+        behind it along the ray. The rendered depth's gradient reaches the SDF only through NeuS weights near
+        the field's current surface, so it cannot raise a surface far in front of it (a 2.5 mm rod 100 mm in
+        front of the background: bench/thin_stages.py); this term acts on the field at the point itself."""
+        _, d, _, _ = ops.camera_rays(batch.uv, self.scan.camera, self.depth_range, backend=self.cfg.runtime.backend)
+        t = torch.nan_to_num(target) / d[:, 2]  # distance along the unit ray to camera depth target
+        band = self.cfg.init.surface_band_mm
+        along = torch.stack([t - band, t, t + band])  # [3, R]
+        f = self.field(along[..., None] * d[None])  # [3, R] mm
+        term = f[1].abs() + torch.relu(-f[0]) + torch.relu(f[2])
+        return (term * weight).sum() / n / self.volume.scale
 
     def _graph_step(self, pick: torch.Tensor, jitter: torch.Tensor, weights: dict) -> dict | None:
         """Replay the captured step on this iteration's draws and weights (capturing it first when needed);
