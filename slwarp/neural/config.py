@@ -160,14 +160,15 @@ class InitConfig:
         "camera: a surface at the far depth around the camera", name="init")
     iters: int = option(300, "warm-up iterations pulling the rendered depth onto the initial depth map", min=0,
                         name="init_iters")
-    surface_weight: float = option(0.0, "warm-up: weight of an SDF term at the initial map's points (SDF 0 there, "
-                                   ">= 0 surface_band_mm in front along the ray, <= 0 behind); its gradient does not "
-                                   "vanish where the field has no surface yet, as the rendered depth's does (a thin "
-                                   "part in front of the background; 0: off)", min=0.0)
+    surface_weight: float = option(0.0, "warm-up: weight of an SDF term at the initial map's points that the "
+                                   "pixel's codes confirm (SDF 0 there, >= 0 surface_band_mm in front along the ray, "
+                                   "<= 0 behind); its gradient does not vanish where the field has no surface yet, "
+                                   "as the rendered depth's does (a thin part in front of the background; 0: off)",
+                                   min=0.0)
     surface_after: float = option(0.0, "after the warm-up: weight of the same SDF term, only at pixels where the "
                                   "field's rendered depth is more than 5 mm behind the initial map's (a thin part in "
                                   "front that training lost; 0: off)", min=0.0)
-    surface_band_mm: float = option(0.5, "warm-up surface term: the distance (mm) along the ray of its points in "
+    surface_band_mm: float = option(0.5, "surface term: the distance (mm) along the ray of its points in "
                                     "front of and behind the initial map's point", above=0.0)
     search_step_mm: float = option(1.0, "depth-search hypothesis spacing (mm)", above=0.0)
     search_stride: int = option(2, "depth search on every stride-th pixel", min=1)

@@ -49,9 +49,9 @@ def extract_mesh(field, volume: Volume, resolution: int = 384, device="cpu", pro
 
     depth_range (near, far) in mm of camera z: the grid's planes nearer than `near` are set empty (SDF +h)
     first. Training samples rays only beyond the near plane, so the field is unconstrained in the volume's
-    margin before it; a negative region there (`tuned`, H100/H200 sweeps: default-rig boxes and torus, rolled
-    boxes) put a surface in front of the near plane that hid 1.5 to 12% of the pixels, then dropped as out of
-    range. Beyond `far` nothing is cut: there the field is the inside of the farthest surfaces, and a cut
+    margin before it, and a negative region there hides what lies behind (`tuned`, H100/H200 sweeps: 1.5 to 12%
+    of the pixels of some default-rig boxes and torus, rolled boxes, had their first hit out of range, most
+    likely on that side: beyond `far` lies the wall that every ray renders). Beyond `far` nothing is cut: there the field is the inside of the farthest surfaces, and a cut
     would close them with a cap that rays never reach."""
     import trimesh
     from skimage.measure import marching_cubes

@@ -11,9 +11,9 @@ default), `init.iters` warm-up iterations pull the volume-rendered depth onto a 
 surfaces hundreds of mm from the truth stuck in other minima (measured: 232 mm MAE on the small-rig bunny
 without it). With init.surface_weight > 0 the warm-up also puts the field's zero level at the map's points
 (`Trainer._surface_term`), and init.surface_after > 0 keeps that term after the warm-up where the field lost a
-surface in front of the one it shows (thin parts: bench/thin_stages.py). Incremental mode (paper Fig. 8): start with `start_frames` frames and add the next one every
-`add_every` iterations without restarting; `Trainer.add_frames` lets a caller add captured frames to a
-running optimisation.
+surface in front of the one it shows (thin parts: bench/thin_stages.py). Incremental mode (paper Fig. 8): start
+with `start_frames` frames and add the next one every `add_every` iterations without restarting;
+`Trainer.add_frames` lets a caller add captured frames to a running optimisation.
 
 Checkpoints (`out_dir/checkpoint.pt`) record the run's identity (`run_identity`: the frames by name and content
 digest, the depth range, a digest of the calibration and every option that is not `resumable`); `resume=True`
@@ -71,8 +71,8 @@ def surface_term_weights(target: torch.Tensor, rendered: torch.Tensor, warm, dur
     return ok.to(rendered.dtype) * (warm * during) + missed.to(rendered.dtype) * ((1.0 - warm) * after)
 
 
-__all__ = ["Trainer", "surface_term_weights", "TrainingDiverged", "TrainingInterrupted", "CheckpointError", "CheckpointExists", "RunMismatch",
-           "History", "run_identity"]
+__all__ = ["Trainer", "surface_term_weights", "TrainingDiverged", "TrainingInterrupted", "CheckpointError",
+           "CheckpointExists", "RunMismatch", "History", "run_identity"]
 
 
 class TrainingDiverged(RuntimeError):
