@@ -50,7 +50,7 @@ def extract_mesh(field, volume: Volume, resolution: int = 384, device="cpu", pro
     depth_range (near, far) in mm of camera z: the grid's planes nearer than `near` are set empty (SDF +h)
     first. Training samples rays only beyond the near plane, so the field is unconstrained in the volume's
     margin before it, and a negative region there hides what lies behind (`tuned`, H100/H200 sweeps: 1.5 to 12%
-    of the pixels of some default-rig boxes and torus, rolled boxes, had their first hit out of range, most
+    of the pixels of default-rig boxes and torus, vertical-rig torus and rolled-rig boxes had their first hit out of range, most
     likely on that side: beyond `far` lies the wall that every ray renders). Beyond `far` nothing is cut: there the field is the inside of the farthest surfaces, and a cut
     would close them with a cap that rays never reach."""
     import trimesh

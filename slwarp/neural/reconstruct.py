@@ -77,7 +77,8 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     out_of_range = (depth < near) | (depth > far)
     dropped["out_of_range"] = int(out_of_range.sum())
     depth[out_of_range] = np.nan
-    unfiltered = depth.copy()  # what the filters below drop, for the search repair's confirmations
+    # what the filters below drop, for the search repair's confirmations
+    unfiltered = depth.copy() if ex.search_confirm else None
     if ex.edge_filter > 0:
         had = np.isfinite(depth)
         depth = flying_pixel_filter(depth, cam, ex.edge_filter)
