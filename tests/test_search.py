@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from slwarp.neural.pattern_model import blur_patterns, lit_with_contrast, offset_and_modulation
-from slwarp.neural.search import _component_sizes, _neighbours_within, doubt_by_search, repair_by_search, search_depth
+from slwarp.neural.search import component_sizes, _neighbours_within, doubt_by_search, repair_by_search, search_depth
 from slwarp.sim.simulate import SimOptions, simulate_scene
 
 BLUR = 1.0  # projector px: the simulated defocus, and the blur the patterns are rendered with
@@ -140,7 +140,7 @@ def test_component_sizes_link_neighbours_of_one_surface():
     d[2, 0] = 50.0  # next to the group but 45 mm away: its own
     d[3:5, 0:2] = 100.0
     d[5, 7] = 1.0
-    sizes = _component_sizes(d, 3.0)
+    sizes = component_sizes(d, 3.0)
     expected = np.zeros((6, 8), int)
     expected[0, 0:3] = expected[1, 3] = 4
     expected[2, 0] = expected[5, 7] = 1
@@ -148,11 +148,11 @@ def test_component_sizes_link_neighbours_of_one_surface():
     np.testing.assert_array_equal(sizes, expected)
     # a long diagonal band, one surface: one group, whatever the order of the unions
     band = np.where(np.abs(np.subtract.outer(np.arange(60), np.arange(60))) < 2, 700.0, np.nan)
-    assert set(np.unique(_component_sizes(band, 3.0))) == {0, int(np.isfinite(band).sum())}
+    assert set(np.unique(component_sizes(band, 3.0))) == {0, int(np.isfinite(band).sum())}
     # a random map of three depths and holes: the group sizes of a plain flood fill
     rng = np.random.default_rng(1)
     d = np.where(rng.random((40, 50)) < 0.6, 10.0 * rng.integers(0, 3, (40, 50)), np.nan)
-    np.testing.assert_array_equal(_component_sizes(d, 3.0), _flood_fill_sizes(d, 3.0))
+    np.testing.assert_array_equal(component_sizes(d, 3.0), _flood_fill_sizes(d, 3.0))
 
 
 def _flood_fill_sizes(d, tol):

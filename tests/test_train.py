@@ -344,3 +344,25 @@ def test_surface_term_uses_only_the_map_depths_the_codes_confirm(small_scan):
     assert not kept[~np.isfinite(init)].any()
     assert torch.equal(torch.isfinite(tr.init_depth), torch.as_tensor(np.isfinite(init).reshape(-1)))
     assert Trainer(scan, tiny(), init_depth=init, progress=False).surface_depth is None  # the term is off
+
+
+def test_surface_term_drops_small_groups_of_depths(small_scan):
+    """A chance match of the codes may fit them but comes in small scattered groups: the surface term keeps a
+    map depth only inside a connected group of SURFACE_MIN_GROUP confirmed pixels, so a 3x3 island of depths is
+    dropped even where the depths are right, and a 20x20 block of them is kept."""
+    from slwarp.neural.train import SURFACE_MIN_GROUP
+
+    assert 9 < SURFACE_MIN_GROUP <= 400
+    scan = small_scan.select("0:6")
+    gt = np.where(np.isfinite(scan.gt_depth), scan.gt_depth, np.nan).astype(np.float32)
+    lit = Trainer(scan, tiny(), init_depth=gt, progress=False).renderer.valid_map.cpu().numpy()
+    ys, xs = np.nonzero(lit)
+    blocks = [(y, x) for y, x in zip(ys[::37], xs[::37]) if lit[y : y + 20, x : x + 20].all()]
+    (y0, x0), (y1, x1) = blocks[0], next(b for b in blocks if abs(b[0] - blocks[0][0]) > 30 or abs(b[1] - blocks[0][1]) > 30)
+    init = np.full(gt.shape, np.nan, np.float32)
+    init[y0 : y0 + 20, x0 : x0 + 20] = gt[y0 : y0 + 20, x0 : x0 + 20]
+    init[y1 : y1 + 3, x1 : x1 + 3] = gt[y1 : y1 + 3, x1 : x1 + 3]
+    tr = Trainer(scan, tiny(surface_weight=1.0), init_depth=init, progress=False)
+    kept = np.isfinite(tr.surface_depth.cpu().numpy().reshape(gt.shape))
+    assert kept[y0 : y0 + 20, x0 : x0 + 20].mean() > 0.8
+    assert not kept[y1 : y1 + 3, x1 : x1 + 3].any()

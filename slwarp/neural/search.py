@@ -177,7 +177,7 @@ def repair_by_search(depth: np.ndarray, camera, projector, images, patterns, dep
         switch &= ~drop
         confirm &= ~drop
     if min_component > 0 and (fill | switch).any():
-        small = (fill | switch) & (_component_sizes(np.where(fill | switch, out, np.nan), AGREE_MM) < min_component)
+        small = (fill | switch) & (component_sizes(np.where(fill | switch, out, np.nan), AGREE_MM) < min_component)
         out[small] = depth[small]
         fill &= ~small
         switch &= ~small
@@ -227,7 +227,7 @@ def _neighbours_within(depth: np.ndarray, tol_mm: float) -> np.ndarray:
         return (np.abs(neighbour_stack(depth) - depth) < tol_mm).sum(0).astype(np.int32)
 
 
-def _component_sizes(depth: np.ndarray, tol_mm: float) -> np.ndarray:
+def component_sizes(depth: np.ndarray, tol_mm: float) -> np.ndarray:
     """[H, W] int: the pixel count of each finite pixel's connected group, where two of the 8 neighbours connect
     when their depths differ by less than tol_mm (0 where depth is NaN)."""
     H, W = depth.shape

@@ -54,10 +54,11 @@ from .pattern_model import blur_patterns, estimate_pattern_blur, lit_with_contra
 from .progress import Progress
 from . import ops
 from .render import StructuredLightRenderer
-from .search import search_depth
+from .search import AGREE_MM, component_sizes, search_depth
 
 MISSED_MM = 5.0  # after the warm-up, the surface term acts where the field's depth is this far behind the map's
-SURFACE_CONFIDENCE = 0.8  # the surface term's depths: the map's where the pixel's own codes fit this well
+SURFACE_CONFIDENCE = 0.8  # the surface term's depths: the map's where the pixel's own codes fit this well ...
+SURFACE_MIN_GROUP = 50  # ... inside a connected group of at least this many such pixels (search.AGREE_MM apart)
 
 
 def surface_term_weights(target: torch.Tensor, rendered: torch.Tensor, warm, during: float, after: float) -> torch.Tensor:
@@ -339,10 +340,13 @@ class Trainer:
 
     def _surface_depth(self) -> torch.Tensor | None:
         """[H W] (mm, NaN: none) the initial map's depths that the surface term pulls the field onto: those that
-        their own pixel's codes confirm (photometric confidence >= SURFACE_CONFIDENCE, patterns as rendered);
-        None when the term is off or there is no map. Why: its gradient does not vanish far from the field's
-        surface, so a wrong depth of the map would raise a wrong surface; a 5x5 window's chance match, or its
-        foreground depth spread over the background beside a depth edge, fits the pixel's own codes poorly."""
+        their own pixel's codes confirm (photometric confidence >= SURFACE_CONFIDENCE, patterns as rendered)
+        inside a connected group of at least SURFACE_MIN_GROUP of them (8 neighbours, each within AGREE_MM of the
+        next); None when the term is off or there is no map. Why: its gradient does not vanish far from the
+        field's surface, so a wrong depth of the map raises a wrong surface. A 5x5 window's foreground depth
+        spread over the background beside a depth edge fits the pixel's own codes poorly; a chance match of the
+        codes may fit them well but comes in small scattered groups (rolled-rig spheres: 3224 targets more than
+        20 mm in front of the truth, down to the near plane, raised floaters; none lies in a group of 50)."""
         init = self.cfg.init
         if self.init_depth is None or not (init.surface_weight > 0 or init.surface_after > 0):
             return None
@@ -351,6 +355,7 @@ class Trainer:
         conf = photometric_confidence(d, cam, self.scan.projector, self.scan.images[: self.n_frames],
                                       self.renderer.rendered_patterns.detach().cpu().numpy())
         kept = np.where(conf >= SURFACE_CONFIDENCE, d, np.nan).astype(np.float32)
+        kept[component_sizes(kept, AGREE_MM) < SURFACE_MIN_GROUP] = np.nan
         return torch.as_tensor(kept.reshape(-1), device=self.device)
 
     # --- frames -------------------------------------------------------------------------------
