@@ -46,3 +46,30 @@ def test_extract_mesh_leaves_out_the_volume_outside_the_depth_range():
     assert full.vertices[:, 2].min() < 450.0  # the ball
     np.testing.assert_allclose(cropped.vertices[:, 2], 800.0, atol=1e-3)
     assert len(cropped.faces) == np.sum(np.abs(full.triangles_center[:, 2] - 800.0) < 1.0)
+
+
+def test_extract_depth_uniform_fill_only_adds_pixels_without_contrast():
+    """extract_depth with uniform_fill: the same field's depth map plus pixels outside the lit-with-contrast map
+    (counted in timings["filled_uniform"], with a confidence), nothing else moved; none outside `region`."""
+    from slwarp.neural.config import preset
+    from slwarp.neural.reconstruct import extract_depth
+    from slwarp.neural.train import Trainer
+    from slwarp.sim.simulate import SimOptions, simulate_scene
+
+    scan = simulate_scene("spheres", "random6", rig="small", options=SimOptions(seed=0), device="cpu")
+    cfg = preset("tiny", device="cpu", iters=80, init_iters=40)
+    trainer = Trainer(scan, cfg, progress=False)
+    trainer.train()
+    lit = trainer.renderer.valid_map.cpu().numpy()
+    plain, _, _, t_plain = extract_depth(trainer, lit)
+    trainer.cfg = cfg.with_options(uniform_fill=True)
+    filled, conf, _, t_fill = extract_depth(trainer, lit)
+    assert t_plain["filled_uniform"] == 0
+    had = np.isfinite(plain)
+    np.testing.assert_array_equal(filled[had], plain[had])
+    new = np.isfinite(filled) & ~had
+    assert t_fill["filled_uniform"] == int(new.sum()) > 0
+    assert not (new & lit).any()
+    assert np.isfinite(conf[new]).all()
+    none = extract_depth(trainer, lit, region=np.zeros_like(lit))[0]
+    np.testing.assert_array_equal(np.isfinite(none), had)

@@ -257,3 +257,32 @@ def _ref_refine_depth(depth: np.ndarray, camera, projector, images: np.ndarray, 
     frac = np.where(inner, 0.5 * (left - right) / np.where(inner, den, 1.0), 0.0)
     offset = deltas[best_j] + step_mm * frac
     return np.where(ok, depth + offset, np.nan).astype(np.float32)
+
+
+def test_fill_uniform_codes_gives_the_field_depth_to_lit_pixels_without_contrast(blurred_scan):
+    """Pixels lit by a projector square that is black or white in all 6 patterns have no contrast: they take the
+    field's depth where the codes predicted there are uniform and explain the images; a field 30 mm off predicts
+    other codes there and fills far fewer; nothing is filled outside `region` or where the pixel has depth."""
+    from slwarp.neural.pattern_model import fill_uniform_codes
+
+    s = blurred_scan
+    pats = blur_patterns(torch.as_tensor(s.patterns), 1.0).numpy()
+    _, b = offset_and_modulation(s.images)
+    lit = lit_with_contrast(b)
+    gt = np.where(s.mask, s.gt_depth, np.nan).astype(np.float32)
+    field = np.nan_to_num(s.gt_depth, nan=np.inf).astype(np.float32)  # the field's depth: exact where it hits
+    depth = np.where(lit, gt, np.nan).astype(np.float32)
+    args = (s.camera, s.projector, s.images, pats, s.depth_range, 0.6)
+    out, conf, filled = fill_uniform_codes(depth, field, lit, *args)
+    dark = s.mask & ~lit  # lit by the projector (GT mask) but without contrast
+    assert dark.sum() > 50
+    assert filled.sum() > 0.5 * dark.sum()
+    # a shadow predicts all-black codes now and then (measured: 17 of 559 fills), at the surface's depth
+    assert (filled & ~s.mask).sum() < 0.05 * filled.sum()
+    assert not (filled & lit).any()
+    np.testing.assert_allclose(out[filled], s.gt_depth[filled], atol=0.05)  # exact neighbours: no correction
+    np.testing.assert_array_equal(out[~filled], depth[~filled])
+    assert np.isfinite(conf[filled]).all() and (conf[filled] >= 0.6).all() and np.isnan(conf[~filled]).all()
+    _, _, off = fill_uniform_codes(depth, field + 30.0, lit, *args)
+    assert off.sum() < 0.2 * filled.sum()
+    assert not fill_uniform_codes(depth, field, lit, *args, region=np.zeros_like(lit))[2].any()

@@ -227,6 +227,10 @@ class ExtractionConfig:
     search_doubt: bool = option(False, "drop depths that a per-pixel depth search (3x3 window) contradicts by more "
                                 "than 6 mm and whose photometric confidence is below 0.7 (the background's depth on "
                                 "a thin part); fills and replaces nothing (search_repair includes it)", resumable=True)
+    uniform_fill: bool = option(False, "after the refinement, lit pixels without contrast (a projector square black or "
+                                "white in every pattern) take the field's depth where the codes it predicts there "
+                                "are uniform and explain the images with the neighbours' offset and modulation",
+                                resumable=True)
     refine_range: float = option(0.0, "photometric refinement after the filters: each pixel's depth moves by the offset "
                                  "within +- this many mm that best explains its 7x7 window's images (offset and "
                                  "modulation by least squares, blur per projector depth; 0: off)", min=0.0,

@@ -27,7 +27,7 @@ from ..evaluation.outputs import (check_output_folder, staged_outputs, write_con
                                   write_points_ply)
 from .extract import depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, sphere_trace_depth
 from .confidence import depth_confidence
-from .pattern_model import refine_depth
+from .pattern_model import fill_uniform_codes, refine_depth
 from .search import doubt_by_search, repair_by_search
 from .config import TrainConfig, save_config
 from .train import Trainer
@@ -48,15 +48,17 @@ class Reconstruction:
     confidence: np.ndarray | None = None
 
 
-def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: bool = False):
+def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: bool = False,
+                  region: np.ndarray | None = None):
     """(depth [H, W], confidence [H, W], mesh, timings) from a trained field as its config's extraction section
     says: marching cubes, then the mesh ray-cast (or sphere tracing when depth_method is 'sphere'), the depth
     range, the flying-pixel filter, the confidence map (`extraction.confidence`) and the pixels below
     `extraction.min_confidence` dropped, the search repair when `search_repair` is on (holes filled, contradicted
     depths replaced: slwarp.neural.search.repair_by_search) or else its doubt rule alone when `search_doubt` is on
     (slwarp.neural.search.doubt_by_search), then the photometric refinement of the depth when refine_range > 0
-    (the confidence is that of the depth before refinement); depth is kept only inside `valid`. Both maps are NaN
-    where no depth. timings["dropped"] counts the pixels each stage left without depth (no_surface inside `valid`,
+    (the confidence is that of the depth before refinement), and with `uniform_fill` the lit pixels without contrast
+    inside `region` (default: all) that the field's predicted codes explain (`pattern_model.fill_uniform_codes`);
+    depth is otherwise kept only inside `valid`. Both maps are NaN where no depth. timings["dropped"] counts the pixels each stage left without depth (no_surface inside `valid`,
     out_of_range, flying_pixel, low_confidence, search_doubt)."""
     ex = trainer.cfg.extraction
     t0 = time.perf_counter()
@@ -69,6 +71,7 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
         depth = sphere_trace_depth(field_, cam, trainer.depth_range, trainer.device, valid=valid)
     else:
         depth = mesh_depth(mesh, cam, trainer.device)
+    field_depth = depth.copy() if ex.uniform_fill else None  # for the pixels without contrast
     if valid is not None:
         depth = np.where(valid, depth, np.nan).astype(np.float32)
     # why pixels end without depth: counted per stage over the pixels that still had one before it
@@ -123,9 +126,19 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     if ex.refine_range > 0:
         depth = refine_depth(depth, cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames],
                              trainer.scan.patterns[: trainer.n_frames], ex.refine_range, device=trainer.device)
+    t4 = time.perf_counter()
+    filled = None
+    if ex.uniform_fill:
+        depth, fill_confidence, filled = fill_uniform_codes(
+            depth, field_depth, trainer.renderer.valid_map.cpu().numpy(), cam, trainer.scan.projector,
+            trainer.scan.images[: trainer.n_frames], trainer.renderer.rendered_patterns.detach().cpu().numpy(),
+            trainer.depth_range, ex.min_confidence, region=region)
+        confidence = np.where(filled, fill_confidence, confidence).astype(np.float32)
     return depth, confidence, mesh, {"marching_cubes_s": t1 - t0, "depth_s": t2 - t1,
                                      "confidence_s": t3 - t2 - repair_s, "repair_s": repair_s, "repair": repair,
-                                     "refine_s": time.perf_counter() - t3, "dropped": dropped}
+                                     "refine_s": t4 - t3, "fill_s": time.perf_counter() - t4,
+                                     "filled_uniform": int(filled.sum()) if filled is not None else 0,
+                                     "dropped": dropped}
 
 
 def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, depth_range=None,
@@ -164,7 +177,8 @@ def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log
     valid = trainer.renderer.valid_map.cpu().numpy()
     if use_mask and scan.mask is not None:
         valid &= scan.mask
-    depth, confidence, mesh, ext_t = extract_depth(trainer, valid, progress=progress)
+    depth, confidence, mesh, ext_t = extract_depth(trainer, valid, progress=progress,
+                                                   region=scan.mask if use_mask and scan.mask is not None else None)
     points = depth_to_points(depth, scan.camera)
     metrics = None
     if scan.gt_depth is not None:
