@@ -39,7 +39,7 @@ FLAT_PRESETS = {
                  checkpoint_every=1000, **HASHGRID),
     "accurate": dict(matmul="tf32", grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2, grid_level_every=200, refine_range=3.0,
                      search_doubt=True, **HASHGRID),
-    "cpu-hashgrid": dict(refine_range=3.0, search_doubt=True, search_repair=True, repair_min_component=100,
+    "cpu-hashgrid": dict(refine_range=3.0, search_doubt=True, search_repair=True, repair_min_component=100, uniform_fill=True,
                          grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, search_step_mm=2.0,
                          mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
                          **HASHGRID),
