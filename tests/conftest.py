@@ -43,3 +43,18 @@ def chessboard_path():
     if not CHESSBOARD.is_dir():
         pytest.skip(f"real capture not found at {CHESSBOARD} (set SLWARP_SHARED)")
     return CHESSBOARD
+
+
+@pytest.fixture(scope="session")
+def tiny_rods_field():
+    """(scan, config, trainer): a 60-iteration `tiny` field on the small-rig rods scene (CPU), trained once for
+    the extraction tests; a test sets trainer.cfg to the extraction it wants."""
+    from slwarp.neural.config import preset
+    from slwarp.neural.train import Trainer
+    from slwarp.sim.simulate import SimOptions, simulate_scene
+
+    scan = simulate_scene("rods", "random6", rig="small", options=SimOptions(seed=0), device="cpu")
+    cfg = preset("tiny", device="cpu", iters=60, init_iters=30)
+    trainer = Trainer(scan, cfg, progress=False)
+    trainer.train()
+    return scan, cfg, trainer

@@ -48,18 +48,13 @@ def test_extract_mesh_leaves_out_the_volume_outside_the_depth_range():
     assert len(cropped.faces) == np.sum(np.abs(full.triangles_center[:, 2] - 800.0) < 1.0)
 
 
-def test_extract_depth_uniform_fill_only_adds_pixels_without_contrast():
+def test_extract_depth_uniform_fill_only_adds_pixels_without_contrast(tiny_rods_field):
     """extract_depth with uniform_fill: the same field's depth map plus pixels outside the lit-with-contrast map
     (counted in timings["filled_uniform"], with a confidence), nothing else moved; none outside `region`."""
-    from slwarp.neural.config import preset
     from slwarp.neural.reconstruct import extract_depth
-    from slwarp.neural.train import Trainer
-    from slwarp.sim.simulate import SimOptions, simulate_scene
 
-    scan = simulate_scene("spheres", "random6", rig="small", options=SimOptions(seed=0), device="cpu")
-    cfg = preset("tiny", device="cpu", iters=80, init_iters=40)
-    trainer = Trainer(scan, cfg, progress=False)
-    trainer.train()
+    _, cfg, trainer = tiny_rods_field
+    trainer.cfg = cfg
     lit = trainer.renderer.valid_map.cpu().numpy()
     plain, _, _, t_plain = extract_depth(trainer, lit)
     trainer.cfg = cfg.with_options(uniform_fill=True)

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from slwarp.neural.pattern_model import blur_patterns, lit_with_contrast, offset_and_modulation
-from slwarp.neural.search import component_sizes, _neighbours_within, doubt_by_search, repair_by_search, search_depth
+from slwarp.neural.search import component_sizes, neighbours_within, doubt_by_search, repair_by_search, search_depth
 from slwarp.sim.simulate import SimOptions, simulate_scene
 
 BLUR = 1.0  # projector px: the simulated defocus, and the blur the patterns are rendered with
@@ -218,24 +218,20 @@ def test_neighbours_within_counts_the_agreeing_neighbours():
     d = np.full((4, 4), 100.0, np.float32)
     d[1, 1] = 150.0  # an isolated different depth: no neighbour agrees
     d[3, 3] = np.nan
-    n = _neighbours_within(d, 3.0)
+    n = neighbours_within(d, 3.0)
     assert n[1, 1] == 0
     assert n[0, 0] == 2  # (0, 1), (1, 0) agree; (1, 1) does not
     assert n[2, 2] == 6  # 8 neighbours less (1, 1) and the NaN (3, 3)
     assert n[3, 3] == 0
 
 
-def test_extract_depth_applies_the_doubt_rule_only_by_dropping():
+def test_extract_depth_applies_the_doubt_rule_only_by_dropping(tiny_rods_field):
     """extract_depth with search_doubt: the same field's depth map, minus the pixels the rule drops (counted in
     timings["dropped"]["search_doubt"]), nothing added or moved (tiny has no refinement)."""
-    from slwarp.neural.config import preset
     from slwarp.neural.reconstruct import extract_depth
-    from slwarp.neural.train import Trainer
 
-    scan = simulate_scene("rods", "random6", rig="small", options=SimOptions(seed=0), device="cpu")
-    cfg = preset("tiny", device="cpu", iters=60, init_iters=30)
-    trainer = Trainer(scan, cfg, progress=False)
-    trainer.train()
+    _, cfg, trainer = tiny_rods_field
+    trainer.cfg = cfg
     valid = trainer.renderer.valid_map.cpu().numpy()
     plain, _, _, t_plain = extract_depth(trainer, valid)
     trainer.cfg = cfg.with_options(search_doubt=True)

@@ -162,8 +162,9 @@ def fill_uniform_codes(depth: np.ndarray, field_depth: np.ndarray, lit: np.ndarr
     depth given to lit pixels that have too little contrast to take part, where the codes it predicts explain them.
 
     Why: with 6 random binary patterns some projector squares are black (or white) in every pattern, so the
-    camera pixels they light have no modulation b; they leave the training and the depth map (1.2 to 2.4% of the
-    virtual scanner's lit pixels) although the field has a surface there, held by its neighbours.
+    camera pixels they light have no modulation b; they leave the training and the depth map (1.2 to 2.8% of the
+    lit pixels of most virtual-scanner scans, GPU default rig and others) although the field has a surface there,
+    held by its neighbours.
     A pixel without contrast (not `lit`, inside `region`) and without depth takes the field's depth
     field_depth [H, W] (mm, within depth_range) when:
     - the patterns (as rendered, blurred) predict codes there within UNIFORM_TOLERANCE of all 0 or all 1, and the
@@ -177,7 +178,7 @@ def fill_uniform_codes(depth: np.ndarray, field_depth: np.ndarray, lit: np.ndarr
     (2 UNIFORM_CORRECTION_RADIUS + 1)^2 window (the refinement's local correction of the field, which a pixel
     without contrast cannot measure itself; small-rig spheres: filled pixels 0.92 -> 0.60 mm MAE).
     depth: the map so far (mm, NaN: none); images [N, H, W] and patterns [N, Hp, Wp] in [0, 1]."""
-    from .search import AGREE_MM, _neighbours_within
+    from .search import AGREE_MM, neighbours_within
 
     depth = np.asarray(depth, np.float32)
     field_depth = np.asarray(field_depth, np.float32)
@@ -209,7 +210,7 @@ def fill_uniform_codes(depth: np.ndarray, field_depth: np.ndarray, lit: np.ndarr
         correction, counted = _box_mean(np.nan_to_num(depth - field_depth), np.isfinite(depth - field_depth),
                                         UNIFORM_CORRECTION_RADIUS)
     out[filled] = (field_depth + np.where(counted > 0, correction, 0.0))[filled]
-    lonely = filled & (_neighbours_within(out, AGREE_MM) < 2)  # a lone fill: no surface of its neighbours
+    lonely = filled & (neighbours_within(out, AGREE_MM) < 2)  # a lone fill: no surface of its neighbours
     out[lonely] = np.nan
     filled &= ~lonely
     confidence[filled] = fit[filled]

@@ -58,8 +58,9 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     (slwarp.neural.search.doubt_by_search), then the photometric refinement of the depth when refine_range > 0
     (the confidence is that of the depth before refinement), and with `uniform_fill` the lit pixels without contrast
     inside `region` (default: all) that the field's predicted codes explain (`pattern_model.fill_uniform_codes`);
-    depth is otherwise kept only inside `valid`. Both maps are NaN where no depth. timings["dropped"] counts the pixels each stage left without depth (no_surface inside `valid`,
-    out_of_range, flying_pixel, low_confidence, search_doubt)."""
+    depth is otherwise kept only inside `valid`. Both maps are NaN where no depth. timings["dropped"] counts the
+    pixels each stage left without depth (no_surface inside `valid`, out_of_range, flying_pixel, low_confidence,
+    search_doubt); timings["filled_uniform"] the pixels the uniform-code fill added."""
     ex = trainer.cfg.extraction
     t0 = time.perf_counter()
     cam = trainer.scan.camera

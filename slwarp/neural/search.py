@@ -170,7 +170,7 @@ def repair_by_search(depth: np.ndarray, camera, projector, images, patterns, dep
     change = fill | switch | confirm
     if support > 0 and change.any():
         # an isolated change is a search's chance match: keep those that `support` of their 8 neighbours agree with
-        agreeing = _neighbours_within(out, AGREE_MM)
+        agreeing = neighbours_within(out, AGREE_MM)
         drop = change & (agreeing < support)
         out[drop] = depth[drop]
         fill &= ~drop
@@ -221,7 +221,7 @@ def doubt_by_search(depth: np.ndarray, camera, projector, images, patterns, dept
     return out, {"contested": int(contested.sum()), "dropped": int(doubt.sum())}
 
 
-def _neighbours_within(depth: np.ndarray, tol_mm: float) -> np.ndarray:
+def neighbours_within(depth: np.ndarray, tol_mm: float) -> np.ndarray:
     """[H, W] int: how many of each pixel's 8 neighbours have a depth within tol_mm of its own."""
     with np.errstate(invalid="ignore"):
         return (np.abs(neighbour_stack(depth) - depth) < tol_mm).sum(0).astype(np.int32)
