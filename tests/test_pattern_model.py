@@ -286,3 +286,25 @@ def test_fill_uniform_codes_gives_the_field_depth_to_lit_pixels_without_contrast
     _, _, off = fill_uniform_codes(depth, field + 30.0, lit, *args)
     assert off.sum() < 0.2 * filled.sum()
     assert not fill_uniform_codes(depth, field, lit, *args, region=np.zeros_like(lit))[2].any()
+
+
+def test_fill_uniform_codes_corrects_by_the_refinement_offset_and_ignores_repairs(blurred_scan):
+    """A field 1 mm behind the surface: the fills take its depth shifted by the neighbours' depth - field_depth
+    (here -1 mm), and neighbours that a search repair moved far off (-80 mm) do not enter that mean."""
+    from slwarp.neural.pattern_model import fill_uniform_codes
+
+    s = blurred_scan
+    pats = blur_patterns(torch.as_tensor(s.patterns), 1.0).numpy()
+    _, b = offset_and_modulation(s.images)
+    lit = lit_with_contrast(b)
+    gt = np.where(s.mask, s.gt_depth, np.nan).astype(np.float32)
+    field = np.nan_to_num(s.gt_depth, nan=np.inf).astype(np.float32) + 1.0
+    depth = np.where(lit, gt, np.nan).astype(np.float32)
+    repaired = lit & (np.arange(lit.shape[1])[None, :] % 5 == 0)
+    depth[repaired] -= 80.0
+    args = (s.camera, s.projector, s.images, pats, s.depth_range, 0.6)
+    out, _, filled = fill_uniform_codes(depth, field, lit, *args)
+    on = filled & s.mask
+    assert on.sum() > 50
+    assert np.nanmedian(np.abs(out[on] - s.gt_depth[on])) < 0.05
+    assert np.mean(np.abs(out[on] - s.gt_depth[on]) < 0.2) > 0.95

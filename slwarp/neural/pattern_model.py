@@ -141,6 +141,9 @@ UNIFORM_TOLERANCE = 0.25
 UNIFORM_RADIUS = 7
 UNIFORM_MIN_SHARE = 0.25
 UNIFORM_CORRECTION_RADIUS = 3
+# the refinement moves a depth by at most refine_range (3 mm in the presets); a larger depth - field_depth is a
+# search repair (a rod the field missed: about 100 mm) and says nothing about the field's local error
+UNIFORM_CORRECTION_MAX_MM = 3.0
 
 
 def _box_mean(values: np.ndarray, weight: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray]:
@@ -174,9 +177,10 @@ def fill_uniform_codes(depth: np.ndarray, field_depth: np.ndarray, lit: np.ndarr
     - UNIFORM_MIN_SHARE of its (2 UNIFORM_RADIUS + 1)^2 window is lit with contrast, and the images fit a + b Q
       with that window's mean offset a and modulation b: 1 - relative RMS residual >= min_confidence;
     - two of its 8 neighbours end within search.AGREE_MM of its depth.
-    Its depth is then corrected by the mean of depth - field_depth over the pixels with depth in its
-    (2 UNIFORM_CORRECTION_RADIUS + 1)^2 window (the refinement's local correction of the field, which a pixel
-    without contrast cannot measure itself; small-rig spheres: filled pixels 0.92 -> 0.60 mm MAE).
+    Its depth is then corrected by the mean of depth - field_depth over the pixels in its
+    (2 UNIFORM_CORRECTION_RADIUS + 1)^2 window where that difference is within UNIFORM_CORRECTION_MAX_MM (the
+    refinement's local correction of the field, which a pixel without contrast cannot measure itself; small-rig
+    spheres: filled pixels 0.92 -> 0.60 mm MAE).
     depth: the map so far (mm, NaN: none); images [N, H, W] and patterns [N, Hp, Wp] in [0, 1]."""
     from .search import AGREE_MM, neighbours_within
 
@@ -207,8 +211,9 @@ def fill_uniform_codes(depth: np.ndarray, field_depth: np.ndarray, lit: np.ndarr
     fit = 1.0 - residual
     filled = candidate & inside & uniform & enough & (fit >= min_confidence)
     with np.errstate(invalid="ignore"):
-        correction, counted = _box_mean(np.nan_to_num(depth - field_depth), np.isfinite(depth - field_depth),
-                                        UNIFORM_CORRECTION_RADIUS)
+        diff = depth - field_depth
+        refined = np.isfinite(diff) & (np.abs(diff) <= UNIFORM_CORRECTION_MAX_MM)
+        correction, counted = _box_mean(np.where(refined, diff, 0.0), refined, UNIFORM_CORRECTION_RADIUS)
     out[filled] = (field_depth + np.where(counted > 0, correction, 0.0))[filled]
     lonely = filled & (neighbours_within(out, AGREE_MM) < 2)  # a lone fill: no surface of its neighbours
     out[lonely] = np.nan
