@@ -27,7 +27,8 @@ HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, gri
 FLAT_PRESETS = {
     "paper": dict(matmul="tf32"),
     "tuned": dict(matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0, refine_range=3.0, search_doubt=True,
-                  search_repair=True, repair_min_component=100),
+                  search_repair=True, repair_min_component=100, surface_weight=1.0, surface_after=1.0,
+                  uniform_fill=True),
     "cpu": dict(iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, lr=5e-4, lr_decay="cosine",
                 lambda_sc=0.0, hidden=64, layers=4, skip=2, n_freqs=6, search_step_mm=2.0, mc_resolution=192,
                 checkpoint_every=250, log_every=25),

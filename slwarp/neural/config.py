@@ -511,10 +511,17 @@ _preset("paper", "the paper's recipe, unchanged: 4000 iterations, 2048 rays, 32+
 # the extraction of both defaults (tuned, cpu-hashgrid): refinement, then the search repair in groups (its doubt
 # rule stays on by itself when a run turns the repair off)
 _DEFAULT_EXTRACTION = dict(refine_range=3.0, search_doubt=True, search_repair=True, repair_min_component=100)
-_preset("tuned", "paper with lr 5e-4, cosine decay, no surface-colour loss, photometric depth refinement (+-3 mm) "
-        "and the search repair (changes in groups of >= 100 pixels): the most accurate measured on the virtual "
-        "scanner (GPU default)",
-        matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0, **_DEFAULT_EXTRACTION)
+# the surface term (surface_weight = surface_after = 1, its depths only in confirmed groups of >= 50 pixels) and the
+# uniform-code fill: 32 scans (8 scenes x 4 rigs, 2 H200s, bench/results/accuracy-cuda-surface-group.md) give a mean
+# MAE of 0.136 / 0.139 / 0.093 / 0.176 mm (default / vertical / oblique / rolled) against 0.166 / 0.178 / 0.129 /
+# 0.206 without either (rods 0.41-0.55 -> 0.18-0.32 mm: the term holds the thin parts training loses), and 95.5 /
+# 95.7 / 95.4 / 95.4% completeness (the term alone: 0.132 / 0.135 / 0.090 / 0.167 mm, 94.2 to 94.6%, per scan -1.7 to
+# +1.2 points; the fill adds 1.0 to 1.3 points per scan for +0.002 to +0.011 mm)
+_preset("tuned", "paper with lr 5e-4, cosine decay, no surface-colour loss, an SDF term at the depths the codes "
+        "confirm, photometric depth refinement (+-3 mm), the search repair (changes in groups of >= 100 pixels) and "
+        "the uniform-code fill: the most accurate measured on the virtual scanner (GPU default)",
+        matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0, surface_weight=1.0, surface_after=1.0,
+        uniform_fill=True, **_DEFAULT_EXTRACTION)
 # CPU: the tuned recipe with a smaller field and batch, minutes on two cores (small rig)
 _preset("cpu", "tuned with a 4x64 field, 384 rays, 1500 iterations: minutes on two CPU cores (small rig)",
         iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, lr=5e-4, lr_decay="cosine",
