@@ -514,6 +514,12 @@ def cmd_reconstruct(args) -> int:
     valid = np.isfinite(res.depth)
     print(f"trained {t['iterations']} iterations in {t['train_wall_s_total']:.1f} s; marching cubes {t['marching_cubes_s']:.1f} s; "
           f"depth {t['depth_s']:.1f} s; confidence {t['confidence_s']:.1f} s; valid depth on {valid.mean():.1%} of pixels")
+    check = t.get("refine_check")
+    if check and check["before"]:
+        before, after = np.mean(check["before"]), np.mean(check["after"])
+        print(f"photometric refinement {'kept' if check['keep'] else 'not kept'}: held-out frames' median residual "
+              f"{before:.4f} -> {after:.4f} ({len(check['before'])} frames held out in turn; --no-refine-check keeps it "
+              "regardless)")
     if res.metrics is not None:
         print(format_table([("neural SDF", res.metrics)]))
     print(f"wrote {args.out}/: depth.npy, depth.png, depth_color.png, confidence.npy, confidence.png, mesh.ply, "

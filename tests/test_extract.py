@@ -68,3 +68,28 @@ def test_extract_depth_uniform_fill_only_adds_pixels_without_contrast(tiny_rods_
     assert np.isfinite(conf[new]).all()
     none = extract_depth(trainer, lit, region=np.zeros_like(lit))[0]
     np.testing.assert_array_equal(np.isfinite(none), had)
+
+
+def test_extract_depth_refine_check_reports_and_follows_its_decision(tiny_rods_field, monkeypatch):
+    """With refine_range > 0, extract_depth reports the held-out check in timings["refine_check"]; a refused
+    refinement leaves the depth as it was before refinement, a kept one (or refine_check off) gives the refined map."""
+    import slwarp.neural.reconstruct as rc
+
+    _, cfg, trainer = tiny_rods_field
+    lit = trainer.renderer.valid_map.cpu().numpy()
+    trainer.cfg = cfg.with_options(refine_range=0.0)
+    plain = rc.extract_depth(trainer, lit)[0]
+    trainer.cfg = cfg.with_options(refine_range=1.0, refine_check=False)
+    refined, _, _, t_off = rc.extract_depth(trainer, lit)
+    assert t_off["refine_check"] is None
+    assert not np.array_equal(refined[np.isfinite(refined)], plain[np.isfinite(plain)])
+    trainer.cfg = cfg.with_options(refine_range=1.0, refine_check=True)
+    _, _, _, t_on = rc.extract_depth(trainer, lit)
+    check = t_on["refine_check"]
+    assert set(check) == {"keep", "before", "after"} and len(check["before"]) == trainer.n_frames
+    for keep, want in ((False, plain), (True, refined)):
+        monkeypatch.setattr(rc, "refinement_generalises",
+                            lambda *a, keep=keep, **k: {"keep": keep, "before": [0.1], "after": [0.2 if not keep else 0.05]})
+        got = rc.extract_depth(trainer, lit)[0]
+        np.testing.assert_array_equal(got, want)
+    trainer.cfg = cfg

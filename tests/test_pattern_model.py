@@ -10,7 +10,7 @@ from slwarp.neural.pattern_model import (BLUR_BINS, BLUR_LADDER, BLUR_LADDER_STE
                                         estimate_pattern_blur, fit_blur_by_projector_depth, least_squares_residual,
                                         lit_with_contrast, offset_and_modulation, photometric_filter,
                                         photometric_residual, projector_coords, refine_depth, sample_patterns,
-                                        REFINE_RADIUS, REFINE_STEP_MM, _BlurLadder)
+                                        refinement_generalises, REFINE_RADIUS, REFINE_STEP_MM, _BlurLadder)
 from slwarp.sim.simulate import SimOptions, simulate_scene
 
 
@@ -95,6 +95,35 @@ def test_refine_depth_removes_a_smooth_depth_error(blurred_scan):
     with pytest.raises(ValueError, match="half_range_mm"):
         refine_depth(start, s.camera, s.projector, s.images, s.patterns, half_range_mm=0.0)
 
+
+
+def test_refinement_check_keeps_a_refinement_that_removes_a_smooth_error(blurred_scan):
+    """A depth 0.4 to 1.2 mm behind the surface: refined without each frame in turn, every held-out frame is
+    explained better, so the refinement is kept."""
+    import functools
+
+    s = blurred_scan
+    start = _smooth_error_start(s)
+    coarse = functools.partial(refine_depth, step_mm=0.1)
+    check = refinement_generalises(start, s.camera, s.projector, s.images, s.patterns, 1.5, refine=coarse)
+    assert check["keep"]
+    assert len(check["before"]) == len(check["after"]) == len(s.images)
+    assert all(a < b for a, b in zip(check["after"], check["before"]))
+
+
+def test_refinement_check_refuses_a_refinement_that_moves_away_from_the_surface(blurred_scan):
+    """The check scores what a refinement did, not that it ran: one that moves the true depth 1 mm off is
+    refused (every held-out frame explained worse); one that brings a 1 mm error back to the truth is kept;
+    with fewer than 3 frames there is nothing to hold out."""
+    s = blurred_scan
+    gt = np.where(s.mask, s.gt_depth, np.nan).astype(np.float32)
+    args = (s.camera, s.projector, s.images, s.patterns, 3.0)
+    away = refinement_generalises(gt, *args, refine=lambda d, *a, **k: d + 1.0)
+    assert not away["keep"] and all(a > b for a, b in zip(away["after"], away["before"]))
+    back = refinement_generalises(gt + 1.0, *args, refine=lambda d, *a, **k: gt)
+    assert back["keep"] and all(a < b for a, b in zip(back["after"], back["before"]))
+    two = refinement_generalises(gt, s.camera, s.projector, s.images[:2], s.patterns[:2], 3.0)
+    assert two["keep"] and two["before"] == []
 
 
 def test_blur_ladder_samples_as_cv2_remap():

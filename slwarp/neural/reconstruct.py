@@ -27,7 +27,7 @@ from ..evaluation.outputs import (check_output_folder, staged_outputs, write_con
                                   write_points_ply)
 from .extract import depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, sphere_trace_depth
 from .confidence import depth_confidence
-from .pattern_model import fill_uniform_codes, refine_depth
+from .pattern_model import fill_uniform_codes, refine_depth, refinement_generalises
 from .search import doubt_by_search, repair_by_search
 from .config import TrainConfig, save_config
 from .train import Trainer
@@ -56,8 +56,10 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     `extraction.min_confidence` dropped, the search repair when `search_repair` is on (holes filled, contradicted
     depths replaced: slwarp.neural.search.repair_by_search) or else its doubt rule alone when `search_doubt` is on
     (slwarp.neural.search.doubt_by_search), then the photometric refinement of the depth when refine_range > 0
-    (the confidence is that of the depth before refinement), and with `uniform_fill` the lit pixels without contrast
-    inside `region` (default: all) that the field's predicted codes explain (`pattern_model.fill_uniform_codes`);
+    (the confidence is that of the depth before refinement), kept with `refine_check` only if it explains held-out
+    frames better (`pattern_model.refinement_generalises`; timings["refine_check"]), and with `uniform_fill` the lit
+    pixels without contrast inside `region` (default: all) that the field's predicted codes explain
+    (`pattern_model.fill_uniform_codes`);
     depth is otherwise kept only inside `valid`. Both maps are NaN where no depth. timings["dropped"] counts the
     pixels each stage left without depth (no_surface inside `valid`, out_of_range, flying_pixel, low_confidence,
     search_doubt); timings["filled_uniform"] the pixels the uniform-code fill added."""
@@ -124,9 +126,15 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
         dropped["search_doubt"] = repair.get("dropped", 0)
         repair_s = time.perf_counter() - t3
         t3 = time.perf_counter()
+    check = None
     if ex.refine_range > 0:
-        depth = refine_depth(depth, cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames],
-                             trainer.scan.patterns[: trainer.n_frames], ex.refine_range, device=trainer.device)
+        refine_inputs = (cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames],
+                         trainer.scan.patterns[: trainer.n_frames], ex.refine_range)
+        refined = refine_depth(depth, *refine_inputs, device=trainer.device)
+        if ex.refine_check:
+            # a refinement that fits the model's errors explains a held-out frame worse: keep the depth then
+            check = refinement_generalises(depth, *refine_inputs, device=trainer.device)
+        depth = refined if check is None or check["keep"] else depth
     t4 = time.perf_counter()
     filled = None
     if ex.uniform_fill:
@@ -137,7 +145,7 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
         confidence = np.where(filled, fill_confidence, confidence).astype(np.float32)
     return depth, confidence, mesh, {"marching_cubes_s": t1 - t0, "depth_s": t2 - t1,
                                      "confidence_s": t3 - t2 - repair_s, "repair_s": repair_s, "repair": repair,
-                                     "refine_s": t4 - t3, "fill_s": time.perf_counter() - t4,
+                                     "refine_s": t4 - t3, "refine_check": check, "fill_s": time.perf_counter() - t4,
                                      "filled_uniform": int(filled.sum()) if filled is not None else 0,
                                      "dropped": dropped}
 
