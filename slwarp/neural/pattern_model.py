@@ -508,7 +508,9 @@ def refinement_generalises(depth: np.ndarray, camera, projector, images: np.ndar
     one worse. Real capture, 7 row-code images, the full decode refined (ad-hoc script, notes/accuracy.md section
     13): plate RMS 0.688 -> 1.495 mm, and the held-out median residual rose in all 7 folds (mean 0.0368 ->
     0.0392); simulator, small vertical rig, rods, a CPU field's map: MAE 1.056 -> 0.743 mm, and it fell in all 6
-    (0.0270 -> 0.0265). Cost: N more refinements."""
+    (0.0270 -> 0.0265). But on full-resolution simulated scans (GPU, `tuned`, default rig) it also refused
+    refinements that helped, on 4 of 8 scenes (mean MAE 0.134 -> 0.171 mm), so it is opt-in (`refine_check`), for
+    real captures. Cost: N more refinements."""
     images = np.asarray(images, np.float32)
     patterns = np.asarray(patterns, np.float32)
     depth = np.asarray(depth, np.float32)
