@@ -518,7 +518,7 @@ def cmd_reconstruct(args) -> int:
     if check and check["before"]:
         before, after = np.mean(check["before"]), np.mean(check["after"])
         print(f"photometric refinement {'kept' if check['keep'] else 'not kept'}: held-out frames' median residual "
-              f"{before:.4f} -> {after:.4f} ({len(check['before'])} frames held out in turn; --no-refine-check keeps it "
+              f"{before:.4f} -> {after:.4f} ({len(check['before'])} frames held out in turn; without --refine-check it is kept "
               "regardless)")
     if res.metrics is not None:
         print(format_table([("neural SDF", res.metrics)]))
