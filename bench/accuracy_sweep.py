@@ -88,8 +88,10 @@ def lost_pixels(mask: np.ndarray, valid: np.ndarray, timings: dict) -> dict:
             **{k: v / n_mask for k, v in timings.get("dropped", {}).items()}}
 
 
-def keep_error_map(job: dict, label: str, depth: np.ndarray, scan) -> None:
-    """Save the absolute error map of one run as <--keep>/<job key>__<method>.png (0-5 mm colour scale)."""
+def keep_error_map(job: dict, label: str, depth: np.ndarray, scan, fate: np.ndarray | None = None) -> None:
+    """Save the absolute error map of one run as <--keep>/<job key>__<method>.png (0-5 mm colour scale) and, for
+    study without the device, <...>.npz: "error" (depth - gt in mm as float16, NaN outside the GT mask or without
+    depth) and for the neural runs "fate" (uint8, slwarp.neural.reconstruct.PIXEL_FATES, named in "fates")."""
     keep = _KEEP
     if not keep:
         return
@@ -100,6 +102,12 @@ def keep_error_map(job: dict, label: str, depth: np.ndarray, scan) -> None:
     name = name.replace("(", "").replace(")", "")
     save_error_map(Path(keep) / f"{name}.png", depth, np.where(scan.mask, scan.gt_depth, np.nan),
                    title=f"{label}: {job['scene']} on {job['rig']}")
+    arrays = {"error": np.where(scan.mask, depth - scan.gt_depth, np.nan).astype(np.float16)}
+    if fate is not None:
+        from slwarp.neural.reconstruct import PIXEL_FATES
+
+        arrays.update(fate=fate.astype(np.uint8), fates=np.array(PIXEL_FATES))
+    np.savez_compressed(Path(keep) / f"{name}.npz", **arrays)
 
 
 def run_job(job: dict) -> dict:
@@ -129,7 +137,7 @@ def run_job(job: dict) -> dict:
             rec = reconstruct(scan.select("rand*"), cfg, progress=False)
             m = dict(rec.metrics)
             m.update(error_split(rec.depth, scan))
-            keep_error_map(job, job["label"], rec.depth, scan)
+            keep_error_map(job, job["label"], rec.depth, scan, rec.fate)
             m.update(train_s=rec.timings.get("train_s"), total_s=rec.timings.get("total_s"),
                      iterations=rec.timings.get("iterations"), extract_s=rec.timings.get("total_s", 0.0)
                      - rec.timings.get("train_s", 0.0) - rec.timings.get("setup_s", 0.0))
@@ -137,18 +145,22 @@ def run_job(job: dict) -> dict:
             # dropped by each extraction stage
             valid = rec.trainer.renderer.valid_map.cpu().numpy()
             m["lost"] = lost_pixels(scan.mask, valid, rec.timings)
+            if rec.timings.get("refine_check"):  # its decision and per-fold residuals, for study
+                m["refine_check"] = rec.timings["refine_check"]
             out["methods"][job["label"]] = m
             # the same trained field extracted again with other extraction options (--also-extract)
             trainer = rec.trainer
             for variant in job.get("also_extract", []):
                 trainer.cfg = cfg.with_options(**parse_overrides(variant.replace(":", ",")))
                 t1 = time.perf_counter()
-                depth, _, _, ext_t = extract_depth(trainer, valid)
+                depth, _, _, ext_t, fate = extract_depth(trainer, valid)
                 label = f"{job['label']}+{variant}"
                 m = {**depth_metrics(depth, scan.gt_depth, scan.mask), **error_split(depth, scan),
                      "train_s": rec.timings.get("train_s"), "extract_s": time.perf_counter() - t1,
                      "lost": lost_pixels(scan.mask, valid, ext_t)}
-                keep_error_map(job, label, depth, scan)
+                if ext_t.get("refine_check"):
+                    m["refine_check"] = ext_t["refine_check"]
+                keep_error_map(job, label, depth, scan, fate)
                 out["methods"][label] = m
         out["wall_s"] = time.perf_counter() - t0
         return out
@@ -305,7 +317,8 @@ def main(argv=None) -> int:
     ap.add_argument("--max-minutes", type=float, default=None,
                     help="stop submitting runs after this many minutes (finished runs are kept; run again to go on)")
     ap.add_argument("--out", default=str(REPO / "bench" / "results"))
-    ap.add_argument("--keep", default=None, help="folder for each run's absolute error map (PNG, 0-5 mm)")
+    ap.add_argument("--keep", default=None, help="folder for each run's absolute error map (PNG, 0-5 mm) and its "
+                    "signed error and pixel fates (npz, for study elsewhere)")
     ap.add_argument("--also-extract", default=None,
                     help="extraction variants, comma-separated, each key=value:key=value, applied to each neural run's "
                     "trained field after its own extraction and reported as PRESET+VARIANT (e.g. 'search_repair=true': "

@@ -64,7 +64,7 @@ def neural_maps(trainer, kinds) -> tuple[np.ndarray, dict, float]:
     keep = t.cfg
     t.cfg = keep.with_options(min_confidence=0.0, confidence="photometric")
     try:
-        depth, _, _, _ = extract_depth(t, t.renderer.valid_map.cpu().numpy())
+        depth = extract_depth(t, t.renderer.valid_map.cpu().numpy()).depth
     finally:
         t.cfg = keep
     t0 = time.perf_counter()

@@ -76,7 +76,7 @@ def main(argv=None) -> int:
         for name, rr in (("today", 0.0), ("refined", args.refine_range)):
             trainer.cfg = cfg.with_options(refine_range=rr)
             t0 = time.perf_counter()
-            depth, _, _, _ = extract_depth(trainer, valid=trainer.renderer.valid_map.cpu().numpy())
+            depth = extract_depth(trainer, valid=trainer.renderer.valid_map.cpu().numpy()).depth
             row[name] = {**depth_metrics(depth, scan.gt_depth, scan.mask), "extract_s": time.perf_counter() - t0}
         doc["runs"].append(row)
         t, r = row["today"], row["refined"]

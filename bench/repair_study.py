@@ -63,7 +63,7 @@ def main(argv=None) -> int:
         for name, repair in (("no repair", False), ("search_repair", True)):
             trainer.cfg = cfg.with_options(**{**parse_overrides(args.set), "search_repair": repair})
             t0 = time.perf_counter()
-            depth, _, _, timings = extract_depth(trainer, valid=trainer.renderer.valid_map.cpu().numpy())
+            depth, _, _, timings, _ = extract_depth(trainer, valid=trainer.renderer.valid_map.cpu().numpy())
             row[name] = {**depth_metrics(depth, scan.gt_depth, scan.mask), **error_split(depth, scan),
                          "extract_s": time.perf_counter() - t0, "repair_s": timings.get("repair_s", 0.0),
                          "repair": timings.get("repair")}

@@ -88,7 +88,7 @@ def run(scene: str, rig: str, preset_name: str, overrides: dict, device: str) ->
     mesh_stage("trained mesh")
     stage("trained sphere tracing", sphere_trace_depth(tr.field.eval(), scan.camera, tr.depth_range, tr.device))
     tr.field.train()
-    depth, _, _, timings = extract_depth(tr, tr.renderer.valid_map.cpu().numpy())
+    depth, _, _, timings, _ = extract_depth(tr, tr.renderer.valid_map.cpu().numpy())
     stage("extracted", depth)
     e = np.abs(depth - gt)
     ok = mask & np.isfinite(e)

@@ -514,6 +514,8 @@ def cmd_reconstruct(args) -> int:
     valid = np.isfinite(res.depth)
     print(f"trained {t['iterations']} iterations in {t['train_wall_s_total']:.1f} s; marching cubes {t['marching_cubes_s']:.1f} s; "
           f"depth {t['depth_s']:.1f} s; confidence {t['confidence_s']:.1f} s; valid depth on {valid.mean():.1%} of pixels")
+    print("pixels: " + ", ".join(f"{k.replace('_', ' ')} {v / valid.size:.1%}" for k, v in t["pixels"].items() if v)
+          + " (pixel_fate.png)")
     check = t.get("refine_check")
     if check and check["before"]:
         before, after = np.mean(check["before"]), np.mean(check["after"])
@@ -522,7 +524,7 @@ def cmd_reconstruct(args) -> int:
               "regardless)")
     if res.metrics is not None:
         print(format_table([("neural SDF", res.metrics)]))
-    print(f"wrote {args.out}/: depth.npy, depth.png, depth_color.png, confidence.npy, confidence.png, mesh.ply, "
+    print(f"wrote {args.out}/: depth.npy, depth.png, depth_color.png, confidence.npy, confidence.png, pixel_fate.png, mesh.ply, "
           "points.ply, loss.png, history.json, "
           "config.yaml" + (", metrics.json, error_map.png" if res.metrics is not None else "")
           + "; train/checkpoint.pt (--resume continues)")

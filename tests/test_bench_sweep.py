@@ -64,3 +64,31 @@ def test_report_ignores_runs_of_other_jobs(tmp_path):
     doc = json.loads((tmp_path / "out" / "sweep.json").read_text())
     assert "tiny" not in doc["table"]["default"]
     assert "mean" in doc["table"]["default"]["GC(7) interp"]
+
+
+def test_keep_writes_the_error_picture_and_the_signed_error_and_fates(tmp_path, monkeypatch):
+    """--keep: <job>__<method>.png and .npz with the signed error (float16, NaN outside the mask or without depth)
+    and the pixel fates with their names."""
+    import numpy as np
+    from types import SimpleNamespace
+
+    from slwarp.neural.reconstruct import FATE, PIXEL_FATES
+
+    monkeypatch.setattr(accuracy_sweep, "_KEEP", str(tmp_path))
+    gt = np.full((6, 8), 700.0, np.float32)
+    mask = np.ones_like(gt, bool)
+    mask[0] = False
+    depth = gt + 0.25
+    depth[1, :2] = np.nan
+    fate = np.full(gt.shape, FATE["measured"], np.uint8)
+    fate[1, :2] = FATE["low_confidence"]
+    job = {"kind": "neural", "label": "tuned", "rig": "default", "scene": "rods", "seed": 0}
+    accuracy_sweep.keep_error_map(job, "tuned+uniform_fill=true", depth, SimpleNamespace(gt_depth=gt, mask=mask), fate)
+    stem = tmp_path / "tuned__default__rods__s0__tuned+uniform_fill-true"
+    assert stem.with_suffix(".png").is_file()
+    z = np.load(stem.with_suffix(".npz"))
+    err = z["error"]
+    assert err.dtype == np.float16 and np.isnan(err[0]).all() and np.isnan(err[1, :2]).all()
+    np.testing.assert_allclose(err[2:], 0.25, atol=1e-3)
+    np.testing.assert_array_equal(z["fate"], fate)
+    assert tuple(z["fates"]) == PIXEL_FATES

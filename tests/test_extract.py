@@ -56,9 +56,9 @@ def test_extract_depth_uniform_fill_only_adds_pixels_without_contrast(tiny_rods_
     _, cfg, trainer = tiny_rods_field
     trainer.cfg = cfg
     lit = trainer.renderer.valid_map.cpu().numpy()
-    plain, _, _, t_plain = extract_depth(trainer, lit)
+    plain, _, _, t_plain, _ = extract_depth(trainer, lit)
     trainer.cfg = cfg.with_options(uniform_fill=True)
-    filled, conf, _, t_fill = extract_depth(trainer, lit)
+    filled, conf, _, t_fill, _ = extract_depth(trainer, lit)
     assert t_plain["filled_uniform"] == 0
     had = np.isfinite(plain)
     np.testing.assert_array_equal(filled[had], plain[had])
@@ -80,11 +80,11 @@ def test_extract_depth_refine_check_reports_and_follows_its_decision(tiny_rods_f
     trainer.cfg = cfg.with_options(refine_range=0.0)
     plain = rc.extract_depth(trainer, lit)[0]
     trainer.cfg = cfg.with_options(refine_range=1.0, refine_check=False)
-    refined, _, _, t_off = rc.extract_depth(trainer, lit)
+    refined, _, _, t_off, _ = rc.extract_depth(trainer, lit)
     assert t_off["refine_check"] is None
     assert not np.array_equal(refined[np.isfinite(refined)], plain[np.isfinite(plain)])
     trainer.cfg = cfg.with_options(refine_range=1.0, refine_check=True)
-    _, _, _, t_on = rc.extract_depth(trainer, lit)
+    _, _, _, t_on, _ = rc.extract_depth(trainer, lit)
     check = t_on["refine_check"]
     assert set(check) == {"keep", "before", "after"} and len(check["before"]) == trainer.n_frames
     for keep, want in ((False, plain), (True, refined)):
@@ -93,3 +93,50 @@ def test_extract_depth_refine_check_reports_and_follows_its_decision(tiny_rods_f
         got = rc.extract_depth(trainer, lit)[0]
         np.testing.assert_array_equal(got, want)
     trainer.cfg = cfg
+
+
+def test_extract_depth_fate_says_what_became_of_each_pixel(tiny_rods_field):
+    """Extraction.fate: a pixel has depth exactly when its fate is measured, repaired or filled; no contrast outside
+    the lit-with-contrast map (unless filled); each filter's fate at no more pixels than it dropped (the repair may
+    give some back), and exactly as many without the repair; repaired and filled as their stages count them."""
+    from slwarp.neural.reconstruct import FATE, PIXEL_FATES, extract_depth, fate_counts
+
+    _, cfg, trainer = tiny_rods_field
+    lit = trainer.renderer.valid_map.cpu().numpy()
+    stages = ("no_surface", "out_of_range", "flying_pixel", "low_confidence", "search_doubt")
+    try:
+        for repair in (False, True):
+            trainer.cfg = cfg.with_options(search_repair=repair, search_doubt=True, uniform_fill=True, refine_range=0.0)
+            ext = extract_depth(trainer, lit)
+            fate, depth, t = ext.fate, ext.depth, ext.timings
+            assert fate.shape == depth.shape and fate.dtype == np.uint8 and int(fate.max()) < len(PIXEL_FATES)
+            with_depth = np.isin(fate, [FATE["measured"], FATE["repaired"], FATE["filled"]])
+            np.testing.assert_array_equal(with_depth, np.isfinite(depth))
+            np.testing.assert_array_equal(fate == FATE["no_contrast"], ~lit & (fate != FATE["filled"]))
+            counts = fate_counts(fate)
+            assert sum(counts.values()) == depth.size
+            assert counts["filled"] == t["filled_uniform"] > 0
+            assert counts["low_confidence"] + counts["flying_pixel"] > 0  # the tiny field's map has both
+            for stage in stages:
+                if repair:
+                    assert counts[stage] <= t["dropped"].get(stage, 0), stage
+                else:
+                    assert counts[stage] == t["dropped"].get(stage, 0), stage
+            assert counts["repaired"] == (t["repair"]["kept"] if repair else 0)
+    finally:
+        trainer.cfg = cfg
+
+
+def test_save_fate_map_writes_a_picture_and_refuses_an_unnamed_fate(tmp_path):
+    import cv2
+    import pytest
+
+    from slwarp.evaluation.viz import save_fate_map
+    from slwarp.neural.reconstruct import PIXEL_FATES
+
+    fate = np.arange(len(PIXEL_FATES), dtype=np.uint8).repeat(40).reshape(len(PIXEL_FATES) * 4, 10)
+    save_fate_map(tmp_path / "f.png", fate, PIXEL_FATES)
+    img = cv2.imread(str(tmp_path / "f.png"))
+    assert img is not None and img.shape[0] > 50 and img.std() > 10
+    with pytest.raises(ValueError, match="fate value 9 has no name"):
+        save_fate_map(tmp_path / "g.png", np.full((4, 4), 9, np.uint8), PIXEL_FATES)

@@ -141,3 +141,22 @@ def test_cli_evaluate_bad_input(tmp_path, capsys):
         assert cli_main(argv) == 2
         err = capsys.readouterr().err
         assert msg in err and len(err.strip().splitlines()) == 1
+
+
+def test_quadric_rms_removes_a_smooth_bend_and_keeps_the_local_error():
+    """A board bent by 1 mm (a quadratic height field over a tilted plane): the plane's RMS holds the bend, the
+    quadric's does not; white noise of 0.2 mm stays in both."""
+    import numpy as np
+
+    from slwarp.evaluation.metrics import plane_rms, quadric_rms
+
+    rng = np.random.default_rng(0)
+    u, v = np.meshgrid(np.linspace(-100, 100, 120), np.linspace(-80, 80, 100))
+    bend = 1.0 * ((u / 100) ** 2 + 0.5 * (u / 100) * (v / 80))
+    for noise in (0.0, 0.2):
+        h = bend + noise * rng.standard_normal(u.shape)
+        tilt = np.array([[1, 0, 0.3], [0, 1, -0.2], [0, 0, 1.0]])
+        pts = np.stack([u, v, 1200 + h], -1).reshape(-1, 3) @ tilt.T
+        assert plane_rms(pts)[0] > 0.25
+        assert quadric_rms(pts) == pytest.approx(noise, abs=0.01)
+    assert np.isnan(quadric_rms(np.zeros((5, 3))))

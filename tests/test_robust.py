@@ -82,7 +82,11 @@ def test_cli_resume_refuses_changed_frames_and_new_run_refuses_a_checkpoint(scan
     fast = ["--preset", "tiny", "--device", "cpu", "--init", "sphere", "--iters", "5", "--rays", "64",
             "--mc-resolution", "16", "--min-confidence", "0", "--quiet"]
     assert cli_main(["reconstruct", str(folder), "--out", str(out), *fast]) == 0
-    capsys.readouterr()
+    printed = capsys.readouterr().out
+    # what became of each pixel: a line, the picture and the counts (every pixel once)
+    assert "pixels: " in printed and "(pixel_fate.png)" in printed and (out / "pixel_fate.png").is_file()
+    counts = json.loads((out / "timings.json").read_text())["pixels"]
+    assert sum(counts.values()) == scan.camera.height * scan.camera.width
     before = {p.name: p.read_bytes() for p in out.rglob("*") if p.is_file()}
     cases = [(["--resume", "--frames", "0:3"], "frames: 6 (rand20_0"),
              ([], "holds the checkpoint of an earlier run; --resume continues it, --overwrite starts again")]

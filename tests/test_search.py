@@ -233,9 +233,9 @@ def test_extract_depth_applies_the_doubt_rule_only_by_dropping(tiny_rods_field):
     _, cfg, trainer = tiny_rods_field
     trainer.cfg = cfg
     valid = trainer.renderer.valid_map.cpu().numpy()
-    plain, _, _, t_plain = extract_depth(trainer, valid)
+    plain, _, _, t_plain, _ = extract_depth(trainer, valid)
     trainer.cfg = cfg.with_options(search_doubt=True)
-    doubted, conf, _, t_doubt = extract_depth(trainer, valid)
+    doubted, conf, _, t_doubt, _ = extract_depth(trainer, valid)
     assert "search_doubt" not in t_plain["dropped"]
     kept = np.isfinite(doubted)
     assert not (kept & ~np.isfinite(plain)).any()

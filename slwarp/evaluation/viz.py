@@ -130,3 +130,37 @@ def ensure_dir(path) -> Path:
     p = Path(path)
     p.mkdir(parents=True, exist_ok=True)
     return p
+
+
+# a colour per pixel fate (slwarp.neural.reconstruct.PIXEL_FATES): pixels with depth in grays and blues, the stages
+# that left pixels without depth in warm colours, no contrast black
+FATE_COLOURS = {"measured": (0.55, 0.55, 0.55), "repaired": (0.2, 0.4, 1.0), "filled": (0.3, 0.85, 0.95),
+                "no_contrast": (0.0, 0.0, 0.0), "no_surface": (1.0, 1.0, 1.0), "out_of_range": (0.85, 0.2, 0.85),
+                "flying_pixel": (1.0, 0.55, 0.0), "low_confidence": (0.9, 0.1, 0.1), "search_doubt": (1.0, 0.9, 0.1)}
+
+
+def save_fate_map(path, fate: np.ndarray, names: tuple[str, ...], title: str = "what became of each pixel",
+                  dpi: int = 100) -> None:
+    """fate [H, W] (indices into `names`, e.g. PIXEL_FATES) as a picture with a legend giving each fate's share of
+    the pixels; fates without a colour in FATE_COLOURS are drawn gray-green."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    fate = np.asarray(fate)
+    colours = np.array([FATE_COLOURS.get(n, (0.5, 0.6, 0.5)) for n in names])
+    if fate.size and int(fate.max()) >= len(names):
+        raise ValueError(f"save_fate_map: fate value {int(fate.max())} has no name (names: {', '.join(names)})")
+    h, w = fate.shape
+    fig, ax = plt.subplots(figsize=(8.5, 7.0 * h / w * 0.95 + 0.6), dpi=dpi)
+    ax.imshow(colours[fate], interpolation="nearest")
+    ax.set_title(title, fontsize=10)
+    ax.axis("off")
+    counts = np.bincount(fate.ravel(), minlength=len(names))
+    handles = [Patch(facecolor=colours[i], edgecolor="0.3", label=f"{n.replace('_', ' ')} {100.0 * c / fate.size:.2f}%")
+               for i, (n, c) in enumerate(zip(names, counts)) if c > 0]
+    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+    fig.savefig(path, bbox_inches="tight")  # the legend beside the map, inside the picture
+    plt.close(fig)

@@ -5,9 +5,10 @@
     result.metrics    # when the scan has ground truth
 
 Outputs written to out_dir: depth.npy, depth.png (uint16, 0.1 mm), depth_color.png, confidence.npy (float32 in
-[0, 1], NaN where no depth) + confidence.png, mesh.ply,
-points.ply, history.json + loss.png, timings.json, config.yaml (the run's TrainConfig and the values it
-fitted; `--config` reads it back), and metrics.json + error_map.png when the scan has ground truth;
+[0, 1], NaN where no depth) + confidence.png, pixel_fate.png (what became of each pixel: measured, repaired,
+filled, or the stage that left it without depth; counts in timings.json "pixels"), mesh.ply, points.ply,
+history.json + loss.png, timings.json, config.yaml (the run's TrainConfig and the values it fitted; `--config`
+reads it back), and metrics.json + error_map.png when the scan has ground truth;
 train/checkpoint.pt holds the resumable training state. The outputs appear together or not at all
 (`evaluation.outputs.staged_outputs`); `resume` continues the checkpoint of the same run (else RunMismatch), and a
 new run into a folder with a checkpoint needs `overwrite=True` (else CheckpointExists). SIGINT/SIGTERM raise
@@ -19,6 +20,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -46,11 +48,39 @@ class Reconstruction:
     timings: dict = field(default_factory=dict)
     trainer: Trainer | None = None
     confidence: np.ndarray | None = None
+    fate: np.ndarray | None = None
+
+
+# what became of each camera pixel at extraction (the values of Extraction.fate): with a depth, "measured" (the
+# field's, refined), "repaired" (a depth search's, slwarp.neural.search) or "filled" (the uniform-code fill); without,
+# the stage that left it without one: "no_contrast" (outside the lit-with-contrast map the decoders also use:
+# shadows, dark albedo, codes that never change), "no_surface" (no mesh hit), then the filters in their order
+PIXEL_FATES = ("measured", "repaired", "filled", "no_contrast", "no_surface", "out_of_range", "flying_pixel",
+               "low_confidence", "search_doubt")
+FATE = {name: i for i, name in enumerate(PIXEL_FATES)}
+
+
+def fate_counts(fate: np.ndarray) -> dict:
+    """{fate name: pixels} of a fate map [H, W] (indices into PIXEL_FATES), every fate named."""
+    counts = np.bincount(np.asarray(fate).ravel(), minlength=len(PIXEL_FATES))
+    return {name: int(c) for name, c in zip(PIXEL_FATES, counts)}
+
+
+class Extraction(NamedTuple):
+    """extract_depth's result: depth [H, W] mm and confidence [H, W] in [0, 1] (NaN where no depth), the mesh
+    (trimesh, mm), timings (seconds per stage and counts, JSON-safe) and fate [H, W] uint8 (the index in
+    PIXEL_FATES of what became of each pixel)."""
+
+    depth: np.ndarray
+    confidence: np.ndarray
+    mesh: object
+    timings: dict
+    fate: np.ndarray
 
 
 def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: bool = False,
-                  region: np.ndarray | None = None):
-    """(depth [H, W], confidence [H, W], mesh, timings) from a trained field as its config's extraction section
+                  region: np.ndarray | None = None) -> Extraction:
+    """An Extraction (depth [H, W], confidence [H, W], mesh, timings, fate [H, W]) from a trained field as its config's extraction section
     says: marching cubes, then the mesh ray-cast (or sphere tracing when depth_method is 'sphere'), the depth
     range, the flying-pixel filter, the confidence map (`extraction.confidence`) and the pixels below
     `extraction.min_confidence` dropped, the search repair when `search_repair` is on (holes filled, contradicted
@@ -62,7 +92,8 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     (`pattern_model.fill_uniform_codes`);
     depth is otherwise kept only inside `valid`. Both maps are NaN where no depth. timings["dropped"] counts the
     pixels each stage left without depth (no_surface inside `valid`, out_of_range, flying_pixel, low_confidence,
-    search_doubt); timings["filled_uniform"] the pixels the uniform-code fill added."""
+    search_doubt); timings["filled_uniform"] the pixels the uniform-code fill added; `fate` says the same per pixel
+    (PIXEL_FATES)."""
     ex = trainer.cfg.extraction
     t0 = time.perf_counter()
     cam = trainer.scan.camera
@@ -77,27 +108,39 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     field_depth = depth.copy() if ex.uniform_fill else None  # for the pixels without contrast
     if valid is not None:
         depth = np.where(valid, depth, np.nan).astype(np.float32)
-    # why pixels end without depth: counted per stage over the pixels that still had one before it
-    dropped = {"no_surface": int((~np.isfinite(depth) & (valid if valid is not None else True)).sum())}
+    # why pixels end without depth: per pixel (fate) and counted per stage over the pixels that still had one before it
+    fate = np.full(depth.shape, FATE["measured"], np.uint8)
+    if valid is not None:
+        fate[~valid] = FATE["no_contrast"]
+    fate[(fate == FATE["measured"]) & ~np.isfinite(depth)] = FATE["no_surface"]
+    dropped = {"no_surface": int((fate == FATE["no_surface"]).sum())}
+
+    def lost(stage: str, before: np.ndarray) -> None:
+        """The pixels with depth in `before` that have none now: their fate and the stage's count."""
+        gone = np.isfinite(before) & ~np.isfinite(depth)
+        fate[gone] = FATE[stage]
+        dropped[stage] = int(gone.sum())
+
     near, far = trainer.depth_range
-    out_of_range = (depth < near) | (depth > far)
-    dropped["out_of_range"] = int(out_of_range.sum())
-    depth[out_of_range] = np.nan
+    before = depth.copy()
+    depth[(depth < near) | (depth > far)] = np.nan
+    lost("out_of_range", before)
     # what the filters below drop, for the search repair's confirmations
     unfiltered = depth.copy() if ex.search_confirm else None
     if ex.edge_filter > 0:
-        had = np.isfinite(depth)
+        before = depth
         depth = flying_pixel_filter(depth, cam, ex.edge_filter)
-        dropped["flying_pixel"] = int((had & ~np.isfinite(depth)).sum())
+        lost("flying_pixel", before)
     field_.train()
     t2 = time.perf_counter()
     # confidence (slwarp.neural.confidence): the map beside the depth, and the filter of the pixels below min_confidence
     confidence = depth_confidence(trainer, depth, ex.confidence)
     if ex.min_confidence > 0:
         drop = ~(confidence >= ex.min_confidence)
-        dropped["low_confidence"] = int((drop & np.isfinite(depth)).sum())
+        before = depth.copy()
         depth[drop] = np.nan
         confidence[drop] = np.nan
+        lost("low_confidence", before)
     t3 = time.perf_counter()
     repair_s, repair = 0.0, None
     if (ex.search_repair or ex.search_doubt) and valid is not None:
@@ -115,15 +158,18 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
             # no flying-pixel filter on the changed pixels: a search has no smoothness to bend it across a depth
             # edge, and a thin part is all edge
             changed = np.isfinite(depth) & ~(depth == before)
+            fate[changed] = FATE["repaired"]
             if changed.any():
                 new = depth_confidence(trainer, np.where(changed, depth, np.nan).astype(np.float32), ex.confidence)
                 confidence = np.where(changed, new, confidence).astype(np.float32)
             repair["kept"] = int(changed.sum())
         else:
             # only the repair's doubt rule: drop what a search contradicts and the codes do not support
+            before = depth
             depth, repair = doubt_by_search(depth, *search_inputs, **search_options)
         confidence[~np.isfinite(depth)] = np.nan
         dropped["search_doubt"] = repair.get("dropped", 0)
+        fate[np.isfinite(before) & ~np.isfinite(depth)] = FATE["search_doubt"]
         repair_s = time.perf_counter() - t3
         t3 = time.perf_counter()
     check = None
@@ -143,11 +189,12 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
             trainer.scan.images[: trainer.n_frames], trainer.renderer.rendered_patterns.detach().cpu().numpy(),
             trainer.depth_range, ex.min_confidence, region=region)
         confidence = np.where(filled, fill_confidence, confidence).astype(np.float32)
-    return depth, confidence, mesh, {"marching_cubes_s": t1 - t0, "depth_s": t2 - t1,
+        fate[filled] = FATE["filled"]
+    return Extraction(depth, confidence, mesh, {"marching_cubes_s": t1 - t0, "depth_s": t2 - t1,
                                      "confidence_s": t3 - t2 - repair_s, "repair_s": repair_s, "repair": repair,
                                      "refine_s": t4 - t3, "refine_check": check, "fill_s": time.perf_counter() - t4,
                                      "filled_uniform": int(filled.sum()) if filled is not None else 0,
-                                     "dropped": dropped}
+                                     "dropped": dropped}, fate)
 
 
 def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, depth_range=None,
@@ -172,7 +219,7 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
 def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log_every_s, overwrite, staging=None):
     """reconstruct's work: the checkpoint in out/train, the other outputs written into `staging`."""
     from ..evaluation.metrics import confidence_metrics, depth_metrics, error_map, metrics_document
-    from ..evaluation.viz import save_confidence_map, save_depth_color, save_map_with_colorbar
+    from ..evaluation.viz import save_confidence_map, save_depth_color, save_fate_map, save_map_with_colorbar
 
     t0 = time.perf_counter()
     trainer = Trainer(scan, config, out_dir=out / "train" if out is not None else None, resume=resume,
@@ -186,14 +233,14 @@ def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log
     valid = trainer.renderer.valid_map.cpu().numpy()
     if use_mask and scan.mask is not None:
         valid &= scan.mask
-    depth, confidence, mesh, ext_t = extract_depth(trainer, valid, progress=progress,
-                                                   region=scan.mask if use_mask and scan.mask is not None else None)
+    depth, confidence, mesh, ext_t, fate = extract_depth(trainer, valid, progress=progress,
+                                                         region=scan.mask if use_mask and scan.mask is not None else None)
     points = depth_to_points(depth, scan.camera)
     metrics = None
     if scan.gt_depth is not None:
         metrics = depth_metrics(depth, scan.gt_depth, scan.mask)
     timings = {"setup_s": t1 - t0, "train_s": t2 - t1, "train_wall_s_total": trainer.elapsed,
-               "iterations": trainer.iteration, **ext_t, "total_s": time.perf_counter() - t0}
+               "iterations": trainer.iteration, **ext_t, "pixels": fate_counts(fate), "total_s": time.perf_counter() - t0}
     if staging is not None:
         out = staging
         write_depth(out, depth)
@@ -214,8 +261,10 @@ def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log
         # the confidence map beside the depth map
         write_confidence(out, confidence)
         save_confidence_map(out / "confidence.png", confidence, f"confidence ({config.extraction.confidence})")
+        # why pixels have no depth (or a repaired / filled one), as a picture
+        save_fate_map(out / "pixel_fate.png", fate, PIXEL_FATES)
         (out / "timings.json").write_text(json.dumps(timings, indent=1))
         fitted = {"pattern_blur_px": trainer.renderer.pattern_blur, "pattern_blur_fit_mse": trainer.blur_fit,
                   "depth_search": {k: v for k, v in (trainer.search_info or {}).items() if k != "pattern_blur_fit"}}
         save_config(out / "config.yaml", config, fitted)
-    return Reconstruction(depth, mesh, points, metrics, timings, trainer, confidence)
+    return Reconstruction(depth, mesh, points, metrics, timings, trainer, confidence, fate)
