@@ -88,6 +88,12 @@ def lost_pixels(mask: np.ndarray, valid: np.ndarray, timings: dict) -> dict:
             **{k: v / n_mask for k, v in timings.get("dropped", {}).items()}}
 
 
+def refine_facts(timings: dict) -> dict:
+    """What an extraction decided about the refinement, for study: the model's misfit, whether it refined, and the
+    held-out check's decision and per-fold residuals when it ran."""
+    return {k: timings[k] for k in ("refine_misfit", "refined", "refine_check") if timings.get(k) is not None}
+
+
 def keep_error_map(job: dict, label: str, depth: np.ndarray, scan, fate: np.ndarray | None = None) -> None:
     """Save the absolute error map of one run as <--keep>/<job key>__<method>.png (0-5 mm colour scale) and, for
     study without the device, <...>.npz: "error" (depth - gt in mm as float16, NaN outside the GT mask or without
@@ -145,8 +151,7 @@ def run_job(job: dict) -> dict:
             # dropped by each extraction stage
             valid = rec.trainer.renderer.valid_map.cpu().numpy()
             m["lost"] = lost_pixels(scan.mask, valid, rec.timings)
-            if rec.timings.get("refine_check"):  # its decision and per-fold residuals, for study
-                m["refine_check"] = rec.timings["refine_check"]
+            m.update(refine_facts(rec.timings))
             out["methods"][job["label"]] = m
             # the same trained field extracted again with other extraction options (--also-extract)
             trainer = rec.trainer
@@ -158,8 +163,7 @@ def run_job(job: dict) -> dict:
                 m = {**depth_metrics(depth, scan.gt_depth, scan.mask), **error_split(depth, scan),
                      "train_s": rec.timings.get("train_s"), "extract_s": time.perf_counter() - t1,
                      "lost": lost_pixels(scan.mask, valid, ext_t)}
-                if ext_t.get("refine_check"):
-                    m["refine_check"] = ext_t["refine_check"]
+                m.update(refine_facts(ext_t))
                 keep_error_map(job, label, depth, scan, fate)
                 out["methods"][label] = m
         out["wall_s"] = time.perf_counter() - t0

@@ -516,6 +516,10 @@ def cmd_reconstruct(args) -> int:
           f"depth {t['depth_s']:.1f} s; confidence {t['confidence_s']:.1f} s; valid depth on {valid.mean():.1%} of pixels")
     print("pixels: " + ", ".join(f"{k.replace('_', ' ')} {v / valid.size:.1%}" for k, v in t["pixels"].items() if v)
           + " (pixel_fate.png)")
+    if t.get("refine_misfit") is not None and not t["refined"] and t.get("refine_check") is None:
+        print(f"photometric refinement skipped: the pattern model's misfit at the field's depth is {t['refine_misfit']:.4f}, "
+              f"above --refine-max-misfit {cfg.extraction.refine_max_misfit} (optics the model lacks, e.g. a real "
+              "lens or a camera response: refining would fit those; --refine-max-misfit 0 refines regardless)")
     check = t.get("refine_check")
     if check and check["before"]:
         before, after = np.mean(check["before"]), np.mean(check["after"])

@@ -140,3 +140,27 @@ def test_save_fate_map_writes_a_picture_and_refuses_an_unnamed_fate(tmp_path):
     assert img is not None and img.shape[0] > 50 and img.std() > 10
     with pytest.raises(ValueError, match="fate value 9 has no name"):
         save_fate_map(tmp_path / "g.png", np.full((4, 4), 9, np.uint8), PIXEL_FATES)
+
+
+def test_extract_depth_skips_the_refinement_where_the_model_misfits(tiny_rods_field):
+    """refine_max_misfit: above the measured misfit the depth is refined as without a limit, below it the
+    refinement is skipped (the depth as with refine_range 0); timings report the misfit and the decision."""
+    from slwarp.neural.reconstruct import extract_depth
+
+    _, cfg, trainer = tiny_rods_field
+    lit = trainer.renderer.valid_map.cpu().numpy()
+    try:
+        trainer.cfg = cfg.with_options(refine_range=0.0)
+        plain = extract_depth(trainer, lit)
+        trainer.cfg = cfg.with_options(refine_range=1.0)
+        refined = extract_depth(trainer, lit)
+        assert refined.timings["refine_misfit"] is None and refined.timings["refined"]
+        assert plain.timings["refine_misfit"] is None and not plain.timings["refined"]
+        for limit, want, done in ((1.0, refined.depth, True), (1e-4, plain.depth, False)):
+            trainer.cfg = cfg.with_options(refine_range=1.0, refine_max_misfit=limit)
+            got = extract_depth(trainer, lit)
+            assert 1e-4 < got.timings["refine_misfit"] < 1.0
+            assert got.timings["refined"] is done
+            np.testing.assert_array_equal(got.depth, want)
+    finally:
+        trainer.cfg = cfg

@@ -10,7 +10,8 @@ from slwarp.neural.pattern_model import (BLUR_BINS, BLUR_LADDER, BLUR_LADDER_STE
                                         estimate_pattern_blur, fit_blur_by_projector_depth, least_squares_residual,
                                         lit_with_contrast, offset_and_modulation, photometric_filter,
                                         photometric_residual, projector_coords, refine_depth, sample_patterns,
-                                        refinement_generalises, REFINE_RADIUS, REFINE_STEP_MM, _BlurLadder)
+                                        refinement_generalises, model_misfit, REFINE_MAX_MISFIT, REFINE_RADIUS,
+                                        REFINE_STEP_MM, _BlurLadder)
 from slwarp.sim.simulate import SimOptions, simulate_scene
 
 
@@ -124,6 +125,26 @@ def test_refinement_check_refuses_a_refinement_that_moves_away_from_the_surface(
     assert back["keep"] and all(a < b for a, b in zip(back["after"], back["before"]))
     two = refinement_generalises(gt, s.camera, s.projector, s.images[:2], s.patterns[:2], 3.0)
     assert two["keep"] and two["before"] == []
+
+
+def test_model_misfit_separates_a_linear_camera_from_a_gamma_camera_and_grows_off_the_surface():
+    """At the true depth of the same scene (small rig, noise and texture on), a linear camera's images sit below the
+    defaults' refinement limit and a gamma-2.2 camera's above it; 1.5 mm off the surface the misfit grows; too few
+    pixels with depth give NaN."""
+    scans = {g: simulate_scene("spheres", "random6", rig="small", options=SimOptions(seed=0, gamma=g), device="cpu")
+             for g in (1.0, 2.2)}
+    misfit = {}
+    for g, s in scans.items():
+        gt = np.where(s.mask, s.gt_depth, np.nan).astype(np.float32)
+        misfit[g] = model_misfit(gt, s.camera, s.projector, s.images[:6], s.patterns[:6])
+    assert misfit[1.0] < REFINE_MAX_MISFIT < misfit[2.2]
+    s = scans[1.0]
+    gt = np.where(s.mask, s.gt_depth, np.nan).astype(np.float32)
+    # (the blur fit absorbs part of a depth error: 0.017 -> 0.022 at 1.5 mm, so a field's small errors do not trip it)
+    assert model_misfit(gt + 1.5, s.camera, s.projector, s.images[:6], s.patterns[:6]) > 1.2 * misfit[1.0]
+    few = np.full_like(gt, np.nan)
+    few[:5, :5] = gt[100:105, 100:105]
+    assert np.isnan(model_misfit(few, s.camera, s.projector, s.images[:6], s.patterns[:6]))
 
 
 def test_blur_ladder_samples_as_cv2_remap():

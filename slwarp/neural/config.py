@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Literal
 
 from ..devices import DEVICE_PATTERN
-from .pattern_model import CONTRAST_THRESHOLD
+from .pattern_model import CONTRAST_THRESHOLD, REFINE_MAX_MISFIT
 
 __all__ = [
     "ConfigError",
@@ -240,6 +240,10 @@ class ExtractionConfig:
                                 "on average. For real captures: there it undid a refinement that doubled the plate's "
                                 "RMS; on simulated full-resolution scans it also undid helpful ones (4 of 8), so off "
                                 "by default", resumable=True)
+    refine_max_misfit: float = option(0.0, "refine only where the pattern model fits: skip the refinement when the "
+                                      "median relative misfit of the lit pixels at the depth before refinement is above "
+                                      "this (simulated scans 0.015-0.022, the real capture 0.026; 0: always refine)",
+                                      min=0.0, resumable=True)
 
 
 SECTIONS = {"field": FieldConfig, "sampling": SamplingConfig, "schedule": ScheduleConfig, "init": InitConfig,
@@ -515,7 +519,9 @@ _preset("paper", "the paper's recipe, unchanged: 4000 iterations, 2048 rays, 32+
 # repair without the group rule added 0.2 to 0.6 mm on every smooth scene (accuracy-cuda-oblique-rolled.md)
 # the extraction of both defaults (tuned, cpu-hashgrid): refinement, then the search repair in groups (its doubt
 # rule stays on by itself when a run turns the repair off)
-_DEFAULT_EXTRACTION = dict(refine_range=3.0, search_doubt=True, search_repair=True, repair_min_component=100)
+# and the refinement only where the pattern model explains the images (REFINE_MAX_MISFIT)
+_DEFAULT_EXTRACTION = dict(refine_range=3.0, refine_max_misfit=REFINE_MAX_MISFIT, search_doubt=True, search_repair=True,
+                           repair_min_component=100)
 # the surface term (surface_weight = surface_after = 1, its depths only in confirmed groups of >= 50 pixels) and the
 # uniform-code fill: 32 scans (8 scenes x 4 rigs, 2 H200s, bench/results/accuracy-cuda-surface-group.md) give a mean
 # MAE of 0.136 / 0.139 / 0.093 / 0.176 mm (default / vertical / oblique / rolled) against 0.166 / 0.178 / 0.129 /

@@ -54,6 +54,10 @@ BLUR_LADDER = np.round(np.arange(0.0, 2.4 + 1e-9, BLUR_LADDER_STEP), 6)
 BLUR_BINS = 6
 REFINE_RADIUS = 3
 REFINE_STEP_MM = 0.05
+# the defaults' limit on `model_misfit` for refining: above every simulated linear-camera scan at its true depth
+# (0.022 at most, the checker albedo), below the real capture (0.026) and the simulator's gamma-2.2 camera (0.038 on
+# the small rig), where the refinement makes the depth worse
+REFINE_MAX_MISFIT = 0.024
 
 
 def offset_and_modulation(images):
@@ -416,6 +420,33 @@ def fit_blur_by_projector_depth(depth: np.ndarray, camera, projector, images: np
     ok = torch.isfinite(d) & lit_with_contrast(b)
     centres, sigma = _fit_blur(d, ok, _Rays(camera, projector, dev), projector, img, b, _BlurLadder(patterns, dev), bins)
     return centres.cpu().numpy(), sigma.cpu().numpy()
+
+
+def model_misfit(depth: np.ndarray, camera, projector, images: np.ndarray, patterns: np.ndarray, device=None) -> float:
+    """How well the refinement's pattern model explains the images at depth [H, W] (mm, NaN: none): the median over
+    the lit pixels with depth of mean_n |I_n - (a + b Q_n)| / b, the per-pixel cost `refine_depth` minimises (a, b
+    by least squares, Q the patterns [N, Hp, Wp] (unblurred) blurred per projector depth as fitted at `depth`).
+    NaN when fewer than 100 pixels qualify.
+
+    Why: where the model lacks part of the optics (a camera response, the real lens and projector), the
+    refinement fits those errors instead of the surface. At the true depth of the simulator's linear-camera scans
+    (8 scenes x 4 full-resolution rigs, 6 random patterns) it is 0.015 to 0.022 (the checker albedo highest), where
+    the refinement helps; on the real capture (7 row-code images, at the full 40-image decode) 0.026, where it
+    doubles the plate's RMS (notes/accuracy.md, section 14)."""
+    dev = _device(device)
+    d = torch.as_tensor(np.asarray(depth, np.float32), device=dev)
+    img = torch.as_tensor(images, dtype=torch.float32, device=dev)
+    _, b = offset_and_modulation(img)
+    ok = torch.isfinite(d) & lit_with_contrast(b)
+    if int(ok.sum()) < 100:
+        return float("nan")
+    rays = _Rays(camera, projector, dev)
+    ladder = _BlurLadder(patterns, dev)
+    centres, sigmas = _fit_blur(d, ok, rays, projector, img, b, ladder, BLUR_BINS)
+    X = rays.ray[ok] * d[ok].double()[:, None] + rays.T  # [P, 3] projector frame
+    codes = ladder.sample(_projector_uv(X.float(), projector), ladder.position(_interp(X[:, 2], centres, sigmas).float()))
+    r = least_squares_residual(img[:, ok], codes, b[ok])
+    return float((r.abs().mean(0) / b[ok].clamp_min(MIN_MODULATION)).median())
 
 
 def refine_depth(depth: np.ndarray, camera, projector, images: np.ndarray, patterns: np.ndarray, half_range_mm: float,

@@ -29,7 +29,7 @@ from ..evaluation.outputs import (check_output_folder, staged_outputs, write_con
                                   write_points_ply)
 from .extract import depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, sphere_trace_depth
 from .confidence import depth_confidence
-from .pattern_model import fill_uniform_codes, refine_depth, refinement_generalises
+from .pattern_model import fill_uniform_codes, model_misfit, refine_depth, refinement_generalises
 from .search import doubt_by_search, repair_by_search
 from .config import TrainConfig, save_config
 from .train import Trainer
@@ -80,13 +80,15 @@ class Extraction(NamedTuple):
 
 def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: bool = False,
                   region: np.ndarray | None = None) -> Extraction:
-    """An Extraction (depth [H, W], confidence [H, W], mesh, timings, fate [H, W]) from a trained field as its config's extraction section
-    says: marching cubes, then the mesh ray-cast (or sphere tracing when depth_method is 'sphere'), the depth
+    """An Extraction (depth [H, W], confidence [H, W], mesh, timings, fate [H, W]) from a trained field as its
+    config's extraction section says: marching cubes, then the mesh ray-cast (or sphere tracing when depth_method is 'sphere'), the depth
     range, the flying-pixel filter, the confidence map (`extraction.confidence`) and the pixels below
     `extraction.min_confidence` dropped, the search repair when `search_repair` is on (holes filled, contradicted
     depths replaced: slwarp.neural.search.repair_by_search) or else its doubt rule alone when `search_doubt` is on
     (slwarp.neural.search.doubt_by_search), then the photometric refinement of the depth when refine_range > 0
-    (the confidence is that of the depth before refinement), kept with `refine_check` only if it explains held-out
+    (the confidence is that of the depth before refinement), skipped when `refine_max_misfit` > 0 and the pattern
+    model's misfit there is above it (`pattern_model.model_misfit`; timings["refine_misfit"], timings["refined"]),
+    kept with `refine_check` only if it explains held-out
     frames better (`pattern_model.refinement_generalises`; timings["refine_check"]), and with `uniform_fill` the lit
     pixels without contrast inside `region` (default: all) that the field's predicted codes explain
     (`pattern_model.fill_uniform_codes`);
@@ -172,15 +174,19 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
         fate[np.isfinite(before) & ~np.isfinite(depth)] = FATE["search_doubt"]
         repair_s = time.perf_counter() - t3
         t3 = time.perf_counter()
-    check = None
-    if ex.refine_range > 0:
-        refine_inputs = (cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames],
-                         trainer.scan.patterns[: trainer.n_frames], ex.refine_range)
+    check, misfit, refined_applied = None, None, False
+    refine_inputs = (cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames],
+                     trainer.scan.patterns[: trainer.n_frames], ex.refine_range)
+    if ex.refine_range > 0 and ex.refine_max_misfit > 0:
+        # a model that misses part of the optics (a camera response, real lenses) is fitted, not the surface
+        misfit = model_misfit(depth, *refine_inputs[:-1], device=trainer.device)
+    if ex.refine_range > 0 and not (misfit is not None and misfit > ex.refine_max_misfit):
         refined = refine_depth(depth, *refine_inputs, device=trainer.device)
         if ex.refine_check:
             # a refinement that fits the model's errors explains a held-out frame worse: keep the depth then
             check = refinement_generalises(depth, *refine_inputs, device=trainer.device)
-        depth = refined if check is None or check["keep"] else depth
+        refined_applied = check is None or check["keep"]
+        depth = refined if refined_applied else depth
     t4 = time.perf_counter()
     filled = None
     if ex.uniform_fill:
@@ -192,7 +198,9 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
         fate[filled] = FATE["filled"]
     return Extraction(depth, confidence, mesh, {"marching_cubes_s": t1 - t0, "depth_s": t2 - t1,
                                      "confidence_s": t3 - t2 - repair_s, "repair_s": repair_s, "repair": repair,
-                                     "refine_s": t4 - t3, "refine_check": check, "fill_s": time.perf_counter() - t4,
+                                     "refine_s": t4 - t3, "refine_misfit": misfit,
+                                     "refined": refined_applied,
+                                     "refine_check": check, "fill_s": time.perf_counter() - t4,
                                      "filled_uniform": int(filled.sum()) if filled is not None else 0,
                                      "dropped": dropped}, fate)
 
