@@ -529,7 +529,8 @@ _DEFAULT_EXTRACTION = dict(refine_range=3.0, refine_max_misfit=REFINE_MAX_MISFIT
 # 95.7 / 95.4 / 95.4% completeness (the term alone: 0.132 / 0.135 / 0.090 / 0.167 mm, 94.2 to 94.6%, per scan -1.7 to
 # +1.2 points; the fill adds 1.0 to 1.3 points per scan for +0.002 to +0.011 mm)
 _preset("tuned", "paper with lr 5e-4, cosine decay, no surface-colour loss, an SDF term at the depths the codes "
-        "confirm, photometric depth refinement (+-3 mm), the search repair (changes in groups of >= 100 pixels) and "
+        "confirm, photometric depth refinement (+-3 mm, where the pattern model fits the images), the search repair "
+        "(changes in groups of >= 100 pixels) and "
         "the uniform-code fill: the most accurate measured on the virtual scanner (GPU default)",
         matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0, surface_weight=1.0, surface_after=1.0,
         uniform_fill=True, **_DEFAULT_EXTRACTION)
@@ -575,7 +576,7 @@ _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), the paper's 400
 # (bench/results/accuracy-cpu-uniform-fill.md): completeness 93.33 -> 94.31%, MAE 0.410 -> 0.414 mm (checker
 # 0.365 -> 0.392, the others within +0.003 or better); not yet measured on a GPU, so tuned keeps it off
 _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4-tap gradient), photometric depth "
-        "refinement (+-3 mm), the search repair in groups and the uniform-code fill: better MAE in less time than cpu "
+        "refinement (+-3 mm, where the pattern model fits the images), the search repair in groups and the uniform-code fill: better MAE in less time than cpu "
         "(small rig)",
         grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2,
         search_step_mm=2.0, mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
@@ -584,7 +585,8 @@ _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4
 # the preset a run gets when it names none, per device type. CPU: cpu-hashgrid, measured on the small rig with the
 # trainer (bunny MAE 0.479 mm against 0.606 for cpu; mean of bunny, vase, boxes 0.575 against 0.749 mm at 0.95x cpu's
 # time per step). GPU: tuned (see its comment). Real capture: the refinement made the chessboard plate 2.4x less
-# flat (bench/results/chessboard-cuda.md): `--refine-range 0` there (why: notes/accuracy.md, section 7).
+# flat (bench/results/chessboard-cuda.md); both defaults skip it there by themselves, as the pattern model misfits
+# the real images (refine_max_misfit; notes/accuracy.md, section 14).
 DEFAULT_PRESET = {"cuda": "tuned", "cpu": "cpu-hashgrid"}
 
 

@@ -55,8 +55,8 @@ BLUR_BINS = 6
 REFINE_RADIUS = 3
 REFINE_STEP_MM = 0.05
 # the defaults' limit on `model_misfit` for refining: above every simulated linear-camera scan at its true depth
-# (0.022 at most, the checker albedo), below the real capture (0.026) and the simulator's gamma-2.2 camera (0.038 on
-# the small rig), where the refinement makes the depth worse
+# (0.023 at most, the checker albedo, also with camera optics), below the real capture (0.026) and the gamma-2.2 and
+# sRGB cameras (0.040 to 0.043), where the refinement makes the depth worse
 REFINE_MAX_MISFIT = 0.024
 
 
@@ -430,9 +430,10 @@ def model_misfit(depth: np.ndarray, camera, projector, images: np.ndarray, patte
 
     Why: where the model lacks part of the optics (a camera response, the real lens and projector), the
     refinement fits those errors instead of the surface. At the true depth of the simulator's linear-camera scans
-    (8 scenes x 4 full-resolution rigs, 6 random patterns) it is 0.015 to 0.022 (the checker albedo highest), where
-    the refinement helps; on the real capture (7 row-code images, at the full 40-image decode) 0.026, where it
-    doubles the plate's RMS (notes/accuracy.md, section 14)."""
+    (8 scenes x 4 full-resolution rigs, 6 random patterns) it is 0.015 to 0.023 (the checker albedo highest; the same
+    with pixel integration and a lens blur), where the refinement helps; 0.040 to 0.043 through a gamma-2.2 or sRGB
+    camera, and 0.026 on the real capture (7 row-code images, at the full 40-image decode), where it doubles the
+    plate's RMS (bench/results/model-misfit-cpu.md; notes/accuracy.md, section 14)."""
     dev = _device(device)
     d = torch.as_tensor(np.asarray(depth, np.float32), device=dev)
     img = torch.as_tensor(images, dtype=torch.float32, device=dev)
