@@ -1,5 +1,6 @@
 """The real capture (../shared/data/procam_chessboard): the chessboard plate's planarity (RMS distance of its
-points to their least-squares plane, and to their least-squares quadric: the local error alone) for the full 40-image Gray code decode, classical decoding of the 7 most
+points to their least-squares plane, and to their least-squares quadric: the local error alone) for the full
+40-image Gray code decode, classical decoding of the 7 most
 significant ROW bits (no inverses), and the neural SDF trained on those same 7 images.
 
 The rig's baseline is mostly vertical (the projector 273 mm below the camera), so the projector's rows carry
@@ -103,7 +104,8 @@ def main(argv=None):
              "| method | images | triangulation | plane RMS mm | quadric RMS mm | points | share of board | time s |",
              "|---|---|---|---|---|---|---|---|"]
     for k, r in rows.items():
-        lines.append(f"| {k} | {r['frames']} | {r['triangulation']} | {r['plane_rms_mm']:.3f} | {r['quadric_rms_mm']:.3f} | {r['points']} | "
+        lines.append(f"| {k} | {r['frames']} | {r['triangulation']} | {r['plane_rms_mm']:.3f} | "
+                     f"{r['quadric_rms_mm']:.3f} | {r['points']} | "
                      f"{r['points'] / r['board_pixels']:.1%} | {r['seconds']:.1f} |")
     print("\n".join(lines))
     out = Path(args.out)

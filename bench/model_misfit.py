@@ -86,7 +86,8 @@ def render(doc: dict) -> str:
     if others:
         lines += [f"## Other camera models ({', '.join(doc['camera_rigs'])} rig)", ""]
         cams = list(others)
-        rows = [[scene] + [f"{others[c][r][scene]:.4f}" for c in cams for r in doc["camera_rigs"]] for scene in doc["scenes"]]
+        rows = [[scene] + [f"{others[c][r][scene]:.4f}" for c in cams for r in doc["camera_rigs"]]
+                for scene in doc["scenes"]]
         lines += markdown_table(["scene"] + [f"{c} ({r})" for c in cams for r in doc["camera_rigs"]], rows) + [""]
     if doc.get("real") is not None:
         lines += [f"Real capture (7 row-code images at the full decode): {doc['real']:.4f}.", ""]
@@ -100,7 +101,8 @@ def render(doc: dict) -> str:
 def main(argv=None) -> int:
     from slwarp.neural.pattern_model import REFINE_MAX_MISFIT
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--rigs", default=",".join(RIGS), help="rigs of the linear-camera scans")
     ap.add_argument("--scenes", default=",".join(SCENES))
     ap.add_argument("--cameras", default="linear,optics,gamma,srgb", help="camera models (CAMERA_MODELS)")

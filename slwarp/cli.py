@@ -517,8 +517,8 @@ def cmd_reconstruct(args) -> int:
     print("pixels: " + ", ".join(f"{k.replace('_', ' ')} {v / valid.size:.1%}" for k, v in t["pixels"].items() if v)
           + " (pixel_fate.png)")
     if t.get("refine_misfit") is not None and not t["refined"] and t.get("refine_check") is None:
-        print(f"photometric refinement skipped: the pattern model's misfit at the field's depth is {t['refine_misfit']:.4f}, "
-              f"above --refine-max-misfit {cfg.extraction.refine_max_misfit} (optics the model lacks, e.g. a real "
+        print("photometric refinement skipped: the pattern model's misfit at the field's depth is "
+              f"{t['refine_misfit']:.4f}, above --refine-max-misfit {cfg.extraction.refine_max_misfit} (optics the model lacks, e.g. a real "
               "lens or a camera response: refining would fit those; --refine-max-misfit 0 refines regardless)")
     check = t.get("refine_check")
     if check and check["before"]:
@@ -528,7 +528,8 @@ def cmd_reconstruct(args) -> int:
               "regardless)")
     if res.metrics is not None:
         print(format_table([("neural SDF", res.metrics)]))
-    print(f"wrote {args.out}/: depth.npy, depth.png, depth_color.png, confidence.npy, confidence.png, pixel_fate.png, mesh.ply, "
+    print(f"wrote {args.out}/: depth.npy, depth.png, depth_color.png, confidence.npy, confidence.png, pixel_fate.png, "
+          "mesh.ply, "
           "points.ply, loss.png, history.json, "
           "config.yaml" + (", metrics.json, error_map.png" if res.metrics is not None else "")
           + "; train/checkpoint.pt (--resume continues)")

@@ -76,6 +76,22 @@ def test_new_run_over_a_checkpoint_is_refused_unless_overwrite(scan, tmp_path):
     assert read_checkpoint(tmp_path / "checkpoint.pt")["iteration"] == 5
 
 
+def test_cli_says_when_the_refinement_is_skipped_for_the_model_misfit(scan, tmp_path, capsys):
+    """--refine-max-misfit below the scan's misfit: the refinement is skipped, the CLI says why and how to force it,
+    timings.json records the misfit and the decision."""
+    folder, out = tmp_path / "scan", tmp_path / "out"
+    scan.save(folder)
+    fast = ["--preset", "tiny", "--device", "cpu", "--init", "sphere", "--iters", "5", "--rays", "64",
+            "--mc-resolution", "16", "--min-confidence", "0", "--quiet"]
+    assert cli_main(["reconstruct", str(folder), "--out", str(out), *fast, "--refine-range", "1",
+                     "--refine-max-misfit", "0.0001"]) == 0
+    printed = capsys.readouterr().out
+    t = json.loads((out / "timings.json").read_text())
+    assert t["refined"] is False and t["refine_misfit"] > 0.0001
+    assert f"photometric refinement skipped: the pattern model's misfit at the field's depth is {t['refine_misfit']:.4f}" in printed
+    assert "--refine-max-misfit 0 refines regardless" in printed
+
+
 def test_cli_resume_refuses_changed_frames_and_new_run_refuses_a_checkpoint(scan, tmp_path, capsys):
     folder, out = tmp_path / "scan", tmp_path / "out"
     scan.save(folder)

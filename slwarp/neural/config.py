@@ -576,8 +576,8 @@ _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), the paper's 400
 # (bench/results/accuracy-cpu-uniform-fill.md): completeness 93.33 -> 94.31%, MAE 0.410 -> 0.414 mm (checker
 # 0.365 -> 0.392, the others within +0.003 or better); not yet measured on a GPU, so tuned keeps it off
 _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4-tap gradient), photometric depth "
-        "refinement (+-3 mm, where the pattern model fits the images), the search repair in groups and the uniform-code fill: better MAE in less time than cpu "
-        "(small rig)",
+        "refinement (+-3 mm, where the pattern model fits the images), the search repair in groups and the "
+        "uniform-code fill: better MAE in less time than cpu (small rig)",
         grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2,
         search_step_mm=2.0, mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
         uniform_fill=True, **_DEFAULT_EXTRACTION, **_HASHGRID)

@@ -445,7 +445,8 @@ def model_misfit(depth: np.ndarray, camera, projector, images: np.ndarray, patte
     ladder = _BlurLadder(patterns, dev)
     centres, sigmas = _fit_blur(d, ok, rays, projector, img, b, ladder, BLUR_BINS)
     X = rays.ray[ok] * d[ok].double()[:, None] + rays.T  # [P, 3] projector frame
-    codes = ladder.sample(_projector_uv(X.float(), projector), ladder.position(_interp(X[:, 2], centres, sigmas).float()))
+    pos = ladder.position(_interp(X[:, 2], centres, sigmas).float())
+    codes = ladder.sample(_projector_uv(X.float(), projector), pos)
     r = least_squares_residual(img[:, ok], codes, b[ok])
     return float((r.abs().mean(0) / b[ok].clamp_min(MIN_MODULATION)).median())
 

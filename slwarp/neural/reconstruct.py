@@ -81,8 +81,8 @@ class Extraction(NamedTuple):
 def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: bool = False,
                   region: np.ndarray | None = None) -> Extraction:
     """An Extraction (depth [H, W], confidence [H, W], mesh, timings, fate [H, W]) from a trained field as its
-    config's extraction section says: marching cubes, then the mesh ray-cast (or sphere tracing when depth_method is 'sphere'), the depth
-    range, the flying-pixel filter, the confidence map (`extraction.confidence`) and the pixels below
+    config's extraction section says: marching cubes, then the mesh ray-cast (or sphere tracing when depth_method
+    is 'sphere'), the depth range, the flying-pixel filter, the confidence map (`extraction.confidence`) and the pixels below
     `extraction.min_confidence` dropped, the search repair when `search_repair` is on (holes filled, contradicted
     depths replaced: slwarp.neural.search.repair_by_search) or else its doubt rule alone when `search_doubt` is on
     (slwarp.neural.search.doubt_by_search), then the photometric refinement of the depth when refine_range > 0
