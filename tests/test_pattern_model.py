@@ -10,7 +10,7 @@ from slwarp.neural.pattern_model import (BLUR_BINS, BLUR_LADDER, BLUR_LADDER_STE
                                         estimate_pattern_blur, fit_blur_by_projector_depth, least_squares_residual,
                                         lit_with_contrast, offset_and_modulation, photometric_filter,
                                         photometric_residual, projector_coords, refine_depth, sample_patterns,
-                                        refinement_generalises, model_misfit, REFINE_MAX_MISFIT, REFINE_RADIUS,
+                                        refinement_generalises, model_misfit, refine_where_model_fits, REFINE_MAX_MISFIT, REFINE_RADIUS,
                                         REFINE_STEP_MM, _BlurLadder)
 from slwarp.sim.simulate import SimOptions, simulate_scene
 
@@ -145,6 +145,22 @@ def test_model_misfit_separates_a_linear_camera_from_a_gamma_camera_and_grows_of
     few = np.full_like(gt, np.nan)
     few[:5, :5] = gt[100:105, 100:105]
     assert np.isnan(model_misfit(few, s.camera, s.projector, s.images[:6], s.patterns[:6]))
+
+
+def test_refine_where_model_fits_refines_as_refine_depth_or_leaves_the_depth(blurred_scan):
+    """One model fit for both: under the limit (or with no limit) the result is refine_depth's exactly, with
+    model_misfit's value (None without a limit); over it the depth comes back unchanged."""
+    s = blurred_scan
+    start = _smooth_error_start(s)
+    args = (s.camera, s.projector, s.images, s.patterns)
+    refined = refine_depth(start, *args, 1.5)
+    misfit = model_misfit(start, *args)
+    for limit, want, want_misfit in ((1.0, refined, misfit), (0.0, refined, None), (misfit / 2, start, misfit)):
+        got, got_misfit = refine_where_model_fits(start, *args, 1.5, limit)
+        np.testing.assert_array_equal(got, want)
+        assert got_misfit == want_misfit
+    with pytest.raises(ValueError, match="half_range_mm and step_mm must be > 0"):
+        refine_where_model_fits(start, *args, 0.0, 1.0)
 
 
 def test_blur_ladder_samples_as_cv2_remap():

@@ -18,6 +18,8 @@ renderer evaluates the same model per sample in Warp (slwarp.kernels.render) and
 """
 from __future__ import annotations
 
+import typing
+
 import numpy as np
 import torch
 
@@ -434,21 +436,64 @@ def model_misfit(depth: np.ndarray, camera, projector, images: np.ndarray, patte
     with pixel integration and a lens blur), where the refinement helps; 0.040 to 0.043 through a gamma-2.2 or sRGB
     camera, and 0.026 on the real capture (7 row-code images, at the full 40-image decode), where it doubles the
     plate's RMS (bench/results/model-misfit-cpu.md; notes/accuracy.md, section 14)."""
+    model = _fit_model(depth, camera, projector, images, patterns, device)
+    return float("nan") if model is None else _misfit(model)
+
+
+class _FittedModel(typing.NamedTuple):
+    """The refinement's pattern model fitted at a depth map (what `model_misfit` and `refine_depth` share): the depth
+    d [H, W] and where it is finite (has), images [N, H, W], modulation b [H, W], rays, blur ladder and the blur per
+    projector depth (centres, sigmas [K]), all torch on one device."""
+
+    d: torch.Tensor
+    has: torch.Tensor
+    img: torch.Tensor
+    b: torch.Tensor
+    rays: "_Rays"
+    ladder: "_BlurLadder"
+    centres: torch.Tensor
+    sigmas: torch.Tensor
+    projector: object
+
+
+def _fit_model(depth, camera, projector, images, patterns, device) -> _FittedModel | None:
+    """The model fitted at depth (its blur per projector depth); None with fewer than 100 lit pixels with depth."""
     dev = _device(device)
     d = torch.as_tensor(np.asarray(depth, np.float32), device=dev)
+    has = torch.isfinite(d)
     img = torch.as_tensor(images, dtype=torch.float32, device=dev)
     _, b = offset_and_modulation(img)
-    ok = torch.isfinite(d) & lit_with_contrast(b)
+    ok = has & lit_with_contrast(b)
     if int(ok.sum()) < 100:
-        return float("nan")
+        return None
     rays = _Rays(camera, projector, dev)
     ladder = _BlurLadder(patterns, dev)
     centres, sigmas = _fit_blur(d, ok, rays, projector, img, b, ladder, BLUR_BINS)
-    X = rays.ray[ok] * d[ok].double()[:, None] + rays.T  # [P, 3] projector frame
-    pos = ladder.position(_interp(X[:, 2], centres, sigmas).float())
-    codes = ladder.sample(_projector_uv(X.float(), projector), pos)
-    r = least_squares_residual(img[:, ok], codes, b[ok])
-    return float((r.abs().mean(0) / b[ok].clamp_min(MIN_MODULATION)).median())
+    return _FittedModel(d, has, img, b, rays, ladder, centres, sigmas, projector)
+
+
+def _misfit(m: _FittedModel) -> float:
+    """model_misfit of a fitted model."""
+    ok = m.has & lit_with_contrast(m.b)
+    X = m.rays.ray[ok] * m.d[ok].double()[:, None] + m.rays.T  # [P, 3] projector frame
+    pos = m.ladder.position(_interp(X[:, 2], m.centres, m.sigmas).float())
+    codes = m.ladder.sample(_projector_uv(X.float(), m.projector), pos)
+    r = least_squares_residual(m.img[:, ok], codes, m.b[ok])
+    return float((r.abs().mean(0) / m.b[ok].clamp_min(MIN_MODULATION)).median())
+
+
+def refine_where_model_fits(depth: np.ndarray, camera, projector, images: np.ndarray, patterns: np.ndarray,
+                            half_range_mm: float, max_misfit: float, device=None) -> tuple[np.ndarray, float | None]:
+    """(depth, misfit): `refine_depth` of depth [H, W] unless max_misfit > 0 and the `model_misfit` at depth is above
+    it (then depth unchanged); misfit None when max_misfit <= 0. The model is fitted once for both."""
+    depth = np.asarray(depth, np.float32)
+    if not np.isfinite(depth).any():
+        return depth.copy(), (float("nan") if max_misfit > 0 else None)
+    model = _fit_model(depth, camera, projector, images, patterns, device)
+    misfit = (float("nan") if model is None else _misfit(model)) if max_misfit > 0 else None
+    if misfit is not None and misfit > max_misfit:
+        return depth.copy(), misfit
+    return _refine(model, depth, half_range_mm, REFINE_RADIUS, REFINE_STEP_MM, 8), misfit
 
 
 def refine_depth(depth: np.ndarray, camera, projector, images: np.ndarray, patterns: np.ndarray, half_range_mm: float,
@@ -469,19 +514,22 @@ def refine_depth(depth: np.ndarray, camera, projector, images: np.ndarray, patte
     Memory: about 110 bytes per pixel and offset of a chunk with N = 6 frames (measured on the CPU: 145 MB
     more for 16 more offsets on the small rig's 82k pixels), so ~1.2 GB for the default rig (1.3 M pixels)
     with chunk 8, plus the blur ladder (13 N Hp Wp floats: 0.33 GB for 6 frames of 1280 x 800)."""
-    if not half_range_mm > 0 or not step_mm > 0:
-        raise ValueError(f"refine_depth: half_range_mm and step_mm must be > 0, got {half_range_mm}, {step_mm}")
     depth = np.asarray(depth, np.float32)
     if not np.isfinite(depth).any():
         return depth.copy()
-    dev = _device(device)
-    d = torch.as_tensor(depth, device=dev)
-    ok = torch.isfinite(d)
-    img = torch.as_tensor(images, dtype=torch.float32, device=dev)
-    _, b = offset_and_modulation(img)
-    rays = _Rays(camera, projector, dev)
-    ladder = _BlurLadder(patterns, dev)
-    centres, sigmas = _fit_blur(d, ok & lit_with_contrast(b), rays, projector, img, b, ladder, BLUR_BINS)
+    return _refine(_fit_model(depth, camera, projector, images, patterns, device), depth, half_range_mm, radius,
+                   step_mm, chunk)
+
+
+def _refine(m: _FittedModel | None, depth: np.ndarray, half_range_mm: float, radius: int, step_mm: float,
+            chunk: int) -> np.ndarray:
+    """refine_depth's search with the model fitted at depth (None: too few pixels to fit its blur)."""
+    if not half_range_mm > 0 or not step_mm > 0:
+        raise ValueError(f"refine_depth: half_range_mm and step_mm must be > 0, got {half_range_mm}, {step_mm}")
+    if m is None:
+        raise ValueError("fit_blur_by_projector_depth: fewer than 100 pixels with depth and contrast")
+    d, ok, img, b, rays, ladder, centres, sigmas = m.d, m.has, m.img, m.b, m.rays, m.ladder, m.centres, m.sigmas
+    dev, projector = d.device, m.projector
     # per-pixel blur from the pixel's projector depth (pixels without depth: the first bin's, as they cost 0)
     zp = rays.ray[..., 2] * d.double() + rays.T[2]
     pos = ladder.position(_interp(torch.nan_to_num(zp, nan=0.0).where(ok, centres[0]), centres, sigmas).float())

@@ -29,7 +29,7 @@ from ..evaluation.outputs import (check_output_folder, staged_outputs, write_con
                                   write_points_ply)
 from .extract import depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, sphere_trace_depth
 from .confidence import depth_confidence
-from .pattern_model import fill_uniform_codes, model_misfit, refine_depth, refinement_generalises
+from .pattern_model import fill_uniform_codes, refine_where_model_fits, refinement_generalises
 from .search import doubt_by_search, repair_by_search
 from .config import TrainConfig, save_config
 from .train import Trainer
@@ -87,9 +87,8 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     depths replaced: slwarp.neural.search.repair_by_search) or else its doubt rule alone when `search_doubt` is on
     (slwarp.neural.search.doubt_by_search), then the photometric refinement of the depth when refine_range > 0
     (the confidence is that of the depth before refinement), skipped when `refine_max_misfit` > 0 and the pattern
-    model's misfit there is above it (`pattern_model.model_misfit`; timings["refine_misfit"], timings["refined"]),
-    kept with `refine_check` only if it explains held-out
-    frames better (`pattern_model.refinement_generalises`; timings["refine_check"]), and with `uniform_fill` the lit
+    model's misfit there is above it (`pattern_model.refine_where_model_fits`; timings["refine_misfit"],
+    timings["refined"]), kept with `refine_check` only if it explains held-out frames better (`pattern_model.refinement_generalises`; timings["refine_check"]), and with `uniform_fill` the lit
     pixels without contrast inside `region` (default: all) that the field's predicted codes explain
     (`pattern_model.fill_uniform_codes`);
     depth is otherwise kept only inside `valid`. Both maps are NaN where no depth. timings["dropped"] counts the
@@ -175,13 +174,13 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
         repair_s = time.perf_counter() - t3
         t3 = time.perf_counter()
     check, misfit, refined_applied = None, None, False
-    refine_inputs = (cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames],
-                     trainer.scan.patterns[: trainer.n_frames], ex.refine_range)
-    if ex.refine_range > 0 and ex.refine_max_misfit > 0:
-        # a model that misses part of the optics (a camera response, real lenses) is fitted, not the surface
-        misfit = model_misfit(depth, *refine_inputs[:-1], device=trainer.device)
+    if ex.refine_range > 0:
+        refine_inputs = (cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames],
+                         trainer.scan.patterns[: trainer.n_frames], ex.refine_range)
+        # with refine_max_misfit: not where the model misses part of the optics (a camera response, real lenses),
+        # whose errors the refinement would fit instead of the surface
+        refined, misfit = refine_where_model_fits(depth, *refine_inputs, ex.refine_max_misfit, device=trainer.device)
     if ex.refine_range > 0 and not (misfit is not None and misfit > ex.refine_max_misfit):
-        refined = refine_depth(depth, *refine_inputs, device=trainer.device)
         if ex.refine_check:
             # a refinement that fits the model's errors explains a held-out frame worse: keep the depth then
             check = refinement_generalises(depth, *refine_inputs, device=trainer.device)
