@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import re
 import time
 from pathlib import Path
 
@@ -45,8 +46,19 @@ PHASE_COLUMNS = {"batch": "losses_other", "rays": "mlp_forward", "field": "mlp_f
                  "backward": "mlp_backward", "optimizer": "adam", "end": "losses_other"}
 
 
+TOP_KERNELS = 16  # the kernels listed per config (by GPU time per iteration)
+
+
 def is_warp_kernel(name: str) -> bool:
     return any(m in name for m in WARP_KERNEL_MARKERS)
+
+
+def kernel_label(name: str) -> str:
+    """A kernel's name, short: Warp's <kernel>_<hash>_cuda_kernel_forward -> warp:<kernel>; C++ templates cut."""
+    m = re.match(r"(\w+?)(_[0-9a-f]{6,})?_cuda_kernel_forward", name)
+    if m:
+        return "warp:" + m.group(1)
+    return name if len(name) <= 70 else name[:67] + "..."
 
 
 def breakdown(trainer, steps: int = 5) -> dict:
@@ -77,6 +89,7 @@ def breakdown(trainer, steps: int = 5) -> dict:
     evs.sort(key=lambda e: e.start_ns())
     order = ["batch", "rays", "field", "render", "backward", "optimizer", "end"]
     cats = {"mlp_forward": 0.0, "losses_other": 0.0, "mlp_backward": 0.0, "warp_kernels": 0.0, "adam": 0.0}
+    per_kernel: dict[str, list] = {}  # name -> [ms per iteration, launches per iteration]
     phase = "end"
     n_markers = 0
     for e in evs:
@@ -85,6 +98,9 @@ def breakdown(trainer, steps: int = 5) -> dict:
             phase = order[n_markers % len(order)]
             n_markers += 1
             continue
+        k = per_kernel.setdefault(kernel_label(e.name()), [0.0, 0.0])
+        k[0] += ms
+        k[1] += 1.0 / steps
         if is_warp_kernel(e.name()):
             cats["warp_kernels"] += ms
         else:
@@ -93,6 +109,8 @@ def breakdown(trainer, steps: int = 5) -> dict:
         names = sorted({e.name()[:60] for e in evs})
         print("breakdown: no marker kernels seen; kernel names:", names[:40], flush=True)
     cats["gpu_total"] = sum(cats.values())
+    top = sorted(per_kernel.items(), key=lambda kv: -kv[1][0])[:TOP_KERNELS]
+    cats["kernels"] = [{"kernel": name, "ms": ms, "launches": n} for name, (ms, n) in top]
     cats["markers_seen"] = n_markers
     cats["markers_expected"] = steps * len(order)
     return cats
@@ -224,6 +242,12 @@ def markdown(doc: dict) -> str:
             lines.append(f"| {r['config']}{'' if r['graph_used'] or not r['config'].endswith('graph') else ' (capture failed)'} | "
                          f"{r['ms_per_it']:.2f} | {r['it_per_s']:.1f} | {r['projected_s']:.1f} | " + " | ".join(cells)
                          + f" | {r.get('peak_gpu_mem_GB', nan):.2f} |")
+        for r in doc["rows"]:
+            ks = r.get("breakdown_ms", {}).get("kernels")
+            if ks:
+                lines += ["", f"Kernels of `{r['config']}` by GPU time per iteration (the {len(ks)} largest):", "",
+                          "| kernel | ms/it | launches/it |", "|---|---:|---:|"]
+                lines += [f"| {k['kernel'].replace('|', '/')} | {k['ms']:.3f} | {k['launches']:.0f} |" for k in ks]
         base = {r["config"]: r["ms_per_it"] for r in doc["rows"]}
         for fast, slow in (("warp:compile:tf32:graph", "warp:compile:tf32:graph:twin"),
                            ("warp:eager:fp32", "warp:eager:fp32:twin"),

@@ -38,3 +38,19 @@ def test_train_speed_rejects_bad_specs():
         bench.parse_spec("warp:eager:fp32:twins")
     assert bench.parse_spec("torch:compile:tf32:graph:twin") == {
         "options": dict(backend="torch", compile=True, matmul="tf32", cuda_graph=True), "twin": True}
+
+
+def test_kernel_labels_and_table():
+    bench = load_bench()
+    assert bench.kernel_label("encode_backward_9a8b7c6d_cuda_kernel_forward") == "warp:encode_backward"
+    assert bench.kernel_label("render_kernels_cuda_kernel_forward") == "warp:render_kernels"
+    long = "void at::native::vectorized_elementwise_kernel<4, at::native::FillFunctor<float>>(int)" * 2
+    assert len(bench.kernel_label(long)) == 70 and bench.kernel_label(long).endswith("...")
+    row = {"config": "warp:compile:tf32:graph", "ms_per_it": 2.0, "it_per_s": 500.0, "projected_s": 8.0,
+           "iters_of_preset": 4000, "graph_used": True,
+           "breakdown_ms": {"kernels": [{"kernel": "warp:encode_backward", "ms": 0.912, "launches": 1.0},
+                                        {"kernel": "a|b", "ms": 0.1, "launches": 3.0}]}}
+    doc = {"device": "GPU", "date": "d", "preset": "accurate", "options": [], "scene": "bunny", "rig": "default",
+           "warmup": 1, "iters": 2, "rows": [row], "end_to_end": []}
+    md = bench.markdown(doc)
+    assert "| warp:encode_backward | 0.912 | 1 |" in md and "| a/b | 0.100 | 3 |" in md
