@@ -89,9 +89,10 @@ def lost_pixels(mask: np.ndarray, valid: np.ndarray, timings: dict) -> dict:
 
 
 def refine_facts(timings: dict) -> dict:
-    """What an extraction decided about the refinement, for study: the model's misfit, whether it refined, and the
-    held-out check's decision and per-fold residuals when it ran."""
-    return {k: timings[k] for k in ("refine_misfit", "refined", "refine_check") if timings.get(k) is not None}
+    """What an extraction decided, for study: the model's misfit, whether it refined, the held-out check's decision
+    and per-fold residuals when it ran, and the pixels the repair's growth changed."""
+    return {k: timings[k] for k in ("refine_misfit", "refined", "refine_check", "repair_grown")
+            if timings.get(k) is not None}
 
 
 def keep_error_map(job: dict, label: str, depth: np.ndarray, scan, fate: np.ndarray | None = None) -> None:

@@ -18,7 +18,7 @@ FLAT_DEFAULTS = dict(iters=4000, rays=2048, n_samples=32, n_importance=32, up_sa
                      n_freqs=6, init="search", init_iters=300, search_step_mm=1.0, search_stride=2, seed=0, backend="warp",
                      device="auto", matmul="fp32", compile=True, cuda_graph=True, incremental=False, start_frames=3,
                      add_every=500, checkpoint_every=500, log_every=50, mc_resolution=384, depth_method="mesh",
-                     edge_filter=10.0, refine_range=0.0, search_repair=False, repair_min_component=0, search_doubt=False,
+                     edge_filter=10.0, refine_range=0.0, search_repair=False, repair_min_component=0, repair_grow=False, search_doubt=False,
                      search_confirm=False, uniform_fill=False, refine_check=False, refine_max_misfit=0.0, surface_weight=0.0, surface_after=0.0, surface_band_mm=0.5,
                      field="mlp", grid_levels=16, grid_log2_table=19, grid_base=16, grid_finest="auto",
                      grid_hidden=64, grid_layers=1, grid_activation="softplus", grid_gradient="finite_difference",
@@ -28,7 +28,7 @@ FLAT_PRESETS = {
     "paper": dict(matmul="tf32"),
     "tuned": dict(matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0, refine_range=3.0, refine_max_misfit=0.024,
                   search_doubt=True,
-                  search_repair=True, repair_min_component=100, surface_weight=1.0, surface_after=1.0,
+                  search_repair=True, repair_min_component=100, repair_grow=True, surface_weight=1.0, surface_after=1.0,
                   uniform_fill=True),
     "cpu": dict(iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, lr=5e-4, lr_decay="cosine",
                 lambda_sc=0.0, hidden=64, layers=4, skip=2, n_freqs=6, search_step_mm=2.0, mc_resolution=192,
@@ -41,7 +41,7 @@ FLAT_PRESETS = {
                  checkpoint_every=1000, **HASHGRID),
     "accurate": dict(matmul="tf32", grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2, grid_level_every=200, refine_range=3.0,
                      search_doubt=True, **HASHGRID),
-    "cpu-hashgrid": dict(refine_range=3.0, refine_max_misfit=0.024, search_doubt=True, search_repair=True, repair_min_component=100, uniform_fill=True,
+    "cpu-hashgrid": dict(refine_range=3.0, refine_max_misfit=0.024, search_doubt=True, search_repair=True, repair_min_component=100, repair_grow=True, uniform_fill=True,
                          grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, search_step_mm=2.0,
                          mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
                          **HASHGRID),
@@ -171,7 +171,7 @@ def test_cli_flags_are_generated_for_every_option():
                 expect = {int: int, float: float}[opt._numeric()](opt.min) + 1
             assert expect != default
             argv = [flag, str(expect)]
-        needs = ["--search-repair"] if name == "search_confirm" else []  # a rule between options
+        needs = ["--search-repair"] if name in ("search_confirm", "repair_grow") else []  # a rule between options
         _, cfg, _ = parse(["reconstruct", "scan", "--out", "o", "--preset", "tiny", *argv, *needs])
         assert cfg.get(name) == expect, name
 

@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from slwarp.neural.pattern_model import blur_patterns, lit_with_contrast, offset_and_modulation
-from slwarp.neural.search import component_sizes, neighbours_within, doubt_by_search, repair_by_search, search_depth
+from slwarp.neural.search import (component_sizes, doubt_by_search, grow_repair, neighbours_within, repair_by_search,
+                                  search_depth)
 from slwarp.sim.simulate import SimOptions, simulate_scene
 
 BLUR = 1.0  # projector px: the simulated defocus, and the blur the patterns are rendered with
@@ -243,3 +244,58 @@ def test_extract_depth_applies_the_doubt_rule_only_by_dropping(tiny_rods_field):
     # a 60-iteration field leaves wrong depths on the rods for the rule to drop
     assert t_doubt["dropped"]["search_doubt"] == int((np.isfinite(plain) & ~kept).sum()) > 0
     assert np.isnan(conf[~kept]).all()
+
+
+def test_grow_repair_spreads_the_repaired_surface_to_its_wrong_neighbours(scene):
+    """A patch that kept a surface 40 mm behind, in a block the repair fixed around it (the seeds): the growth gives
+    the patch the seeds' surface pass by pass where the codes fit it better; a wrong block with no seed beside it,
+    the right depths elsewhere and the holes stay as they were."""
+    scan, patterns, valid = scene
+    gt = np.where(valid, scan.gt_depth, np.nan).astype(np.float32)
+    blocks = [(y, x) for y in range(10, 220, 15) for x in range(10, 270, 15)
+              if valid[y : y + 30, x : x + 40].all() and np.ptp(scan.gt_depth[y : y + 30, x : x + 40]) < 15.0]
+    y0, x0 = blocks[0]
+    y1, x1 = next(b for b in blocks if abs(b[0] - y0) >= 40 or abs(b[1] - x0) >= 50)
+    wrong = np.zeros_like(valid)
+    wrong[y0 + 5 : y0 + 25, x0 + 30 : x0 + 38] = True  # 8 columns: within reach of the passes
+    seeds = np.zeros_like(valid)
+    seeds[y0 : y0 + 30, x0 : x0 + 40] = True  # around it on three sides, as a rod repaired on both sides of a gap
+    seeds &= ~wrong
+    lone = np.zeros_like(valid)
+    lone[y1 : y1 + 10, x1 : x1 + 10] = True
+    depth = gt.copy()
+    depth[wrong | lone] += 40.0
+    depth[5, :] = np.nan  # a hole stays a hole
+    out, grown = grow_repair(depth, seeds, scan.camera, scan.projector, scan.images, patterns)
+    assert grown[wrong].mean() > 0.9
+    assert np.mean(np.abs(out[wrong] - gt[wrong]) < 2.0) > 0.9
+    assert not grown[~wrong].any()  # the lone block, the seeds and the right depths elsewhere: untouched
+    np.testing.assert_array_equal(out[~grown], depth[~grown])
+    np.testing.assert_array_equal(np.isfinite(out), np.isfinite(depth))  # nothing dropped, nothing filled
+    # without seeds nothing moves
+    same, none = grow_repair(depth, np.zeros_like(valid), scan.camera, scan.projector, scan.images, patterns)
+    assert not none.any()
+    np.testing.assert_array_equal(same, depth)
+
+
+def test_extract_depth_grows_the_repair_without_changing_completeness(tiny_rods_field):
+    """extract_depth with repair_grow: the same map as without it except at the grown pixels (counted in
+    timings["repair_grown"], fate "repaired"), no pixel gained or lost; the option needs search_repair."""
+    from slwarp.neural.config import ConfigError
+    from slwarp.neural.reconstruct import FATE, extract_depth
+
+    _, cfg, trainer = tiny_rods_field
+    with pytest.raises(ConfigError, match="repair_grow"):
+        cfg.with_options(repair_grow=True)
+    valid = trainer.renderer.valid_map.cpu().numpy()
+    trainer.cfg = cfg.with_options(search_repair=True)
+    plain = extract_depth(trainer, valid)
+    trainer.cfg = cfg.with_options(search_repair=True, repair_grow=True)
+    grown = extract_depth(trainer, valid)
+    trainer.cfg = cfg
+    assert plain.timings["repair_grown"] == 0
+    np.testing.assert_array_equal(np.isfinite(grown.depth), np.isfinite(plain.depth))
+    moved = np.isfinite(plain.depth) & (grown.depth != plain.depth)
+    assert grown.timings["repair_grown"] == int(moved.sum())
+    assert (grown.fate[moved] == FATE["repaired"]).all()
+    np.testing.assert_array_equal(grown.fate[~moved], plain.fate[~moved])

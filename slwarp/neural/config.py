@@ -224,6 +224,9 @@ class ExtractionConfig:
     search_confirm: bool = option(False, "search repair: give the field's own depth back to pixels that the flying-"
                                   "pixel filter or the photometric check dropped, where the 3x3 and 5x5 depth "
                                   "searches both agree with it within 3 mm (needs search_repair)", resumable=True)
+    repair_grow: bool = option(False, "search repair: at the end, spread its changes to neighbouring pixels that kept "
+                               "another surface's depth (over 20 mm off) where the codes fit the repaired surface "
+                               "better; drops and fills nothing (needs search_repair)", resumable=True)
     search_doubt: bool = option(False, "drop depths that a per-pixel depth search (3x3 window) contradicts by more "
                                 "than 6 mm and whose photometric confidence is below 0.7 (the background's depth on "
                                 "a thin part); fills and replaces nothing (search_repair includes it)", resumable=True)
@@ -438,6 +441,8 @@ class TrainConfig:
         if self.extraction.search_confirm and not self.extraction.search_repair:
             raise ConfigError("option search_confirm: true needs search_repair: true (the confirmations are part of "
                               "the search repair)")
+        if self.extraction.repair_grow and not self.extraction.search_repair:
+            raise ConfigError("option repair_grow: true needs search_repair: true (it spreads the repair's changes)")
         return self
 
     def fixed_options(self) -> dict:
@@ -520,8 +525,13 @@ _preset("paper", "the paper's recipe, unchanged: 4000 iterations, 2048 rays, 32+
 # the extraction of both defaults (tuned, cpu-hashgrid): refinement, then the search repair in groups (its doubt
 # rule stays on by itself when a run turns the repair off)
 # and the refinement only where the pattern model explains the images (REFINE_MAX_MISFIT)
+# and the repair's growth (search.grow_repair) into the pixels beside it that kept the background's depth by a chance
+# fit: full-resolution rods, tuned's maps of 4 rigs grown offline (bench/results/grow-study.md) 0.183 / 0.285 / 0.183
+# / 0.305 -> 0.178 / 0.236 / 0.168 / 0.275 mm (default / vertical / oblique / rolled), no pixel gained or lost; no
+# change on the 4 checker maps (no repair there) nor, grown in the extraction, on vertical-rig steps
+# (accuracy-cuda-grow-check.md, which also has vertical rods 0.264 -> 0.231 mm with the growth in the extraction)
 _DEFAULT_EXTRACTION = dict(refine_range=3.0, refine_max_misfit=REFINE_MAX_MISFIT, search_doubt=True, search_repair=True,
-                           repair_min_component=100)
+                           repair_min_component=100, repair_grow=True)
 # the surface term (surface_weight = surface_after = 1, its depths only in confirmed groups of >= 50 pixels) and the
 # uniform-code fill: 32 scans (8 scenes x 4 rigs, 2 H200s, bench/results/accuracy-cuda-surface-group.md) give a mean
 # MAE of 0.136 / 0.139 / 0.093 / 0.176 mm (default / vertical / oblique / rolled) against 0.166 / 0.178 / 0.129 /
@@ -530,7 +540,7 @@ _DEFAULT_EXTRACTION = dict(refine_range=3.0, refine_max_misfit=REFINE_MAX_MISFIT
 # +1.2 points; the fill adds 1.0 to 1.3 points per scan for +0.002 to +0.011 mm)
 _preset("tuned", "paper with lr 5e-4, cosine decay, no surface-colour loss, an SDF term at the depths the codes "
         "confirm, photometric depth refinement (+-3 mm, where the pattern model fits the images), the search repair "
-        "(changes in groups of >= 100 pixels) and "
+        "(changes in groups of >= 100 pixels, grown into the neighbours that kept another surface) and "
         "the uniform-code fill: the most accurate measured on the virtual scanner (GPU default)",
         matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0, surface_weight=1.0, surface_after=1.0,
         uniform_fill=True, **_DEFAULT_EXTRACTION)
@@ -576,7 +586,7 @@ _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), the paper's 400
 # (bench/results/accuracy-cpu-uniform-fill.md): completeness 93.33 -> 94.31%, MAE 0.410 -> 0.414 mm (checker
 # 0.365 -> 0.392, the others within +0.003 or better); not yet measured on a GPU, so tuned keeps it off
 _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4-tap gradient), photometric depth "
-        "refinement (+-3 mm, where the pattern model fits the images), the search repair in groups and the "
+        "refinement (+-3 mm, where the pattern model fits the images), the search repair in groups (grown) and the "
         "uniform-code fill: better MAE in less time than cpu (small rig)",
         grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2,
         search_step_mm=2.0, mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,

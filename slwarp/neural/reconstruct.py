@@ -30,7 +30,7 @@ from ..evaluation.outputs import (check_output_folder, staged_outputs, write_con
 from .extract import depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, sphere_trace_depth
 from .confidence import depth_confidence
 from .pattern_model import fill_uniform_codes, refine_where_model_fits, refinement_generalises
-from .search import doubt_by_search, repair_by_search
+from .search import doubt_by_search, grow_repair, repair_by_search
 from .config import TrainConfig, save_config
 from .train import Trainer
 
@@ -90,7 +90,8 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     model's misfit there is above it (`pattern_model.refine_where_model_fits`; timings["refine_misfit"],
     timings["refined"]), kept with `refine_check` only if it explains held-out frames better (`pattern_model.refinement_generalises`; timings["refine_check"]), and with `uniform_fill` the lit
     pixels without contrast inside `region` (default: all) that the field's predicted codes explain
-    (`pattern_model.fill_uniform_codes`);
+    (`pattern_model.fill_uniform_codes`), and last, with `repair_grow`, the repair's changes spread to neighbours
+    that kept another surface's depth (`search.grow_repair`; timings["repair_grown"]);
     depth is otherwise kept only inside `valid`. Both maps are NaN where no depth. timings["dropped"] counts the
     pixels each stage left without depth (no_surface inside `valid`, out_of_range, flying_pixel, low_confidence,
     search_doubt); timings["filled_uniform"] the pixels the uniform-code fill added; `fate` says the same per pixel
@@ -195,12 +196,26 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
             trainer.depth_range, ex.min_confidence, region=region)
         confidence = np.where(filled, fill_confidence, confidence).astype(np.float32)
         fate[filled] = FATE["filled"]
+    t5 = time.perf_counter()
+    grown = None
+    if ex.repair_grow and ex.search_repair and valid is not None:
+        # pixels beside the repaired ones that kept another surface's depth by a chance fit of their codes:
+        # slwarp.neural.search.grow_repair (after the refinement, so that the repaired depths it spreads are refined)
+        depth, grown = grow_repair(depth, fate == FATE["repaired"], cam, trainer.scan.projector,
+                                   trainer.scan.images[: trainer.n_frames],
+                                   trainer.renderer.rendered_patterns.detach().cpu().numpy())
+        if grown.any():
+            fate[grown] = FATE["repaired"]
+            new = depth_confidence(trainer, np.where(grown, depth, np.nan).astype(np.float32), ex.confidence)
+            confidence = np.where(grown, new, confidence).astype(np.float32)
     return Extraction(depth, confidence, mesh, {"marching_cubes_s": t1 - t0, "depth_s": t2 - t1,
                                      "confidence_s": t3 - t2 - repair_s, "repair_s": repair_s, "repair": repair,
                                      "refine_s": t4 - t3, "refine_misfit": misfit,
                                      "refined": refined_applied,
-                                     "refine_check": check, "fill_s": time.perf_counter() - t4,
+                                     "refine_check": check, "fill_s": t5 - t4,
                                      "filled_uniform": int(filled.sum()) if filled is not None else 0,
+                                     "grow_s": time.perf_counter() - t5,
+                                     "repair_grown": int(grown.sum()) if grown is not None else 0,
                                      "dropped": dropped}, fate)
 
 
