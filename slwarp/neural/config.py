@@ -529,7 +529,8 @@ _preset("paper", "the paper's recipe, unchanged: 4000 iterations, 2048 rays, 32+
 # fit: full-resolution rods, tuned's maps of 4 rigs grown offline (bench/results/grow-study.md) 0.183 / 0.285 / 0.183
 # / 0.305 -> 0.178 / 0.236 / 0.168 / 0.275 mm (default / vertical / oblique / rolled), no pixel gained or lost; no
 # change on the 4 checker maps (no repair there) nor, grown in the extraction, on vertical-rig steps
-# (accuracy-cuda-grow-check.md, which also has vertical rods 0.264 -> 0.231 mm with the growth in the extraction)
+# (accuracy-cuda-grow-check.md, which also has vertical rods 0.264 -> 0.231 mm with the growth in the extraction);
+# on the small rig with cpu-hashgrid nothing grows on any of the 8 scenes (accuracy-cpu-grow.md)
 _DEFAULT_EXTRACTION = dict(refine_range=3.0, refine_max_misfit=REFINE_MAX_MISFIT, search_doubt=True, search_repair=True,
                            repair_min_component=100, repair_grow=True)
 # the surface term (surface_weight = surface_after = 1, its depths only in confirmed groups of >= 50 pixels) and the
