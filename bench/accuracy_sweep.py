@@ -90,8 +90,8 @@ def lost_pixels(mask: np.ndarray, valid: np.ndarray, timings: dict) -> dict:
 
 def refine_facts(timings: dict) -> dict:
     """What an extraction decided, for study: the model's misfit, whether it refined, the held-out check's decision
-    and per-fold residuals when it ran, and the pixels the repair's growth changed."""
-    return {k: timings[k] for k in ("refine_misfit", "refined", "refine_check", "repair_grown")
+    and per-fold residuals when it ran, the pixels the repair's growth changed and the edge pixels given back."""
+    return {k: timings[k] for k in ("refine_misfit", "refined", "refine_check", "repair_grown", "edge_readmitted")
             if timings.get(k) is not None}
 
 

@@ -4,7 +4,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from slwarp.neural.extract import flying_pixel_filter, neighbour_stack
+from slwarp.neural.extract import flying_pixel_filter, neighbour_stack, readmit_edge_pixels
 
 CAMERA = SimpleNamespace(fx=500.0, fy=500.0)  # a pixel footprint of 1 mm at 500 mm
 
@@ -25,6 +25,37 @@ def test_flying_pixel_filter_drops_both_sides_of_a_jump_and_keeps_a_slope():
     assert np.isfinite(out[:, :2]).all() and np.isfinite(out[:, 4:]).all()
     slope = 500.0 + 3.0 * np.arange(6, dtype=np.float32)[None, :].repeat(6, 0)  # 3 footprints per pixel
     np.testing.assert_array_equal(flying_pixel_filter(slope, CAMERA, footprints=10.0), slope)
+
+
+def test_readmit_edge_pixels_gives_back_each_side_of_an_edge_but_not_what_lies_between():
+    """A 100 mm step with one column in between: the filter drops the step's two sides and the middle column;
+    the sides have 3 kept neighbours on their own surface and come back when their codes confirm them, the
+    middle one has none. A low confidence, or a side bent 20 mm toward the other surface, keeps them out."""
+    d = np.full((6, 8), 500.0, np.float32)
+    d[:, 4] = 550.0  # between the surfaces: a mixed pixel
+    d[:, 5:] = 600.0
+    after = flying_pixel_filter(d, CAMERA, footprints=10.0)
+    assert np.isnan(after[:, 3:6]).all() and np.isfinite(after[:, :3]).all() and np.isfinite(after[:, 6:]).all()
+    seen = []
+
+    def confident(m):
+        seen.append(np.isfinite(m))
+        return np.where(np.isfinite(m), 1.0, np.nan)
+
+    back = readmit_edge_pixels(d, after, CAMERA, 10.0, confident)
+    expect = np.zeros(d.shape, bool)
+    expect[1:-1, [3, 5]] = True  # on the image's border two kept neighbours are too few
+    np.testing.assert_array_equal(back, expect)
+    np.testing.assert_array_equal(seen[0], expect)  # confidence asked only at the candidates
+    doubtful = readmit_edge_pixels(d, after, CAMERA, 10.0, lambda m: np.where(np.isfinite(m), 0.7, np.nan))
+    assert not doubtful.any()
+    bent = d.copy()
+    bent[:, 3] = 520.0  # the field's surface bending toward the background: 20 footprints from its neighbours
+    back = readmit_edge_pixels(bent, flying_pixel_filter(bent, CAMERA, 10.0), CAMERA, 10.0, confident)
+    assert not back[:, 3].any() and back[1:-1, 5].all()
+    # nothing dropped: nothing to give back, and no confidence asked
+    seen.clear()
+    assert not readmit_edge_pixels(d[:, :3], d[:, :3], CAMERA, 10.0, confident).any() and not seen
 
 
 def test_extract_mesh_leaves_out_the_volume_outside_the_depth_range():

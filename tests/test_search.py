@@ -299,3 +299,41 @@ def test_extract_depth_grows_the_repair_without_changing_completeness(tiny_rods_
     assert grown.timings["repair_grown"] == int(moved.sum())
     assert (grown.fate[moved] == FATE["repaired"]).all()
     np.testing.assert_array_equal(grown.fate[~moved], plain.fate[~moved])
+
+
+def test_extract_depth_readmits_edge_pixels_and_only_them(tiny_rods_field, monkeypatch):
+    """extract_depth with edge_readmit: the pixels it gives back (timings["edge_readmitted"]) are ones the
+    flying-pixel filter dropped without it, now with the field's depth and fate "measured"; every other pixel's
+    depth is unchanged; the option needs the filter. The tiny field has few real depth edges, so a tight filter
+    (half a footprint) and a readmission asking one neighbour and any confidence exercise the plumbing
+    (readmit_edge_pixels' own thresholds: tests/test_extract.py)."""
+    import functools
+
+    from slwarp.neural import reconstruct as rec
+    from slwarp.neural.config import ConfigError
+    from slwarp.neural.reconstruct import FATE, extract_depth
+
+    _, cfg, trainer = tiny_rods_field
+    with pytest.raises(ConfigError, match="edge_readmit"):
+        cfg.with_options(edge_readmit=True, edge_filter=0.0)
+    monkeypatch.setattr(rec, "readmit_edge_pixels",
+                        functools.partial(rec.readmit_edge_pixels, min_support=1, min_confidence=0.0))
+    valid = trainer.renderer.valid_map.cpu().numpy()
+    try:
+        trainer.cfg = cfg.with_options(edge_filter=0.5)
+        plain = extract_depth(trainer, valid)
+        trainer.cfg = cfg.with_options(edge_filter=0.5, edge_readmit=True)
+        back = extract_depth(trainer, valid)
+        trainer.cfg = cfg.with_options(edge_filter=0.0)
+        unfiltered = extract_depth(trainer, valid)
+    finally:
+        trainer.cfg = cfg
+    assert plain.timings["edge_readmitted"] == 0
+    gained = np.isfinite(back.depth) & ~np.isfinite(plain.depth)
+    assert back.timings["edge_readmitted"] >= int(gained.sum()) > 0
+    assert (plain.fate[gained] == FATE["flying_pixel"]).all()
+    assert (back.fate[gained] == FATE["measured"]).all()
+    np.testing.assert_array_equal(back.depth[gained], unfiltered.depth[gained])
+    kept = np.isfinite(plain.depth)
+    np.testing.assert_array_equal(back.depth[kept], plain.depth[kept])
+    assert back.timings["dropped"]["flying_pixel"] == plain.timings["dropped"]["flying_pixel"] - back.timings["edge_readmitted"]

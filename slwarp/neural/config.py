@@ -206,6 +206,9 @@ class ExtractionConfig:
                                                      "sphere tracing the field", resumable=True)
     edge_filter: float = option(10.0, "drop depth-edge (flying) pixels: jumps above this many pixel footprints (0: off)",
                                 min=0.0, resumable=True)
+    edge_readmit: bool = option(False, "give back the depth-edge pixels that lie on one side of the edge: at least 3 "
+                                "neighbours the filter kept within its limit and a photometric confidence of at least "
+                                "0.8 (needs edge_filter > 0)", resumable=True)
     # what the method knows about each pixel, as a map in [0, 1] written beside the depth (slwarp.neural.confidence);
     # photometric with min_confidence 0.6 is the photometric check (relative RMS residual below 0.4)
     confidence: Literal["photometric", "peak", "agreement", "uniqueness", "combined"] = option(
@@ -441,6 +444,8 @@ class TrainConfig:
         if self.extraction.search_confirm and not self.extraction.search_repair:
             raise ConfigError("option search_confirm: true needs search_repair: true (the confirmations are part of "
                               "the search repair)")
+        if self.extraction.edge_readmit and not self.extraction.edge_filter > 0:
+            raise ConfigError("option edge_readmit: true needs edge_filter > 0 (it gives back what that filter dropped)")
         if self.extraction.repair_grow and not self.extraction.search_repair:
             raise ConfigError("option repair_grow: true needs search_repair: true (it spreads the repair's changes)")
         return self

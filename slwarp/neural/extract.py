@@ -121,6 +121,37 @@ def flying_pixel_filter(depth: np.ndarray, camera, footprints: float = 10.0) -> 
     return out.astype(np.float32)
 
 
+# readmission of edge pixels (readmit_edge_pixels): neighbours on the pixel's own surface that the filter kept,
+# and the photometric confidence that the surface term also asks of a depth before it trusts it
+EDGE_READMIT_SUPPORT = 3
+EDGE_READMIT_CONFIDENCE = 0.8
+
+
+def readmit_edge_pixels(before: np.ndarray, after: np.ndarray, camera, footprints: float, confidence_of,
+                        min_support: int = EDGE_READMIT_SUPPORT,
+                        min_confidence: float = EDGE_READMIT_CONFIDENCE) -> np.ndarray:
+    """[H, W] bool: the pixels the flying-pixel filter dropped (finite in `before`, NaN in `after`, both [H, W]
+    mm) that lie on one side of the edge rather than in between: at least `min_support` of their 8 neighbours
+    kept a depth in `after` within `footprints` pixel footprints of theirs, and `confidence_of(map)` (a map [H, W]
+    of the candidates' depths, NaN elsewhere -> confidence [H, W]) is at least `min_confidence` there.
+
+    The filter drops both sides of every depth edge, so a true occlusion edge costs a pixel on the foreground and
+    one on the background, which a Gray code decoder keeps. A pixel the field bent toward the other surface is
+    over the limit from its own neighbours and stays dropped; a mixed pixel's codes blend two projector columns
+    and fail the confidence."""
+    b = np.asarray(before, np.float64)
+    dropped = np.isfinite(b) & ~np.isfinite(after)
+    if not dropped.any():
+        return dropped
+    limit = footprints * b / min(camera.fx, camera.fy)
+    near = np.abs(neighbour_stack(after) - b) <= limit  # NaN neighbours compare False
+    candidates = dropped & (near.sum(0) >= min_support)
+    if not candidates.any():
+        return candidates
+    confidence = np.asarray(confidence_of(np.where(candidates, b, np.nan).astype(np.float32)))
+    return candidates & (np.nan_to_num(confidence, nan=0.0) >= min_confidence)
+
+
 @torch.no_grad()
 def sphere_trace_depth(field, camera, depth_range, device, valid: np.ndarray | None = None, max_steps: int = 128,
                        chunk: int = 1 << 16, refine: int = 8) -> np.ndarray:

@@ -27,7 +27,8 @@ import torch
 
 from ..evaluation.outputs import (check_output_folder, staged_outputs, write_confidence, write_depth, write_mesh_ply,
                                   write_points_ply)
-from .extract import depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, sphere_trace_depth
+from .extract import (depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, readmit_edge_pixels,
+                      sphere_trace_depth)
 from .confidence import depth_confidence
 from .pattern_model import fill_uniform_codes, refine_where_model_fits, refinement_generalises
 from .search import doubt_by_search, grow_repair, repair_by_search
@@ -82,7 +83,9 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
                   region: np.ndarray | None = None) -> Extraction:
     """An Extraction (depth [H, W], confidence [H, W], mesh, timings, fate [H, W]) from a trained field as its
     config's extraction section says: marching cubes, then the mesh ray-cast (or sphere tracing when depth_method
-    is 'sphere'), the depth range, the flying-pixel filter, the confidence map (`extraction.confidence`) and the pixels below
+    is 'sphere'), the depth range, the flying-pixel filter (with `edge_readmit` the edge pixels on one side of their
+    edge given back: extract.readmit_edge_pixels; timings["edge_readmitted"]), the confidence map
+    (`extraction.confidence`) and the pixels below
     `extraction.min_confidence` dropped, the search repair when `search_repair` is on (holes filled, contradicted
     depths replaced: slwarp.neural.search.repair_by_search) or else its doubt rule alone when `search_doubt` is on
     (slwarp.neural.search.doubt_by_search), then the photometric refinement of the depth when refine_range > 0
@@ -129,9 +132,16 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     lost("out_of_range", before)
     # what the filters below drop, for the search repair's confirmations
     unfiltered = depth.copy() if ex.search_confirm else None
+    readmitted = 0
     if ex.edge_filter > 0:
         before = depth
         depth = flying_pixel_filter(depth, cam, ex.edge_filter)
+        if ex.edge_readmit:
+            # the edge pixels on one side of the edge, whose own codes confirm them (extract.readmit_edge_pixels)
+            back = readmit_edge_pixels(before, depth, cam, ex.edge_filter,
+                                       lambda d: depth_confidence(trainer, d, "photometric"))
+            depth = np.where(back, before, depth).astype(np.float32)
+            readmitted = int(back.sum())
         lost("flying_pixel", before)
     field_.train()
     t2 = time.perf_counter()
@@ -216,7 +226,7 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
                                      "filled_uniform": int(filled.sum()) if filled is not None else 0,
                                      "grow_s": time.perf_counter() - t5,
                                      "repair_grown": int(grown.sum()) if grown is not None else 0,
-                                     "dropped": dropped}, fate)
+                                     "edge_readmitted": readmitted, "dropped": dropped}, fate)
 
 
 def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, depth_range=None,
