@@ -60,6 +60,27 @@ def test_photometric_filter_removes_wrong_depths_and_keeps_right_ones(blurred_sc
     assert np.isnan(photometric_residual(np.full_like(gt, np.nan), s.camera, s.projector, s.images, pats)).all()
 
 
+def test_photometric_residual_of_a_sparse_map_equals_the_dense_one(blurred_scan, monkeypatch):
+    """A map with depth at few pixels takes the sparse path (those pixels only): the same values as the dense
+    computation, with depths off the projector and more pixels than one remap row holds."""
+    from slwarp.neural import pattern_model
+
+    s = blurred_scan
+    pats = blur_patterns(torch.as_tensor(s.patterns), 1.0).numpy()
+    rng = np.random.default_rng(1)
+    depth = np.where(rng.random(s.gt_depth.shape) < 0.2, s.gt_depth + rng.normal(0, 20, s.gt_depth.shape), np.nan)
+    depth[0, :5] = 1.0  # in front of the projector's near range: projects far off its image
+    depth = depth.astype(np.float32)
+    assert 0.15 < np.isfinite(depth).mean() < pattern_model.SPARSE_SHARE
+    assert np.isfinite(depth).sum() > pattern_model._REMAP_ROW
+    sparse = photometric_residual(depth, s.camera, s.projector, s.images, pats)
+    monkeypatch.setattr(pattern_model, "SPARSE_SHARE", 0.0)  # the dense path
+    dense = photometric_residual(depth, s.camera, s.projector, s.images, pats)
+    np.testing.assert_array_equal(np.isfinite(sparse), np.isfinite(depth))
+    np.testing.assert_allclose(sparse, dense, rtol=1e-6, atol=1e-7)
+    assert np.isnan(photometric_residual(np.full_like(depth, np.nan), s.camera, s.projector, s.images, pats)).all()
+
+
 def test_least_squares_residual_fits_offset_and_modulation_per_pixel():
     rng = np.random.default_rng(0)
     codes = rng.uniform(0.2, 0.7, (6, 5))  # codes that never reach 0 or 1 (blur), as min/max cannot handle

@@ -117,10 +117,41 @@ def predicted_intensities(depth: np.ndarray, camera, projector, patterns: np.nda
     return sample_patterns(patterns, projector_coords(depth, camera, projector))
 
 
+# below this share of pixels with depth, photometric_residual works on those pixels only (the same values): the
+# extraction asks it about a few candidates at a time (the repair's changes, its growth, the edge readmission)
+SPARSE_SHARE = 0.25
+# cv2.remap's maps must stay below 32767 pixels a side: sparse pixels are sampled as rows of this many
+_REMAP_ROW = 4096
+
+
+def _sparse_residual(depth: np.ndarray, camera, projector, images: np.ndarray, patterns: np.ndarray) -> np.ndarray:
+    """photometric_residual computed at the finite pixels of depth only (the same arithmetic per pixel)."""
+    out = np.full(depth.shape, np.nan, np.float32)
+    rows, cols = np.nonzero(np.isfinite(depth))
+    if rows.size == 0:
+        return out
+    rays = camera.pixel_to_ray(camera.pixel_grid()[rows, cols])  # [P, 3]
+    with np.errstate(invalid="ignore"):
+        X = rays * (np.asarray(depth, np.float64)[rows, cols] / rays[:, 2])[:, None]
+        uv = np.asarray(projector.project_camera_points(X), np.float64)
+    uv = np.where(np.isfinite(uv), uv, OFF_IMAGE_PX).astype(np.float32)
+    n = rows.size
+    padded = np.full((-(-n // _REMAP_ROW) * _REMAP_ROW, 2), OFF_IMAGE_PX, np.float32)
+    padded[:n] = uv
+    pred = sample_patterns(patterns, padded.reshape(-1, _REMAP_ROW, 2)).reshape(len(patterns), -1)[:, :n]  # [N, P]
+    obs = images[:, rows, cols]  # [N, P]
+    a, b = offset_and_modulation(obs)
+    out[rows, cols] = np.sqrt(np.mean((obs - a - b * pred) ** 2, axis=0)) / np.maximum(b, MIN_MODULATION)
+    return out
+
+
 def photometric_residual(depth: np.ndarray, camera, projector, images: np.ndarray, patterns: np.ndarray) -> np.ndarray:
     """[H, W]: RMS over the frames of I - (a + b P(pi(x))), relative to the pixel's modulation b (a, b as in
-    `offset_and_modulation`); NaN where depth is NaN. patterns as rendered (blurred)."""
+    `offset_and_modulation`); NaN where depth is NaN. patterns as rendered (blurred). A map with depth at fewer
+    than SPARSE_SHARE of its pixels is computed at those pixels only."""
     images = np.asarray(images, np.float32)
+    if np.isfinite(depth).mean() < SPARSE_SHARE:
+        return _sparse_residual(np.asarray(depth), camera, projector, images, patterns)
     a, b = offset_and_modulation(images)
     pred = predicted_intensities(depth, camera, projector, patterns)
     r = np.sqrt(np.mean((images - a - b * pred) ** 2, axis=0)) / np.maximum(b, MIN_MODULATION)
