@@ -572,15 +572,18 @@ _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 1000 iteratio
         "depth map as soon as possible (GPU)", matmul="tf32", iters=1000, init_iters=200, grid_levels=8,
         grid_gradient="finite_difference_4", grid_start_levels=2, grid_level_every=50, mc_resolution=256,
         checkpoint_every=1000, **_HASHGRID)
-# the accurate hash-grid recipe: 8 levels (growth 2), the 4-tap gradient, the refinement and the search doubt
-# rule as tuned. Default and vertical rigs, 8 scenes each, H200 (bench/results/accuracy-cuda-hashgrid.md): 8
-# levels gave a mean MAE of 0.378 / 0.282 mm against 0.351 / 0.268 with 16 and 0.369 / 0.295 with 12 (better on
-# 12 of the 16 scans; worse on rods, default-rig steps and bunny); the 4-tap gradient (f from the taps' mean)
-# then 0.330 / 0.266, better on all 16 scans, with one field evaluation in five fewer
+# the accurate hash-grid recipe: 8 levels (growth 2), the 4-tap gradient, and tuned's surface term and extraction.
+# Default and vertical rigs, 8 scenes each, H200 (bench/results/accuracy-cuda-hashgrid.md): 8 levels gave a mean
+# MAE of 0.378 / 0.282 mm against 0.351 / 0.268 with 16 and 0.369 / 0.295 with 12; the 4-tap gradient (f from the
+# taps' mean) then 0.330 / 0.266, better on all 16 scans, with one field evaluation in five fewer. With tuned's
+# surface term and extraction (one H100, bench/results/accuracy-cuda-accurate-full.md) 0.196 / 0.162 mm (steps
+# 0.844 -> 0.445, rods 0.942 -> 0.180 on the default rig) and 95.6 / 95.9% completeness; without the surface term
+# (accuracy-cuda-accurate-noterm.md, default rig) 0.220 (rods 0.376). The term costs training time: 15.1 s against
+# 13.7 for 4300 iterations on an H100 (bench/results/train-speed-cuda-accurate-full.md, -accurate.md)
 _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), the paper's 4000 iterations and batch, levels "
-        "coarse to fine, photometric depth refinement (+-3 mm) and the search doubt rule: faster than tuned, less "
-        "accurate", matmul="tf32", grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2,
-        grid_level_every=200, refine_range=3.0, search_doubt=True, **_HASHGRID)
+        "coarse to fine, with tuned's surface term and extraction: about 3x faster than tuned, less accurate (GPU)",
+        matmul="tf32", grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2, grid_level_every=200,
+        surface_weight=1.0, surface_after=1.0, uniform_fill=True, **_DEFAULT_EXTRACTION, **_HASHGRID)
 # CPU: the cpu preset's step on a small hash grid (8 levels of 2^15 entries; finer tables are cache-bound on
 # one thread): small rig, bunny/vase/boxes mean MAE 0.575 mm against 0.749 for cpu at about its time per step
 # its extraction: the refinement and, as tuned, the search repair in groups of >= 100 pixels: small rig, 8 scenes,
