@@ -577,7 +577,7 @@ _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 1000 iteratio
 # MAE of 0.378 / 0.282 mm against 0.351 / 0.268 with 16 and 0.369 / 0.295 with 12; the 4-tap gradient (f from the
 # taps' mean) then 0.330 / 0.266, better on all 16 scans, with one field evaluation in five fewer. With tuned's
 # surface term and extraction (one H100, bench/results/accuracy-cuda-accurate-full.md) 0.196 / 0.162 mm (steps
-# 0.844 -> 0.445, rods 0.942 -> 0.180 on the default rig) and 95.6 / 95.9% completeness; without the surface term
+# 0.792 -> 0.445, rods 0.885 -> 0.180 on the default rig; the other scans 0.000 to 0.006 mm worse) and 95.6 / 95.9% completeness; without the surface term
 # (accuracy-cuda-accurate-noterm.md, default rig) 0.220 (rods 0.376). The term costs training time: 15.1 s against
 # 13.7 for 4300 iterations on an H100 (bench/results/train-speed-cuda-accurate-full.md, -accurate.md)
 _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), the paper's 4000 iterations and batch, levels "
