@@ -31,6 +31,7 @@ import math
 import numpy as np
 import torch
 
+from ..decode.triangulate import camera_rays
 from . import ops
 from .pattern_model import MIN_MODULATION, offset_and_modulation, photometric_residual
 
@@ -140,7 +141,7 @@ def uniqueness_confidence(depth: np.ndarray, camera, projector, images, patterns
     a, b = offset_and_modulation(imgs)
     packed = ops.pack_projector(projector)
     pats = torch.as_tensor(np.asarray(patterns, np.float32), device=device)
-    rays = torch.as_tensor(camera.pixel_to_ray(camera.pixel_grid()).reshape(-1, 3)[index], dtype=torch.float32, device=device)
+    rays = torch.as_tensor(camera_rays(camera).reshape(-1, 3)[index], dtype=torch.float32, device=device)
     z0 = torch.as_tensor(np.asarray(depth, np.float32).reshape(-1)[index], device=device)
     obs = torch.as_tensor(np.ascontiguousarray(imgs[:, index].T), device=device)
     a_t = torch.as_tensor(a[index], device=device)

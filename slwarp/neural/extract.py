@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..decode.triangulate import camera_rays
 from ..devices import warp_device
 from .field import Volume
 from .progress import Progress
@@ -68,11 +69,6 @@ def extract_mesh(field, volume: Volume, resolution: int = 384, device="cpu", pro
     return trimesh.Trimesh(verts, faces[:, ::-1], vertex_normals=-normals, process=False)
 
 
-def camera_ray_grid(camera) -> np.ndarray:
-    """Unit rays [H, W, 3] through every pixel centre (undistorted)."""
-    return camera.pixel_to_ray(camera.pixel_grid())
-
-
 def mesh_depth(mesh, camera, device=None, hits: int = 1, eps_mm: float = 1.0) -> np.ndarray:
     """Depth [H, W] (camera z, mm) of the first hit of each pixel's ray on `mesh` (NaN where none), or
     with hits = K > 1 the first K hits [H, W, K] (NaN past the last), `eps_mm` apart at least (for
@@ -83,7 +79,7 @@ def mesh_depth(mesh, camera, device=None, hits: int = 1, eps_mm: float = 1.0) ->
     shape = (H, W) if hits == 1 else (H, W, hits)
     if mesh is None or len(mesh.faces) == 0:
         return np.full(shape, np.nan, np.float32)
-    dirs = camera_ray_grid(camera).reshape(-1, 3).astype(np.float32)
+    dirs = camera_rays(camera).reshape(-1, 3).astype(np.float32)
     with wp.ScopedDevice(device):
         m = wp.Mesh(points=wp.array(np.asarray(mesh.vertices, np.float32), dtype=wp.vec3),
                     indices=wp.array(np.asarray(mesh.faces, np.int32).ravel(), dtype=wp.int32))
@@ -159,7 +155,7 @@ def sphere_trace_depth(field, camera, depth_range, device, valid: np.ndarray | N
     value, at least 1/512 of the range), then secant refinement of the first sign change. Pixels with no
     crossing (or outside `valid`) are NaN."""
     H, W = camera.height, camera.width
-    dirs = torch.as_tensor(camera_ray_grid(camera).reshape(-1, 3), dtype=torch.float32, device=device)
+    dirs = torch.as_tensor(camera_rays(camera).reshape(-1, 3), dtype=torch.float32, device=device)
     sel = torch.arange(H * W, device=device)
     if valid is not None:
         sel = sel[torch.as_tensor(valid.reshape(-1), device=device)]
@@ -202,6 +198,6 @@ def sphere_trace_depth(field, camera, depth_range, device, valid: np.ndarray | N
 
 def depth_to_points(depth: np.ndarray, camera) -> np.ndarray:
     """[P, 3] camera-frame points (mm) of the finite pixels of a depth map (z = depth)."""
-    d = camera_ray_grid(camera)
+    d = camera_rays(camera)
     ok = np.isfinite(depth)
     return (d[ok] / d[ok][:, 2:3] * depth[ok][:, None]).astype(np.float32)

@@ -23,6 +23,7 @@ import typing
 import numpy as np
 import torch
 
+from ..decode.triangulate import camera_rays
 __all__ = [
     "CONTRAST_THRESHOLD",
     "offset_and_modulation",
@@ -96,7 +97,7 @@ def blur_patterns(patterns: torch.Tensor, sigma: float) -> torch.Tensor:
 def projector_coords(depth: np.ndarray, camera, projector) -> np.ndarray:
     """[H, W, 2] float32 projector pixel where each pixel's depth point (camera z, mm) projects;
     OFF_IMAGE_PX where depth is NaN or the point does not project."""
-    rays = camera.pixel_to_ray(camera.pixel_grid())
+    rays = camera_rays(camera)
     with np.errstate(invalid="ignore"):
         X = rays * (np.asarray(depth, np.float64) / rays[..., 2])[..., None]
         uv = np.asarray(projector.project_camera_points(X.reshape(-1, 3)), np.float64).reshape(camera.height, camera.width, 2)
@@ -130,7 +131,7 @@ def _sparse_residual(depth: np.ndarray, camera, projector, images: np.ndarray, p
     rows, cols = np.nonzero(np.isfinite(depth))
     if rows.size == 0:
         return out
-    rays = camera.pixel_to_ray(camera.pixel_grid()[rows, cols])  # [P, 3]
+    rays = camera_rays(camera)[rows, cols]  # [P, 3]
     with np.errstate(invalid="ignore"):
         X = rays * (np.asarray(depth, np.float64)[rows, cols] / rays[:, 2])[:, None]
         uv = np.asarray(projector.project_camera_points(X), np.float64)
@@ -289,7 +290,7 @@ def estimate_pattern_blur(camera, projector, images, patterns, depth, sigmas=Non
     n = idx.size
     rows = -(-n // 256)
     sel = np.concatenate([idx, np.full(rows * 256 - n, idx[-1])])
-    rays = camera.pixel_to_ray(camera.pixel_grid().reshape(-1, 2)[sel])
+    rays = camera_rays(camera).reshape(-1, 3)[sel]
     X = rays * (depth.reshape(-1)[sel].astype(np.float64) / rays[:, 2])[:, None]
     uv = np.asarray(projector.project_camera_points(X), np.float64)
     uv = np.where(np.isfinite(uv), uv, OFF_IMAGE_PX).astype(np.float32).reshape(rows, 256, 2)
@@ -340,7 +341,7 @@ class _Rays:
     `ray32` its float32 copy, `T` [3]."""
 
     def __init__(self, camera, projector, device):
-        rays = camera.pixel_to_ray(camera.pixel_grid())
+        rays = camera_rays(camera)
         self.ray = torch.as_tensor(np.asarray(rays / rays[..., 2:3], np.float64) @ projector.R.T, device=device)
         self.ray32 = self.ray.float()
         self.T = torch.as_tensor(projector.T, dtype=torch.float64, device=device)

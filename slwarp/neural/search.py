@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 
+from ..decode.triangulate import camera_rays
 from ..devices import warp_device
 from .confidence import photometric_confidence
 from .extract import neighbour_stack
@@ -46,7 +47,7 @@ def search_depth(camera, projector, images, patterns, depth_range, *, valid=None
         valid = lit_with_contrast(b)
     near, far = (float(x) for x in depth_range)
     n_hyp = int(min(max_hypotheses, max(16, np.ceil((far - near) / step_mm))))
-    rays = camera.pixel_to_ray(camera.pixel_grid()).astype(np.float32)
+    rays = camera_rays(camera).astype(np.float32)
     hs, ws = (H + stride - 1) // stride, (W + stride - 1) // stride
     kernel = search_kernel(int(N))
     with wp.ScopedDevice(device):
