@@ -94,14 +94,24 @@ def blur_patterns(patterns: torch.Tensor, sigma: float) -> torch.Tensor:
     return p[:, 0].contiguous()
 
 
+def _project_rays(rays: np.ndarray, depth: np.ndarray, projector) -> np.ndarray:
+    """[..., 2] float32 projector pixels of the points at camera depth `depth` [...] (mm) on unit camera rays
+    [..., 3]; OFF_IMAGE_PX where the depth is NaN or the point does not project."""
+    with np.errstate(invalid="ignore"):
+        X = rays * (np.asarray(depth, np.float64) / rays[..., 2])[..., None]
+        uv = np.asarray(projector.project_camera_points(X.reshape(-1, 3)), np.float64).reshape(X.shape[:-1] + (2,))
+    return np.where(np.isfinite(uv), uv, OFF_IMAGE_PX).astype(np.float32)
+
+
 def projector_coords(depth: np.ndarray, camera, projector) -> np.ndarray:
     """[H, W, 2] float32 projector pixel where each pixel's depth point (camera z, mm) projects;
     OFF_IMAGE_PX where depth is NaN or the point does not project."""
-    rays = camera_rays(camera)
-    with np.errstate(invalid="ignore"):
-        X = rays * (np.asarray(depth, np.float64) / rays[..., 2])[..., None]
-        uv = np.asarray(projector.project_camera_points(X.reshape(-1, 3)), np.float64).reshape(camera.height, camera.width, 2)
-    return np.where(np.isfinite(uv), uv, OFF_IMAGE_PX).astype(np.float32)
+    return _project_rays(camera_rays(camera), depth, projector)
+
+
+def projector_coords_at(index: np.ndarray, depth: np.ndarray, camera, projector) -> np.ndarray:
+    """[P, 2] projector_coords of the pixels at flat indices `index` [P] of the depth map [H, W] only."""
+    return _project_rays(camera_rays(camera).reshape(-1, 3)[index], np.asarray(depth).reshape(-1)[index], projector)
 
 
 def sample_patterns(patterns: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -110,6 +120,18 @@ def sample_patterns(patterns: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
     return np.stack([cv2.remap(np.asarray(p, np.float32), uv[..., 0], uv[..., 1], cv2.INTER_LINEAR,
                                borderMode=cv2.BORDER_CONSTANT, borderValue=0.0) for p in patterns])
+
+
+# cv2.remap wants image-like maps below 32767 pixels a side: a list of points is sampled as rows of this many
+_REMAP_ROW = 4096
+
+
+def sample_patterns_at(patterns: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """[N, P]: sample_patterns at a list of projector pixels uv [P, 2] (the same values per point)."""
+    n = len(uv)
+    padded = np.full((-(-n // _REMAP_ROW) * _REMAP_ROW, 2), OFF_IMAGE_PX, np.float32)
+    padded[:n] = uv
+    return sample_patterns(patterns, padded.reshape(-1, _REMAP_ROW, 2)).reshape(len(patterns), -1)[:, :n]
 
 
 def predicted_intensities(depth: np.ndarray, camera, projector, patterns: np.ndarray) -> np.ndarray:
@@ -121,28 +143,22 @@ def predicted_intensities(depth: np.ndarray, camera, projector, patterns: np.nda
 # below this share of pixels with depth, photometric_residual works on those pixels only (the same values): the
 # extraction asks it about a few candidates at a time (the repair's changes, its growth, the edge readmission)
 SPARSE_SHARE = 0.25
-# cv2.remap's maps must stay below 32767 pixels a side: sparse pixels are sampled as rows of this many
-_REMAP_ROW = 4096
+
+
+def _relative_rms(images, a, b, pred):
+    """RMS over the frames (axis 0) of images - a - b pred, over max(b, MIN_MODULATION)."""
+    return np.sqrt(np.mean((images - a - b * pred) ** 2, axis=0)) / np.maximum(b, MIN_MODULATION)
 
 
 def _sparse_residual(depth: np.ndarray, camera, projector, images: np.ndarray, patterns: np.ndarray) -> np.ndarray:
     """photometric_residual computed at the finite pixels of depth only (the same arithmetic per pixel)."""
     out = np.full(depth.shape, np.nan, np.float32)
-    rows, cols = np.nonzero(np.isfinite(depth))
-    if rows.size == 0:
-        return out
-    rays = camera_rays(camera)[rows, cols]  # [P, 3]
-    with np.errstate(invalid="ignore"):
-        X = rays * (np.asarray(depth, np.float64)[rows, cols] / rays[:, 2])[:, None]
-        uv = np.asarray(projector.project_camera_points(X), np.float64)
-    uv = np.where(np.isfinite(uv), uv, OFF_IMAGE_PX).astype(np.float32)
-    n = rows.size
-    padded = np.full((-(-n // _REMAP_ROW) * _REMAP_ROW, 2), OFF_IMAGE_PX, np.float32)
-    padded[:n] = uv
-    pred = sample_patterns(patterns, padded.reshape(-1, _REMAP_ROW, 2)).reshape(len(patterns), -1)[:, :n]  # [N, P]
-    obs = images[:, rows, cols]  # [N, P]
-    a, b = offset_and_modulation(obs)
-    out[rows, cols] = np.sqrt(np.mean((obs - a - b * pred) ** 2, axis=0)) / np.maximum(b, MIN_MODULATION)
+    index = np.flatnonzero(np.isfinite(depth))
+    if index.size:
+        obs = images.reshape(len(images), -1)[:, index]  # [N, P]
+        a, b = offset_and_modulation(obs)
+        pred = sample_patterns_at(patterns, projector_coords_at(index, depth, camera, projector))
+        out.reshape(-1)[index] = _relative_rms(obs, a, b, pred)
     return out
 
 
@@ -154,8 +170,7 @@ def photometric_residual(depth: np.ndarray, camera, projector, images: np.ndarra
     if np.isfinite(depth).mean() < SPARSE_SHARE:
         return _sparse_residual(np.asarray(depth), camera, projector, images, patterns)
     a, b = offset_and_modulation(images)
-    pred = predicted_intensities(depth, camera, projector, patterns)
-    r = np.sqrt(np.mean((images - a - b * pred) ** 2, axis=0)) / np.maximum(b, MIN_MODULATION)
+    r = _relative_rms(images, a, b, predicted_intensities(depth, camera, projector, patterns))
     return np.where(np.isfinite(depth), r, np.nan).astype(np.float32)
 
 
@@ -285,20 +300,12 @@ def estimate_pattern_blur(camera, projector, images, patterns, depth, sigmas=Non
     idx = np.flatnonzero(ok)
     if idx.size > max_pixels:
         idx = idx[np.linspace(0, idx.size - 1, max_pixels).astype(np.int64)]
-    # the chosen pixels laid out as rows of 256 (OpenCV's remap wants image-like maps); the last row is padded
-    # with repeats of the last pixel, which the mean leaves out
-    n = idx.size
-    rows = -(-n // 256)
-    sel = np.concatenate([idx, np.full(rows * 256 - n, idx[-1])])
-    rays = camera_rays(camera).reshape(-1, 3)[sel]
-    X = rays * (depth.reshape(-1)[sel].astype(np.float64) / rays[:, 2])[:, None]
-    uv = np.asarray(projector.project_camera_points(X), np.float64)
-    uv = np.where(np.isfinite(uv), uv, OFF_IMAGE_PX).astype(np.float32).reshape(rows, 256, 2)
-    I = images.reshape(len(images), -1)[:, sel][:, :n]
-    A, B = a.reshape(-1)[sel][:n], b.reshape(-1)[sel][:n]
+    uv = projector_coords_at(idx, depth, camera, projector)
+    I = images.reshape(len(images), -1)[:, idx]
+    A, B = a.reshape(-1)[idx], b.reshape(-1)[idx]
     mse = {}
     for s in sigmas:
-        pred = sample_patterns(blur_patterns(pats, float(s)).cpu().numpy(), uv).reshape(len(images), -1)[:, :n]
+        pred = sample_patterns_at(blur_patterns(pats, float(s)).cpu().numpy(), uv)
         mse[float(s)] = float(np.mean((I - A - B * pred) ** 2))
     keys = sorted(mse)
     j = keys.index(min(mse, key=mse.get))
