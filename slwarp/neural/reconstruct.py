@@ -126,6 +126,13 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
         fate[gone] = FATE[stage]
         dropped[stage] = int(gone.sum())
 
+    def rescored(changed: np.ndarray, depth: np.ndarray, confidence: np.ndarray) -> np.ndarray:
+        """The confidence map with the pixels whose depth a stage changed scored again at their new depth."""
+        if not changed.any():
+            return confidence
+        new = depth_confidence(trainer, np.where(changed, depth, np.nan).astype(np.float32), ex.confidence)
+        return np.where(changed, new, confidence).astype(np.float32)
+
     near, far = trainer.depth_range
     before = depth.copy()
     depth[(depth < near) | (depth > far)] = np.nan
@@ -171,9 +178,7 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
             # edge, and a thin part is all edge
             changed = np.isfinite(depth) & ~(depth == before)
             fate[changed] = FATE["repaired"]
-            if changed.any():
-                new = depth_confidence(trainer, np.where(changed, depth, np.nan).astype(np.float32), ex.confidence)
-                confidence = np.where(changed, new, confidence).astype(np.float32)
+            confidence = rescored(changed, depth, confidence)
             repair["kept"] = int(changed.sum())
         else:
             # only the repair's doubt rule: drop what a search contradicts and the codes do not support
@@ -216,8 +221,7 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
                                    trainer.renderer.rendered_patterns.detach().cpu().numpy())
         if grown.any():
             fate[grown] = FATE["repaired"]
-            new = depth_confidence(trainer, np.where(grown, depth, np.nan).astype(np.float32), ex.confidence)
-            confidence = np.where(grown, new, confidence).astype(np.float32)
+            confidence = rescored(grown, depth, confidence)
     return Extraction(depth, confidence, mesh, {"marching_cubes_s": t1 - t0, "depth_s": t2 - t1,
                                      "confidence_s": t3 - t2 - repair_s, "repair_s": repair_s, "repair": repair,
                                      "refine_s": t4 - t3, "refine_misfit": misfit,
