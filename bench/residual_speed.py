@@ -1,6 +1,6 @@
-"""Time of the photometric residual (`slwarp.neural.pattern_model.photometric_residual`) and of the repair's
-growth (`slwarp.neural.search.grow_repair`) on one simulated scan, per share of pixels with depth and per way of
-computing it:
+"""Time of the photometric residual (`slwarp.neural.pattern_model.photometric_residual`), of the repair's growth
+(`slwarp.neural.search.grow_repair`) and of the depth grouping (`slwarp.neural.search.component_sizes`) on one
+simulated scan. The residual per share of pixels with depth and per way of computing it:
 
 - "dense, ray grid per call": every pixel, the camera's ray grid undistorted again each call (as before it was
   cached per camera: `decode.triangulate.camera_rays`);
@@ -9,7 +9,8 @@ computing it:
 
 Each row checks that its values equal the dense ones. The growth runs on the scan's true depth with a 32 x 80 px
 patch pushed 40 mm back inside a block of "repaired" pixels, with its confidences sparse (as in the extraction) and
-dense.
+dense. The grouping runs on the scan's true depth with a fifth of its pixels dropped at random (the groups are
+checked by their total: every finite pixel in exactly one group).
 
     python bench/residual_speed.py                  # default rig (1280 x 1024), rods
     python bench/residual_speed.py --rig small --scene bunny --out /tmp/rs
@@ -32,6 +33,7 @@ sys.path.insert(0, str(REPO / "bench"))
 from study_common import DATE, markdown_table, write_study  # noqa: E402
 
 SHARES = (0.002, 0.02, 0.2, 1.0)
+AGREE_MM_TEXT = "neighbours joined within slwarp.neural.search.AGREE_MM"
 
 
 def _median_time(fn, repeat: int) -> tuple[float, object]:
@@ -107,8 +109,17 @@ def measure(rig: str, scene: str, repeat: int) -> dict:
     t_dense, (out_d, grown_d) = _median_time(lambda: grow(0.0), repeat)
     growth = {"patch_pixels": int(wrong.sum()), "grown": int(grown_s.sum()), "sparse_s": t_sparse, "dense_s": t_dense,
               "same": bool(np.array_equal(out_s, out_d, equal_nan=True) and np.array_equal(grown_s, grown_d))}
+    from slwarp.neural.search import AGREE_MM, component_sizes
+
+    holes = np.where(rng.random(depth.shape) < 0.2, np.nan, scan.gt_depth).astype(np.float32)
+    component_sizes(holes[:8, :8], AGREE_MM)  # imports outside the timing
+    t_groups, sizes = _median_time(lambda: component_sizes(holes, AGREE_MM), repeat)
+    finite = np.isfinite(holes)
+    n_groups = float((1.0 / sizes[finite]).sum())  # each group's pixels add up to 1
+    grouping = {"pixels": int(finite.sum()), "groups": int(round(n_groups)), "s": t_groups,
+                "same": bool(abs(n_groups - round(n_groups)) < 1e-6 and (sizes[~finite] == 0).all())}
     return {"rig": rig, "scene": scene, "camera": f"{cam.width}x{cam.height}", "frames": len(images),
-            "repeat": repeat, "residual": rows, "growth": growth}
+            "repeat": repeat, "residual": rows, "growth": growth, "grouping": grouping}
 
 
 def render(doc: dict) -> str:
@@ -125,6 +136,10 @@ def render(doc: dict) -> str:
     lines += markdown_table(["confidences", "s"], [["at the candidates (sparse)", f"{g['sparse_s']:.3f}"],
                                                     ["over the whole map (dense)", f"{g['dense_s']:.3f}"]])
     lines += ["", f"Same result both ways: {'yes' if g['same'] else 'NO'}.", ""]
+    c = doc.get("grouping")
+    if c:
+        lines += [f"The depth grouping (`component_sizes`, {AGREE_MM_TEXT}) of {c['pixels']} pixels with depth: "
+                  f"{c['s']:.3f} s, {c['groups']} groups; sizes consistent: {'yes' if c['same'] else 'NO'}.", ""]
     return "\n".join(lines)
 
 
@@ -139,7 +154,7 @@ def main(argv=None) -> int:
     doc.update(device="CPU", date=DATE, command=" ".join(
         ["python bench/residual_speed.py", *(argv if argv is not None else sys.argv[1:])]))
     write_study(Path(args.out) / "residual-speed-cpu", doc, render)
-    return 0 if all(r["same"] for r in doc["residual"]) and doc["growth"]["same"] else 1
+    return 0 if all(r["same"] for r in doc["residual"]) and doc["growth"]["same"] and doc["grouping"]["same"] else 1
 
 
 if __name__ == "__main__":

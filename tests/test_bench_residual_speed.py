@@ -1,5 +1,5 @@
 """bench/residual_speed.py on the small rig: every way of computing the residual agrees with the dense one, the
-growth gives the same map with sparse and dense confidences, and the table and JSON are written."""
+growth gives the same map with sparse and dense confidences, the grouping's sizes are consistent, and the table and JSON are written."""
 import importlib.util
 import json
 from pathlib import Path
@@ -17,4 +17,5 @@ def test_residual_speed_bench_checks_and_writes(tmp_path):
     assert all(r["same"] for r in doc["residual"]) and doc["growth"]["same"]
     assert all("sparse_s" in r for r in doc["residual"] if r["share"] < 1.0)
     assert 0 < doc["growth"]["grown"] <= doc["growth"]["patch_pixels"]
+    assert doc["grouping"]["same"] and 0 < doc["grouping"]["groups"] < doc["grouping"]["pixels"]
     assert "| share of pixels with depth |" in (tmp_path / "residual-speed-cpu.md").read_text()

@@ -154,6 +154,17 @@ def test_component_sizes_link_neighbours_of_one_surface():
     rng = np.random.default_rng(1)
     d = np.where(rng.random((40, 50)) < 0.6, 10.0 * rng.integers(0, 3, (40, 50)), np.nan)
     np.testing.assert_array_equal(component_sizes(d, 3.0), _flood_fill_sizes(d, 3.0))
+    # crossing diagonals: each links its own pair, never the other's
+    cross = np.array([[0.0, 50.0], [50.0, 0.0]])
+    np.testing.assert_array_equal(component_sizes(cross, 3.0), np.full((2, 2), 2))
+    np.testing.assert_array_equal(component_sizes(np.array([[0.0, 50.0], [50.0, 100.0]]), 3.0), [[1, 2], [2, 1]])
+    # one row, one column, all NaN, and random maps where many groups touch only through diagonals
+    for shape in ((1, 30), (30, 1), (1, 1), (17, 23)):
+        r = np.where(rng.random(shape) < 0.7, 10.0 * rng.integers(0, 2, shape), np.nan)
+        np.testing.assert_array_equal(component_sizes(r, 3.0), _flood_fill_sizes(r, 3.0))
+    np.testing.assert_array_equal(component_sizes(np.full((4, 5), np.nan), 3.0), np.zeros((4, 5)))
+    checker = np.where((np.add.outer(np.arange(20), np.arange(20)) % 2) == 0, 5.0, 40.0)  # diagonal chains only
+    np.testing.assert_array_equal(component_sizes(checker, 3.0), _flood_fill_sizes(checker, 3.0))
 
 
 def _flood_fill_sizes(d, tol):

@@ -289,36 +289,56 @@ def neighbours_within(depth: np.ndarray, tol_mm: float) -> np.ndarray:
 
 def component_sizes(depth: np.ndarray, tol_mm: float) -> np.ndarray:
     """[H, W] int: the pixel count of each finite pixel's connected group, where two of the 8 neighbours connect
-    when their depths differ by less than tol_mm (0 where depth is NaN)."""
-    H, W = depth.shape
-    n = H * W
-    parent = np.arange(n)
+    when their depths differ by less than tol_mm (0 where depth is NaN).
 
-    def root(i):
-        while True:  # up the tree, all pixels at once, halving the paths on the way
-            p = parent[i]
-            if np.array_equal(p, parent[p]):
-                return p
-            parent[i] = parent[p]
-            i = parent[i]
+    Exact, in two steps. The row and column links are labelled by OpenCV on a doubled grid: pixel (y, x) at
+    (2y, 2x), its link to the right at (2y, 2x + 1) and down at (2y + 1, 2x), cell centres empty, so that 4-connected
+    labelling joins exactly the linked pixels. The diagonal links, which would cross on that grid, then merge
+    those labels with a union-find over the labels they join (few: on a surface nearly every diagonal pair is
+    already joined through a row and a column). 0.14 s at 1280 x 1024 against 0.84 s for a union-find over
+    the pixels (bench/residual_speed.py, CPU)."""
+    import cv2
 
     d = np.asarray(depth, np.float64)
-    idx = np.arange(n).reshape(H, W)
-    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):  # each neighbour pair once
-        a = idx[: H - dy, max(0, -dx) : W - max(0, dx)]  # each pixel ...
-        b = idx[dy:, max(0, dx) : W - max(0, -dx)]  # ... and its neighbour at (dy, dx)
-        da, db = d.reshape(-1)[a], d.reshape(-1)[b]
-        with np.errstate(invalid="ignore"):
-            link = np.abs(da - db) < tol_mm
-        a, b = a[link], b[link]
-        while a.size:  # union: hang each pair's larger root under its smaller, until both share one
-            ra, rb = root(a), root(b)
+    H, W = d.shape
+    finite = np.isfinite(d)
+    with np.errstate(invalid="ignore"):
+        right = np.abs(d[:, 1:] - d[:, :-1]) < tol_mm  # [H, W-1]; NaN compares False
+        down = np.abs(d[1:, :] - d[:-1, :]) < tol_mm  # [H-1, W]
+        diag = np.abs(d[1:, 1:] - d[:-1, :-1]) < tol_mm  # (y, x) - (y+1, x+1), [H-1, W-1]
+        anti = np.abs(d[1:, :-1] - d[:-1, 1:]) < tol_mm  # (y, x+1) - (y+1, x), [H-1, W-1]
+    grid = np.zeros((2 * H - 1, 2 * W - 1), np.uint8)
+    grid[::2, ::2] = finite
+    grid[::2, 1::2] = right
+    grid[1::2, ::2] = down
+    n_labels, labels = cv2.connectedComponents(grid, connectivity=4, ltype=cv2.CV_32S)
+    label = labels[::2, ::2]  # [H, W], 0 where NaN
+    # the diagonal links between different labels, each pair once
+    pairs = np.concatenate([np.stack([label[:-1, :-1][diag], label[1:, 1:][diag]], 1),
+                            np.stack([label[:-1, 1:][anti], label[1:, :-1][anti]], 1)])
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    parent = np.arange(n_labels)
+    if len(pairs):
+        a, b = np.unique(np.sort(pairs, 1), axis=0).T
+        while True:  # hang each pair's larger root under its smaller until both share one
+            ra, rb = _roots(parent, a), _roots(parent, b)
             diff = ra != rb
             if not diff.any():
                 break
-            lo, hi = np.minimum(ra[diff], rb[diff]), np.maximum(ra[diff], rb[diff])
-            parent[hi] = lo
+            parent[np.maximum(ra[diff], rb[diff])] = np.minimum(ra[diff], rb[diff])
             a, b = a[diff], b[diff]
-    roots = root(np.arange(n))
-    sizes = np.bincount(roots, minlength=n)[roots].reshape(H, W)
-    return np.where(np.isfinite(d), sizes, 0)
+    root = _roots(parent, np.arange(n_labels))
+    sizes = np.bincount(root[label[finite]], minlength=n_labels)
+    out = np.zeros((H, W), np.int64)
+    out[finite] = sizes[root[label[finite]]]
+    return out
+
+
+def _roots(parent: np.ndarray, i: np.ndarray) -> np.ndarray:
+    """The union-find roots of the nodes i (parent: [n], halving the paths on the way)."""
+    while True:
+        p = parent[i]
+        if np.array_equal(p, parent[p]):
+            return p
+        parent[i] = parent[p]
+        i = parent[i]
