@@ -312,29 +312,28 @@ def test_extract_depth_grows_the_repair_without_changing_completeness(tiny_rods_
     np.testing.assert_array_equal(grown.fate[~moved], plain.fate[~moved])
 
 
-def test_extract_depth_readmits_edge_pixels_and_only_them(tiny_rods_field, monkeypatch):
+def test_extract_depth_readmits_edge_pixels_and_only_them(tiny_rods_field):
     """extract_depth with edge_readmit: the pixels it gives back (timings["edge_readmitted"]) are ones the
     flying-pixel filter dropped without it, now with the field's depth and fate "measured"; every other pixel's
     depth is unchanged; the option needs the filter. The tiny field has few real depth edges, so a tight filter
-    (half a footprint) and a readmission asking one neighbour and any confidence exercise the plumbing
-    (readmit_edge_pixels' own thresholds: tests/test_extract.py)."""
-    import functools
-
-    from slwarp.neural import reconstruct as rec
+    (half a footprint) and a readmission asking one neighbour and any confidence (the options
+    edge_readmit_support and edge_readmit_confidence) exercise the plumbing (readmit_edge_pixels' own thresholds:
+    tests/test_extract.py); the default bar gives back fewer."""
     from slwarp.neural.config import ConfigError
     from slwarp.neural.reconstruct import FATE, extract_depth
 
     _, cfg, trainer = tiny_rods_field
     with pytest.raises(ConfigError, match="edge_readmit"):
         cfg.with_options(edge_readmit=True, edge_filter=0.0)
-    monkeypatch.setattr(rec, "readmit_edge_pixels",
-                        functools.partial(rec.readmit_edge_pixels, min_support=1, min_confidence=0.0))
+    loose = dict(edge_readmit_support=1, edge_readmit_confidence=0.0)
     valid = trainer.renderer.valid_map.cpu().numpy()
     try:
         trainer.cfg = cfg.with_options(edge_filter=0.5)
         plain = extract_depth(trainer, valid)
-        trainer.cfg = cfg.with_options(edge_filter=0.5, edge_readmit=True)
+        trainer.cfg = cfg.with_options(edge_filter=0.5, edge_readmit=True, **loose)
         back = extract_depth(trainer, valid)
+        trainer.cfg = cfg.with_options(edge_filter=0.5, edge_readmit=True)
+        strict = extract_depth(trainer, valid)
         trainer.cfg = cfg.with_options(edge_filter=0.0)
         unfiltered = extract_depth(trainer, valid)
     finally:
@@ -348,3 +347,4 @@ def test_extract_depth_readmits_edge_pixels_and_only_them(tiny_rods_field, monke
     kept = np.isfinite(plain.depth)
     np.testing.assert_array_equal(back.depth[kept], plain.depth[kept])
     assert back.timings["dropped"]["flying_pixel"] == plain.timings["dropped"]["flying_pixel"] - back.timings["edge_readmitted"]
+    assert strict.timings["edge_readmitted"] < back.timings["edge_readmitted"]

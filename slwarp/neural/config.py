@@ -206,9 +206,13 @@ class ExtractionConfig:
                                                      "sphere tracing the field", resumable=True)
     edge_filter: float = option(10.0, "drop depth-edge (flying) pixels: jumps above this many pixel footprints (0: off)",
                                 min=0.0, resumable=True)
-    edge_readmit: bool = option(False, "give back the depth-edge pixels that lie on one side of the edge: at least 3 "
-                                "neighbours the filter kept within its limit and a photometric confidence of at least "
-                                "0.8 (needs edge_filter > 0)", resumable=True)
+    edge_readmit: bool = option(False, "give back the depth-edge pixels that lie on one side of the edge: enough "
+                                "neighbours the filter kept within its limit (edge_readmit_support) and a photometric "
+                                "confidence of at least edge_readmit_confidence (needs edge_filter > 0)", resumable=True)
+    edge_readmit_support: int = option(3, "edge readmission: neighbours (of 8) the filter kept within its limit of the "
+                                       "pixel's depth", min=1, max=8, resumable=True)
+    edge_readmit_confidence: float = option(0.8, "edge readmission: the pixel's photometric confidence at least this",
+                                            min=0.0, max=1.0, resumable=True)
     # what the method knows about each pixel, as a map in [0, 1] written beside the depth (slwarp.neural.confidence);
     # photometric with min_confidence 0.6 is the photometric check (relative RMS residual below 0.4)
     confidence: Literal["photometric", "peak", "agreement", "uniqueness", "combined"] = option(
