@@ -17,5 +17,5 @@ def test_residual_speed_bench_checks_and_writes(tmp_path):
     assert all(r["same"] for r in doc["residual"]) and doc["growth"]["same"]
     assert all("sparse_s" in r for r in doc["residual"] if r["share"] < 1.0)
     assert 0 < doc["growth"]["grown"] <= doc["growth"]["patch_pixels"]
-    assert doc["grouping"]["same"] and 0 < doc["grouping"]["groups"] < doc["grouping"]["pixels"]
+    assert doc["median3"]["same"] and doc["grouping"]["same"] and 0 < doc["grouping"]["groups"] < doc["grouping"]["pixels"]
     assert "| share of pixels with depth |" in (tmp_path / "residual-speed-cpu.md").read_text()

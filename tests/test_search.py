@@ -1,6 +1,8 @@
 """The depth search (slwarp.neural.search): the search along each ray, its `centres` option, and the search repair
 at extraction (repair_by_search: holes filled, contradicted depths replaced, isolated changes refused) and its
 doubt rule alone (doubt_by_search: contradicted depths the codes do not support dropped)."""
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -165,6 +167,28 @@ def test_component_sizes_link_neighbours_of_one_surface():
     np.testing.assert_array_equal(component_sizes(np.full((4, 5), np.nan), 3.0), np.zeros((4, 5)))
     checker = np.where((np.add.outer(np.arange(20), np.arange(20)) % 2) == 0, 5.0, 40.0)  # diagonal chains only
     np.testing.assert_array_equal(component_sizes(checker, 3.0), _flood_fill_sizes(checker, 3.0))
+
+
+def test_median3_is_nanmedians_outlier_rule():
+    """search._median3 drops what np.nanmedian's 3x3 median (NaN ignored, the two middle values averaged when
+    their count is even) puts more than 10 mm away, on maps with every count of finite neighbours."""
+    from slwarp.neural.search import _median3
+
+    rng = np.random.default_rng(3)
+    for share in (0.0, 0.2, 0.5, 0.9, 1.0):
+        x = (500 + 12 * rng.standard_normal((31, 45))).astype(np.float32)
+        x[rng.random(x.shape) > share] = np.nan
+        H, W = x.shape
+        pad = np.pad(x, 1, constant_values=np.nan)
+        stack = np.stack([pad[dy : dy + H, dx : dx + W] for dy in range(3) for dx in range(3)])
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN neighbourhoods
+            med = np.nanmedian(stack, axis=0)
+            expected = np.where(np.abs(x - med) < 10.0, x, np.nan)
+        np.testing.assert_array_equal(_median3(x), expected)
+    two = np.full((3, 3), np.nan, np.float32)
+    two[1, 1], two[1, 2] = 0.0, 30.0  # each has one neighbour: the median of two is 15, 15 mm from both
+    assert np.isnan(_median3(two)).all()
 
 
 def _flood_fill_sizes(d, tol):

@@ -77,18 +77,22 @@ def search_depth(camera, projector, images, patterns, depth_range, *, valid=None
 
 
 def _median3(x: np.ndarray) -> np.ndarray:
-    """3x3 median ignoring NaN (a cell keeps NaN when it was NaN): removes isolated wrong answers."""
-    H, W = x.shape
-    pad = np.pad(x, 1, constant_values=np.nan)
-    stack = np.stack([pad[dy : dy + H, dx : dx + W] for dy in range(3) for dx in range(3)])
-    with np.errstate(all="ignore"):
-        import warnings
+    """3x3 median ignoring NaN (a cell keeps NaN when it was NaN): removes isolated wrong answers.
 
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            med = np.nanmedian(stack, axis=0)
+    The median as np.nanmedian takes it (the mean of the two middle values of an even count), from one sort of
+    each pixel's 9 values with the NaNs last: 0.24 s at 1280 x 1024 against 0.89 s for np.nanmedian (CPU,
+    bench/residual_speed.py)."""
+    H, W = x.shape
+    pad = np.pad(np.asarray(x, np.float32), 1, constant_values=np.nan)
+    stack = np.stack([pad[dy : dy + H, dx : dx + W] for dy in range(3) for dx in range(3)], axis=-1)  # [H, W, 9]
+    count = np.isfinite(stack).sum(-1)  # NaN sorts last, so the finite values come first in order
+    stack.sort(axis=-1)
+    lo = np.take_along_axis(stack, np.maximum(count - 1, 0)[..., None] // 2, -1)[..., 0]
+    hi = np.take_along_axis(stack, count[..., None] // 2 - (count[..., None] == 0), -1)[..., 0]
+    med = np.where(count > 0, 0.5 * (lo + hi), np.nan)
     # a value far from its neighbourhood's median is an outlier
-    out = np.where(np.abs(x - med) < 10.0, x, np.nan)
+    with np.errstate(invalid="ignore"):
+        out = np.where(np.abs(x - med) < 10.0, x, np.nan)
     return out
 
 
