@@ -18,7 +18,7 @@ FLAT_DEFAULTS = dict(iters=4000, rays=2048, n_samples=32, n_importance=32, up_sa
                      n_freqs=6, init="search", init_iters=300, search_step_mm=1.0, search_stride=2, seed=0, backend="warp",
                      device="auto", matmul="fp32", compile=True, cuda_graph=True, incremental=False, start_frames=3,
                      add_every=500, checkpoint_every=500, log_every=50, mc_resolution=384, depth_method="mesh",
-                     edge_filter=10.0, edge_readmit=False, edge_readmit_support=3, edge_readmit_confidence=0.8, refine_range=0.0, search_repair=False, repair_min_component=0, repair_grow=False, search_doubt=False,
+                     edge_filter=10.0, edge_readmit=False, edge_readmit_support=3, edge_readmit_confidence=0.9, refine_range=0.0, search_repair=False, repair_min_component=0, repair_grow=False, search_doubt=False,
                      search_confirm=False, uniform_fill=False, refine_check=False, refine_max_misfit=0.0, surface_weight=0.0, surface_after=0.0, surface_band_mm=0.5,
                      field="mlp", grid_levels=16, grid_log2_table=19, grid_base=16, grid_finest="auto",
                      grid_hidden=64, grid_layers=1, grid_activation="softplus", grid_gradient="finite_difference",
@@ -27,6 +27,7 @@ HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, gri
 FLAT_PRESETS = {
     "paper": dict(matmul="tf32"),
     "tuned": dict(matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0, refine_range=3.0, refine_max_misfit=0.024,
+                  edge_readmit=True,
                   search_doubt=True,
                   search_repair=True, repair_min_component=100, repair_grow=True, surface_weight=1.0, surface_after=1.0,
                   uniform_fill=True),

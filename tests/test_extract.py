@@ -30,7 +30,7 @@ def test_flying_pixel_filter_drops_both_sides_of_a_jump_and_keeps_a_slope():
 def test_readmit_edge_pixels_gives_back_each_side_of_an_edge_but_not_what_lies_between():
     """A 100 mm step with one column in between: the filter drops the step's two sides and the middle column;
     the sides have 3 kept neighbours on their own surface and come back when their codes confirm them, the
-    middle one has none. A low confidence, or a side bent 20 mm toward the other surface, keeps them out."""
+    middle one has none. A confidence below the bar (0.9 by default), a support bar above 3, or a side bent 20 mm toward the other surface, keeps them out."""
     d = np.full((6, 8), 500.0, np.float32)
     d[:, 4] = 550.0  # between the surfaces: a mixed pixel
     d[:, 5:] = 600.0
@@ -47,8 +47,10 @@ def test_readmit_edge_pixels_gives_back_each_side_of_an_edge_but_not_what_lies_b
     expect[1:-1, [3, 5]] = True  # on the image's border two kept neighbours are too few
     np.testing.assert_array_equal(back, expect)
     np.testing.assert_array_equal(seen[0], expect)  # confidence asked only at the candidates
-    doubtful = readmit_edge_pixels(d, after, CAMERA, 10.0, lambda m: np.where(np.isfinite(m), 0.7, np.nan))
-    assert not doubtful.any()
+    fair = lambda m: np.where(np.isfinite(m), 0.85, np.nan)  # noqa: E731  between the surface term's 0.8 and 0.9
+    assert not readmit_edge_pixels(d, after, CAMERA, 10.0, fair).any()
+    np.testing.assert_array_equal(readmit_edge_pixels(d, after, CAMERA, 10.0, fair, min_confidence=0.8), expect)
+    assert not readmit_edge_pixels(d, after, CAMERA, 10.0, confident, min_support=4).any()
     bent = d.copy()
     bent[:, 3] = 520.0  # the field's surface bending toward the background: 20 footprints from its neighbours
     back = readmit_edge_pixels(bent, flying_pixel_filter(bent, CAMERA, 10.0), CAMERA, 10.0, confident)

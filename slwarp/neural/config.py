@@ -211,7 +211,7 @@ class ExtractionConfig:
                                 "confidence of at least edge_readmit_confidence (needs edge_filter > 0)", resumable=True)
     edge_readmit_support: int = option(3, "edge readmission: neighbours (of 8) the filter kept within its limit of the "
                                        "pixel's depth", min=1, max=8, resumable=True)
-    edge_readmit_confidence: float = option(0.8, "edge readmission: the pixel's photometric confidence at least this",
+    edge_readmit_confidence: float = option(0.9, "edge readmission: the pixel's photometric confidence at least this",
                                             min=0.0, max=1.0, resumable=True)
     # what the method knows about each pixel, as a map in [0, 1] written beside the depth (slwarp.neural.confidence);
     # photometric with min_confidence 0.6 is the photometric check (relative RMS residual below 0.4)
@@ -548,12 +548,16 @@ _DEFAULT_EXTRACTION = dict(refine_range=3.0, refine_max_misfit=REFINE_MAX_MISFIT
 # 0.206 without either (rods 0.41-0.55 -> 0.18-0.32 mm: the term holds the thin parts training loses), and 95.5 /
 # 95.7 / 95.4 / 95.4% completeness (the term alone: 0.132 / 0.135 / 0.090 / 0.167 mm, 94.2 to 94.6%, per scan -1.7 to
 # +1.2 points; the fill adds 1.0 to 1.3 points per scan for +0.002 to +0.011 mm)
+# the edge readmission at photometric confidence >= 0.9 (one H100, the same fields re-extracted,
+# bench/results/accuracy-cuda-edge-default.md, -edge-vertical.md): completeness -1.19 -> -0.94 points against GC(7)
+# on the default rig, -0.90 -> -0.74 on the vertical one, for +0.003 / +0.002 mm (rods +0.013 / +0.014); at 0.8
+# +0.005 mm, which took the vertical rig to 0.51x GC(7); asking 5 neighbours gave nothing back
 _preset("tuned", "paper with lr 5e-4, cosine decay, no surface-colour loss, an SDF term at the depths the codes "
         "confirm, photometric depth refinement (+-3 mm, where the pattern model fits the images), the search repair "
-        "(changes in groups of >= 100 pixels, grown into the neighbours that kept another surface) and "
-        "the uniform-code fill: the most accurate measured on the virtual scanner (GPU default)",
+        "(changes in groups of >= 100 pixels, grown into the neighbours that kept another surface), the uniform-code "
+        "fill and the edge readmission: the most accurate measured on the virtual scanner (GPU default)",
         matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0, surface_weight=1.0, surface_after=1.0,
-        uniform_fill=True, **_DEFAULT_EXTRACTION)
+        uniform_fill=True, edge_readmit=True, **_DEFAULT_EXTRACTION)
 # CPU: the tuned recipe with a smaller field and batch, minutes on two cores (small rig)
 _preset("cpu", "tuned with a 4x64 field, 384 rays, 1500 iterations: minutes on two CPU cores (small rig)",
         iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, lr=5e-4, lr_decay="cosine",
