@@ -550,7 +550,7 @@ _DEFAULT_EXTRACTION = dict(refine_range=3.0, refine_max_misfit=REFINE_MAX_MISFIT
 # +1.2 points; the fill adds 1.0 to 1.3 points per scan for +0.002 to +0.011 mm)
 # the edge readmission at photometric confidence >= 0.9 (one H100, the same fields re-extracted,
 # bench/results/accuracy-cuda-edge-default.md, -edge-vertical.md): completeness -1.19 -> -0.94 points against GC(7)
-# on the default rig, -0.90 -> -0.74 on the vertical one, for +0.003 / +0.002 mm (rods +0.013 / +0.014); at 0.8
+# on the default rig, -0.90 -> -0.74 on the vertical one, for +0.003 mm on each (rods +0.013 / +0.014); at 0.8
 # +0.005 mm, which took the vertical rig to 0.51x GC(7); asking 5 neighbours gave nothing back
 _preset("tuned", "paper with lr 5e-4, cosine decay, no surface-colour loss, an SDF term at the depths the codes "
         "confirm, photometric depth refinement (+-3 mm, where the pattern model fits the images), the search repair "
@@ -587,7 +587,8 @@ _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 1000 iteratio
 # surface term and extraction (one H100, bench/results/accuracy-cuda-accurate-full.md) 0.196 / 0.162 mm (steps
 # 0.792 -> 0.445, rods 0.885 -> 0.180 on the default rig; the other scans 0.000 to 0.006 mm worse) and 95.6 / 95.9% completeness; without the surface term
 # (accuracy-cuda-accurate-noterm.md, default rig) 0.220 (rods 0.376). The term costs training time: 15.1 s against
-# 13.7 for 4300 iterations on an H100 (bench/results/train-speed-cuda-accurate-full.md, -accurate.md)
+# 13.7 for 4300 iterations on an H100 (bench/results/train-speed-cuda-accurate-full.md, -accurate.md); with the faster
+# extraction 15.0 s of training and 19.6 s from a loaded scan to the depth map (train-speed-cuda-accurate-e2e.md)
 _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), the paper's 4000 iterations and batch, levels "
         "coarse to fine, with tuned's surface term and extraction: about 3x faster than tuned, less accurate (GPU)",
         matmul="tf32", grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2, grid_level_every=200,
