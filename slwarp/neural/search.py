@@ -88,7 +88,7 @@ def _median3(x: np.ndarray) -> np.ndarray:
     count = np.isfinite(stack).sum(-1)  # NaN sorts last, so the finite values come first in order
     stack.sort(axis=-1)
     lo = np.take_along_axis(stack, np.maximum(count - 1, 0)[..., None] // 2, -1)[..., 0]
-    hi = np.take_along_axis(stack, count[..., None] // 2 - (count[..., None] == 0), -1)[..., 0]
+    hi = np.take_along_axis(stack, count[..., None] // 2, -1)[..., 0]
     med = np.where(count > 0, 0.5 * (lo + hi), np.nan)
     # a value far from its neighbourhood's median is an outlier
     with np.errstate(invalid="ignore"):
@@ -331,10 +331,9 @@ def component_sizes(depth: np.ndarray, tol_mm: float) -> np.ndarray:
                 break
             parent[np.maximum(ra[diff], rb[diff])] = np.minimum(ra[diff], rb[diff])
             a, b = a[diff], b[diff]
-    root = _roots(parent, np.arange(n_labels))
-    sizes = np.bincount(root[label[finite]], minlength=n_labels)
+    group = _roots(parent, np.arange(n_labels))[label[finite]]  # each finite pixel's merged label
     out = np.zeros((H, W), np.int64)
-    out[finite] = sizes[root[label[finite]]]
+    out[finite] = np.bincount(group, minlength=n_labels)[group]
     return out
 
 
