@@ -34,7 +34,6 @@ sys.path.insert(0, str(REPO / "bench"))
 from study_common import DATE, markdown_table, write_study  # noqa: E402
 
 SHARES = (0.002, 0.02, 0.2, 1.0)
-AGREE_MM_TEXT = "neighbours joined within slwarp.neural.search.AGREE_MM"
 
 
 def _median_time(fn, repeat: int) -> tuple[float, object]:
@@ -50,9 +49,9 @@ def median3_nanmedian(x: np.ndarray) -> np.ndarray:
     """The 3x3 outlier median as np.nanmedian takes it (the reference for search._median3)."""
     import warnings
 
-    H, W = x.shape
-    pad = np.pad(x, 1, constant_values=np.nan)
-    stack = np.stack([pad[dy : dy + H, dx : dx + W] for dy in range(3) for dx in range(3)])
+    from slwarp.neural.extract import neighbour_stack
+
+    stack = np.concatenate([neighbour_stack(x), x[None]]).astype(x.dtype)  # [9, H, W]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         med = np.nanmedian(stack, axis=0)
@@ -66,7 +65,7 @@ def measure(rig: str, scene: str, repeat: int) -> dict:
     import importlib
 
     from slwarp.neural import pattern_model as pm
-    from slwarp.neural.search import grow_repair
+    from slwarp.neural.search import AGREE_MM, _median3, component_sizes, grow_repair
     from slwarp.sim.simulate import SimOptions, simulate_scene
 
     scan = simulate_scene(scene, "random6", rig=rig, options=SimOptions(seed=0), device="cpu")
@@ -124,8 +123,7 @@ def measure(rig: str, scene: str, repeat: int) -> dict:
     t_dense, (out_d, grown_d) = _median_time(lambda: grow(0.0), repeat)
     growth = {"patch_pixels": int(wrong.sum()), "grown": int(grown_s.sum()), "sparse_s": t_sparse, "dense_s": t_dense,
               "same": bool(np.array_equal(out_s, out_d, equal_nan=True) and np.array_equal(grown_s, grown_d))}
-    from slwarp.neural.search import AGREE_MM, component_sizes
-
+    # the grouping and the outlier median: the true depth with a fifth of the pixels dropped
     holes = np.where(rng.random(depth.shape) < 0.2, np.nan, scan.gt_depth).astype(np.float32)
     component_sizes(holes[:8, :8], AGREE_MM)  # imports outside the timing
     t_groups, sizes = _median_time(lambda: component_sizes(holes, AGREE_MM), repeat)
@@ -133,8 +131,6 @@ def measure(rig: str, scene: str, repeat: int) -> dict:
     n_groups = float((1.0 / sizes[finite]).sum())  # each group's pixels add up to 1
     grouping = {"pixels": int(finite.sum()), "groups": int(round(n_groups)), "s": t_groups,
                 "same": bool(abs(n_groups - round(n_groups)) < 1e-6 and (sizes[~finite] == 0).all())}
-    from slwarp.neural.search import _median3
-
     t_sorted, kept = _median_time(lambda: _median3(holes), repeat)
     t_nan, kept_ref = _median_time(lambda: median3_nanmedian(holes), repeat)
     median3 = {"sorted_s": t_sorted, "nanmedian_s": t_nan, "same": bool(np.array_equal(kept, kept_ref, equal_nan=True))}
@@ -144,7 +140,7 @@ def measure(rig: str, scene: str, repeat: int) -> dict:
 
 
 def render(doc: dict) -> str:
-    lines = [f"# Photometric residual and the repair's growth: time per call ({doc['device']}, {doc['date']})", "",
+    lines = [f"# Photometric residual, the repair's growth, the depth grouping and the outlier median: time per call ({doc['device']}, {doc['date']})", "",
              f"`{doc['command']}`: {doc['scene']} on the {doc['rig']} rig ({doc['camera']} px, {doc['frames']} "
              f"frames), median of {doc['repeat']} runs; 'same' checks every row's values against the dense ones.", ""]
     header = ["share of pixels with depth", "pixels", "dense, ray grid per call s", "dense s", "sparse s", "same"]
@@ -159,7 +155,7 @@ def render(doc: dict) -> str:
     lines += ["", f"Same result both ways: {'yes' if g['same'] else 'NO'}.", ""]
     c = doc.get("grouping")
     if c:
-        lines += [f"The depth grouping (`component_sizes`, {AGREE_MM_TEXT}) of {c['pixels']} pixels with depth: "
+        lines += [f"The depth grouping (`component_sizes`, neighbours joined within search.AGREE_MM) of {c['pixels']} pixels with depth: "
                   f"{c['s']:.3f} s, {c['groups']} groups; sizes consistent: {'yes' if c['same'] else 'NO'}.", ""]
     m = doc.get("median3")
     if m:

@@ -4,9 +4,12 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from slwarp.neural.config import ExtractionConfig
 from slwarp.neural.extract import flying_pixel_filter, neighbour_stack, readmit_edge_pixels
 
 CAMERA = SimpleNamespace(fx=500.0, fy=500.0)  # a pixel footprint of 1 mm at 500 mm
+# the edge readmission's default bars (the options edge_readmit_support and edge_readmit_confidence)
+BAR = dict(min_support=ExtractionConfig().edge_readmit_support, min_confidence=ExtractionConfig().edge_readmit_confidence)
 
 
 def test_neighbour_stack_holds_the_8_neighbours():
@@ -42,22 +45,22 @@ def test_readmit_edge_pixels_gives_back_each_side_of_an_edge_but_not_what_lies_b
         seen.append(np.isfinite(m))
         return np.where(np.isfinite(m), 1.0, np.nan)
 
-    back = readmit_edge_pixels(d, after, CAMERA, 10.0, confident)
+    back = readmit_edge_pixels(d, after, CAMERA, 10.0, confident, **BAR)
     expect = np.zeros(d.shape, bool)
     expect[1:-1, [3, 5]] = True  # on the image's border two kept neighbours are too few
     np.testing.assert_array_equal(back, expect)
     np.testing.assert_array_equal(seen[0], expect)  # confidence asked only at the candidates
     fair = lambda m: np.where(np.isfinite(m), 0.85, np.nan)  # noqa: E731  between the surface term's 0.8 and 0.9
-    assert not readmit_edge_pixels(d, after, CAMERA, 10.0, fair).any()
-    np.testing.assert_array_equal(readmit_edge_pixels(d, after, CAMERA, 10.0, fair, min_confidence=0.8), expect)
-    assert not readmit_edge_pixels(d, after, CAMERA, 10.0, confident, min_support=4).any()
+    assert not readmit_edge_pixels(d, after, CAMERA, 10.0, fair, **BAR).any()
+    np.testing.assert_array_equal(readmit_edge_pixels(d, after, CAMERA, 10.0, fair, **{**BAR, "min_confidence": 0.8}), expect)
+    assert not readmit_edge_pixels(d, after, CAMERA, 10.0, confident, **{**BAR, "min_support": 4}).any()
     bent = d.copy()
     bent[:, 3] = 520.0  # the field's surface bending toward the background: 20 footprints from its neighbours
-    back = readmit_edge_pixels(bent, flying_pixel_filter(bent, CAMERA, 10.0), CAMERA, 10.0, confident)
+    back = readmit_edge_pixels(bent, flying_pixel_filter(bent, CAMERA, 10.0), CAMERA, 10.0, confident, **BAR)
     assert not back[:, 3].any() and back[1:-1, 5].all()
     # nothing dropped: nothing to give back, and no confidence asked
     seen.clear()
-    assert not readmit_edge_pixels(d[:, :3], d[:, :3], CAMERA, 10.0, confident).any() and not seen
+    assert not readmit_edge_pixels(d[:, :3], d[:, :3], CAMERA, 10.0, confident, **BAR).any() and not seen
 
 
 def test_extract_mesh_leaves_out_the_volume_outside_the_depth_range():

@@ -118,7 +118,7 @@ def flying_pixel_filter(depth: np.ndarray, camera, footprints: float = 10.0) -> 
 
 
 def readmit_edge_pixels(before: np.ndarray, after: np.ndarray, camera, footprints: float, confidence_of,
-                        min_support: int = 3, min_confidence: float = 0.9) -> np.ndarray:
+                        *, min_support: int, min_confidence: float) -> np.ndarray:
     """[H, W] bool: the pixels the flying-pixel filter dropped (finite in `before`, NaN in `after`, both [H, W]
     mm) that lie on one side of the edge rather than in between: at least `min_support` of their 8 neighbours
     kept a depth in `after` within `footprints` pixel footprints of theirs, and `confidence_of(map)` (a map [H, W]
@@ -127,7 +127,7 @@ def readmit_edge_pixels(before: np.ndarray, after: np.ndarray, camera, footprint
     The filter drops both sides of every depth edge, so a true occlusion edge costs a pixel on the foreground and
     one on the background, which a Gray code decoder keeps. A pixel the field bent toward the other surface is
     over the limit from its own neighbours and stays dropped; a mixed pixel's codes blend two projector columns
-    and fail the confidence. Defaults as the options edge_readmit_support and edge_readmit_confidence (0.9: at
+    and fail the confidence. The bars are the options edge_readmit_support and edge_readmit_confidence (0.9: at
     the surface term's 0.8 the readmitted rod edges cost the vertical rig's MAE target, config.py's tuned)."""
     b = np.asarray(before, np.float64)
     dropped = np.isfinite(b) & ~np.isfinite(after)

@@ -147,7 +147,8 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
             # the edge pixels on one side of the edge, whose own codes confirm them (extract.readmit_edge_pixels)
             back = readmit_edge_pixels(before, depth, cam, ex.edge_filter,
                                        lambda d: depth_confidence(trainer, d, "photometric"),
-                                       ex.edge_readmit_support, ex.edge_readmit_confidence)
+                                       min_support=ex.edge_readmit_support,
+                                       min_confidence=ex.edge_readmit_confidence)
             depth = np.where(back, before, depth).astype(np.float32)
             readmitted = int(back.sum())
         lost("flying_pixel", before)
