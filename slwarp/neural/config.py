@@ -575,11 +575,16 @@ _preset("tiny", "a 3x48 field for 300 iterations: tests", iters=300, rays=256, n
 _HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, grid_table_lr_factor=10.0)
 # a GPU depth map as soon as possible: 1000 iterations with all 8 levels on by iteration 200 + 300; 8 levels and
 # the 4-tap gradient as accurate: on default-rig bunny, steps and torus (H100, bench/results/fast-variants-cuda.md)
-# scan to depth map 9.5 -> 7.1 s for a mean MAE of 0.665 against 0.662 mm with 16 levels and 5 evaluations
-_preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 1000 iterations, levels switched on quickly: a "
-        "depth map as soon as possible (GPU)", matmul="tf32", iters=1000, init_iters=200, grid_levels=8,
-        grid_gradient="finite_difference_4", grid_start_levels=2, grid_level_every=50, mc_resolution=256,
-        checkpoint_every=1000, **_HASHGRID)
+# scan to depth map 9.5 -> 7.1 s for a mean MAE of 0.665 against 0.662 mm with 16 levels and 5 evaluations.
+# With tuned's surface term and extraction and 1024 rays (default and vertical rigs, 8 scenes each, one H100,
+# bench/results/accuracy-cuda-hashgrid-schedule.md): mean MAE 0.200 / 0.165 mm; default-rig bunny
+# 0.325 -> 0.119 mm for 7.1 s from a loaded scan instead of 5.6 (bench/results/train-speed-cuda-fast-x.md). 2048
+# rays gave 0.202 / 0.163 mm in 8.4 s, 600 iterations of 1024 rays 0.280 / 0.268 mm in 6.2 s
+_preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 1000 iterations of 1024 rays, levels switched on "
+        "quickly, with tuned's surface term and extraction: a depth map as soon as possible (GPU)",
+        matmul="tf32", iters=1000, init_iters=200, rays=1024, grid_levels=8, grid_gradient="finite_difference_4",
+        grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, surface_weight=1.0,
+        surface_after=1.0, uniform_fill=True, **_DEFAULT_EXTRACTION, **_HASHGRID)
 # the accurate hash-grid recipe: 8 levels (growth 2), the 4-tap gradient, and tuned's surface term and extraction.
 # Default and vertical rigs, 8 scenes each, H200 (bench/results/accuracy-cuda-hashgrid.md): 8 levels gave a mean
 # MAE of 0.378 / 0.282 mm against 0.351 / 0.268 with 16 and 0.369 / 0.295 with 12; the 4-tap gradient (f from the
@@ -589,9 +594,17 @@ _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 1000 iteratio
 # (accuracy-cuda-accurate-noterm.md, default rig) 0.220 (rods 0.376). The term costs training time: 15.1 s against
 # 13.7 for 4300 iterations on an H100 (bench/results/train-speed-cuda-accurate-full.md, -accurate.md); with the faster
 # extraction 15.0 s of training and 19.6 s from a loaded scan to the depth map (train-speed-cuda-accurate-e2e.md)
-_preset("accurate", "hash-grid field (8 levels, 4-tap gradient), the paper's 4000 iterations and batch, levels "
-        "coarse to fine, with tuned's surface term and extraction: about 3x faster than tuned, less accurate (GPU)",
-        matmul="tf32", grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2, grid_level_every=200,
+# Fewer iterations measured better (the same 16 scans, bench/results/accuracy-cuda-hashgrid-schedule.md): 2000
+# iterations with a level every 100 give 0.186 / 0.153 mm against 0.196 / 0.162 for 4000 (better on 14 of the 16
+# scans; rods 0.180 -> 0.199 and 0.211 -> 0.222), 1500 with a level every 75 0.192 / 0.157; the long schedule's
+# finest tables fit the images' noise (its error within 5 mm was 0.154 mm against fast's 0.142). Training 15.0 ->
+# 7.8 s, scan to depth map 19.6 -> 12.9 s (bench/results/train-speed-cuda-accurate-2000.md). A smaller finest level
+# (1024 cells: 0.198 / 0.169), two hidden layers (0.195 / 0.164) and a table learning rate of 3x lr (0.201 / 0.162)
+# at 4000 iterations did not help
+_preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations of the paper's batch, levels "
+        "coarse to fine, with tuned's surface term and extraction: several times faster than tuned, less accurate (GPU)",
+        matmul="tf32", iters=2000, grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2,
+        grid_level_every=100,
         surface_weight=1.0, surface_after=1.0, uniform_fill=True, **_DEFAULT_EXTRACTION, **_HASHGRID)
 # CPU: the cpu preset's step on a small hash grid (8 levels of 2^15 entries; finer tables are cache-bound on
 # one thread): small rig, bunny/vase/boxes mean MAE 0.575 mm against 0.749 for cpu at about its time per step
