@@ -2,6 +2,7 @@
 the CLI options generated from it."""
 import dataclasses
 import math
+import warnings
 
 import pytest
 
@@ -19,7 +20,7 @@ FLAT_DEFAULTS = dict(iters=4000, rays=2048, n_samples=32, n_importance=32, up_sa
                      device="auto", matmul="fp32", compile=True, cuda_graph=True, incremental=False, start_frames=3,
                      add_every=500, checkpoint_every=500, log_every=50, mc_resolution=384, depth_method="mesh",
                      edge_filter=10.0, edge_readmit=False, edge_readmit_support=3, edge_readmit_confidence=0.9, refine_range=0.0, search_repair=False, repair_min_component=0, repair_grow=False, search_doubt=False,
-                     search_confirm=False, uniform_fill=False, refine_check=False, refine_max_misfit=0.0, surface_weight=0.0, surface_after=0.0, surface_band_mm=0.5,
+                     uniform_fill=False, refine_check=False, refine_max_misfit=0.0, surface_weight=0.0, surface_after=0.0, surface_band_mm=0.5,
                      field="mlp", grid_levels=16, grid_log2_table=19, grid_base=16, grid_finest="auto",
                      grid_hidden=64, grid_layers=1, grid_activation="softplus", grid_gradient="finite_difference",
                      grid_table_lr_factor=10.0, grid_start_levels=2, grid_level_every=150)
@@ -114,9 +115,8 @@ def test_rules_between_options():
         preset("cpu-hashgrid", grid_start_levels=9)
     with pytest.raises(ConfigError, match="grid_finest: 8 must not be below grid_base \\(16\\), or auto"):
         preset("accurate", grid_finest=8)
-    with pytest.raises(ConfigError, match="search_confirm: true needs search_repair: true"):
-        preset("paper", search_confirm=True)
-    assert preset("paper", search_confirm=True, search_repair=True).extraction.search_confirm
+    with pytest.raises(ConfigError, match="repair_grow: true needs search_repair: true"):
+        preset("paper", repair_grow=True)
     cfg = preset("paper")
     cfg.schedule.lr_decay = "exp"  # set by hand: validate() (which Trainer calls) still catches it
     with pytest.raises(ConfigError, match="lr_decay"):
@@ -151,6 +151,23 @@ def test_yaml_round_trip_partial_files_and_errors(tmp_path):
         load_config(tmp_path / "missing.yaml")
 
 
+def test_a_removed_option_in_an_old_config_is_read_past(tmp_path):
+    """A config.yaml written before search_confirm was removed still loads: off silently, on with a warning that
+    names the file and the option. Only in its own section, and no longer as an option to set."""
+    (tmp_path / "old.yaml").write_text("extraction:\n  search_confirm: false\n  min_confidence: 0.5\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert load_config(tmp_path / "old.yaml").extraction.min_confidence == 0.5
+    (tmp_path / "on.yaml").write_text("extraction:\n  search_confirm: true\n")
+    with pytest.warns(UserWarning, match="on.yaml: option extraction.search_confirm was removed .*ignored"):
+        assert load_config(tmp_path / "on.yaml") == TrainConfig()
+    (tmp_path / "wrong.yaml").write_text("schedule:\n  search_confirm: true\n")
+    with pytest.raises(ConfigError, match="unknown option schedule.search_confirm"):
+        load_config(tmp_path / "wrong.yaml")
+    with pytest.raises(ConfigError, match="unknown option 'search_confirm'"):
+        preset("tuned", search_confirm=True)
+
+
 def parse(argv):
     args = cli.build_parser(argv).parse_args(argv)
     return cli._config_from_args(args)
@@ -174,7 +191,7 @@ def test_cli_flags_are_generated_for_every_option():
                 expect = {int: int, float: float}[opt._numeric()](opt.min) + 1
             assert expect != default
             argv = [flag, str(expect)]
-        needs = ["--search-repair"] if name in ("search_confirm", "repair_grow") else []  # a rule between options
+        needs = ["--search-repair"] if name == "repair_grow" else []  # a rule between options
         _, cfg, _ = parse(["reconstruct", "scan", "--out", "o", "--preset", "tiny", *argv, *needs])
         assert cfg.get(name) == expect, name
 

@@ -110,33 +110,6 @@ def test_repair_keeps_only_large_groups_of_changes_when_asked(scene):
     np.testing.assert_array_equal(out_none[kept], depth[kept])
 
 
-def test_repair_confirms_the_dropped_depths_the_search_agrees_with(scene):
-    """candidates (what the filters dropped): right ones come back as they were (the field's depth, not the
-    search's), wrong ones never do."""
-    scan, patterns, valid = scene
-    gt = np.where(valid, scan.gt_depth, np.nan).astype(np.float32)
-    blocks = [(y, x) for y in range(10, 220, 15) for x in range(10, 290, 15)
-              if valid[y : y + 30, x : x + 30].all() and np.ptp(scan.gt_depth[y : y + 30, x : x + 30]) < 15.0]
-    y0, x0 = blocks[0]
-    hole = np.zeros_like(valid)
-    hole[y0 : y0 + 30, x0 : x0 + 30] = True
-    right, wrong = hole.copy(), hole.copy()
-    right[:, x0 + 15 :] = False
-    wrong &= ~right
-    depth = np.where(hole, np.nan, gt).astype(np.float32)
-    candidates = np.full_like(gt, np.nan)
-    candidates[right] = gt[right] + 0.7  # the field's depth, off by less than a search's step
-    candidates[wrong] = gt[wrong] + 40.0  # another code's depth
-    common = (scan.camera, scan.projector, scan.images, patterns, scan.depth_range, valid)
-    out, info = repair_by_search(depth, *common, min_confidence=0.6, step_mm=1.0, device="cpu", candidates=candidates)
-    confirmed = hole & (out == candidates)
-    assert confirmed[right].mean() > 0.9 and not confirmed[wrong].any()
-    assert info["confirmed"] == int(confirmed.sum())
-    # without candidates the same hole is filled with the search's own depths, never the field's
-    plain, plain_info = repair_by_search(depth, *common, min_confidence=0.6, step_mm=1.0, device="cpu")
-    assert plain_info["confirmed"] == 0 and not (hole & (plain == candidates)).any()
-
-
 def test_component_sizes_link_neighbours_of_one_surface():
     d = np.full((6, 8), np.nan)
     d[0, 0:3] = 5.0

@@ -137,8 +137,6 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     before = depth.copy()
     depth[(depth < near) | (depth > far)] = np.nan
     lost("out_of_range", before)
-    # what the filters below drop, for the search repair's confirmations
-    unfiltered = depth.copy() if ex.search_confirm else None
     readmitted = 0
     if ex.edge_filter > 0:
         before = depth
@@ -172,10 +170,8 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
             # where a per-pixel depth search contradicts the field or fills its holes (thin parts it missed):
             # slwarp.neural.search.repair_by_search
             before = depth
-            candidates = np.where(np.isfinite(depth), np.nan, unfiltered) if ex.search_confirm else None
             depth, repair = repair_by_search(depth, *search_inputs, ex.min_confidence,
-                                             min_component=ex.repair_min_component, candidates=candidates,
-                                             **search_options)
+                                             min_component=ex.repair_min_component, **search_options)
             # no flying-pixel filter on the changed pixels: a search has no smoothness to bend it across a depth
             # edge, and a thin part is all edge
             changed = np.isfinite(depth) & ~(depth == before)

@@ -116,7 +116,7 @@ def repair_by_search(depth: np.ndarray, camera, projector, images, patterns, dep
                      min_confidence: float, *, step_mm: float = 1.0, margin: float = SWITCH_MARGIN,
                      fill_confidence: float = FILL_CONFIDENCE, support: int = SUPPORT,
                      doubt_confidence: float = DOUBT_CONFIDENCE, min_component: int = 0,
-                     candidates: np.ndarray | None = None, device=None) -> tuple[np.ndarray, dict]:
+                     device=None) -> tuple[np.ndarray, dict]:
     """(depth [H, W] repaired, info) where a per-pixel depth search contradicts the field.
 
     Why: a field can miss what few rays saw (rods a few pixels wide, small parts behind a depth edge). Its
@@ -135,16 +135,11 @@ def repair_by_search(depth: np.ndarray, camera, projector, images, patterns, dep
     - with min_component > 0, a change also stays only inside a connected group (8 neighbours, each within
       AGREE_MM of the next) of at least min_component changed pixels: a thin part the field missed is a long
       run of pixels, while the search's chance matches come in small clusters that overlapping windows share;
-    - confirmations (candidates [H, W] given: the field's depths that the filters dropped, NaN elsewhere): a hole
-      takes back its candidate where the 3x3 and the 5x5 searches both lie within AGREE_MM of it (two
-      estimates that share no smoothness agree; a thin part is all edge, so the flying-pixel filter drops it
-      whole), subject to the neighbour rule but not the group rule (the depth is the field's, not a chance
-      match of the search);
     - doubts: a contradicted depth that is not replaced is dropped when its confidence is below `doubt_confidence`
       (on rods, the background's depth on a rod pixel the 5x5 search cannot confirm) or when the switch's
       confidence test passed but the neighbour or group rule refused it.
     The caller refines the result (`pattern_model.refine_depth`). info: counts of holes, filled, contested,
-    switched, confirmed and dropped pixels."""
+    switched and dropped pixels."""
     depth = np.asarray(depth, np.float32)
     valid = np.asarray(valid, bool)
     out = depth.copy()
@@ -152,26 +147,19 @@ def repair_by_search(depth: np.ndarray, camera, projector, images, patterns, dep
     s1, contested = _contested(depth, camera, projector, images, patterns, depth_range, valid, **common)
     has = np.isfinite(depth)
     holes = valid & ~has & np.isfinite(s1)
-    info = {"holes": int((valid & ~has).sum()), "filled": 0, "contested": int(contested.sum()), "switched": 0,
-            "confirmed": 0}
+    info = {"holes": int((valid & ~has).sum()), "filled": 0, "contested": int(contested.sum()), "switched": 0}
     if not (holes.any() or contested.any()):
         return out, info
     s2, _ = search_depth(camera, projector, images, patterns, depth_range, valid=valid, radius=2,
                          centres=holes | contested, **common)
     agree = np.isfinite(s2) & (np.abs(s2 - s1) < AGREE_MM)
-    confirm = np.zeros_like(holes)
-    if candidates is not None:
-        cand = np.asarray(candidates, np.float32)
-        with np.errstate(invalid="ignore"):
-            confirm = holes & agree & (np.abs(s1 - cand) < AGREE_MM) & (np.abs(s2 - cand) < AGREE_MM)
-        out[confirm] = cand[confirm]
     conf_s = photometric_confidence(np.where(agree, s1, np.nan), camera, projector, images, patterns)
-    fill = holes & ~confirm & agree & (conf_s >= max(min_confidence, fill_confidence))
+    fill = holes & agree & (conf_s >= max(min_confidence, fill_confidence))
     conf_d = photometric_confidence(np.where(contested, depth, np.nan), camera, projector, images, patterns)
     better = contested & agree & (conf_s > conf_d + margin)  # the codes fit the search's depth clearly better
     switch = better.copy()
     out[fill | switch] = s1[fill | switch]
-    change = fill | switch | confirm
+    change = fill | switch
     if support > 0 and change.any():
         # an isolated change is a search's chance match: keep those that `support` of their 8 neighbours agree with
         agreeing = neighbours_within(out, AGREE_MM)
@@ -179,7 +167,6 @@ def repair_by_search(depth: np.ndarray, camera, projector, images, patterns, dep
         out[drop] = depth[drop]
         fill &= ~drop
         switch &= ~drop
-        confirm &= ~drop
     if min_component > 0 and (fill | switch).any():
         small = (fill | switch) & (component_sizes(np.where(fill | switch, out, np.nan), AGREE_MM) < min_component)
         out[small] = depth[small]
@@ -190,7 +177,7 @@ def repair_by_search(depth: np.ndarray, camera, projector, images, patterns, dep
     # pixel is otherwise left in place)
     doubt = contested & ~switch & ((conf_d < doubt_confidence) | better)
     out[doubt] = np.nan
-    info.update(filled=int(fill.sum()), switched=int(switch.sum()), confirmed=int(confirm.sum()), dropped=int(doubt.sum()))
+    info.update(filled=int(fill.sum()), switched=int(switch.sum()), dropped=int(doubt.sum()))
     return out, info
 
 
