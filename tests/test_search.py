@@ -110,6 +110,18 @@ def test_repair_keeps_only_large_groups_of_changes_when_asked(scene):
     np.testing.assert_array_equal(out_none[kept], depth[kept])
 
 
+def test_neighbours_within_at_listed_pixels_equals_the_dense_count():
+    """neighbours_within(..., index) counts at the listed pixels what the dense map counts there, borders and NaN
+    neighbours included (the uniform-code fill asks it at its fills only)."""
+    rng = np.random.default_rng(3)
+    depth = (500.0 + np.cumsum(rng.normal(0, 1.0, (40, 50)), axis=1)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.2] = np.nan
+    index = np.concatenate([np.arange(50), rng.choice(depth.size, 300, replace=False), [depth.size - 1]])
+    dense = neighbours_within(depth, 1.5)
+    np.testing.assert_array_equal(neighbours_within(depth, 1.5, index), dense.reshape(-1)[index])
+    assert 0 < dense.mean() < 8  # neither every neighbour nor none agrees
+
+
 def test_component_sizes_link_neighbours_of_one_surface():
     d = np.full((6, 8), np.nan)
     d[0, 0:3] = 5.0

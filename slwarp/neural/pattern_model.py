@@ -250,28 +250,35 @@ def fill_uniform_codes(depth: np.ndarray, field_depth: np.ndarray, lit: np.ndarr
     confidence = np.full(depth.shape, np.nan, np.float32)
     if not candidate.any():
         return out, confidence, candidate
-    uv = projector_coords(np.where(candidate, field_depth, np.nan), camera, projector)
+    # the candidates are about 1% of the pixels: the codes and the fit are computed at those pixels only
+    # (flat indices; the window means stay dense box filters)
+    index = np.flatnonzero(candidate)
+    uv = projector_coords_at(index, field_depth, camera, projector)
     hp, wp = patterns.shape[1:]
-    inside = (uv[..., 0] >= 0) & (uv[..., 0] <= wp - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= hp - 1)
-    codes = sample_patterns(patterns, uv)
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] <= wp - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= hp - 1)
+    codes = sample_patterns_at(patterns, uv)  # [N, P]
     level = (codes.mean(0) > 0.5).astype(np.float32)
     uniform = np.abs(codes - level).max(0) <= UNIFORM_TOLERANCE
     a, b = offset_and_modulation(images)
-    a_near, count = _box_mean(a, lit, UNIFORM_RADIUS)
-    b_near, _ = _box_mean(b, lit, UNIFORM_RADIUS)
+    a_near, count = (v.reshape(-1)[index] for v in _box_mean(a, lit, UNIFORM_RADIUS))
+    b_near = _box_mean(b, lit, UNIFORM_RADIUS)[0].reshape(-1)[index]
     enough = count >= UNIFORM_MIN_SHARE * (2 * UNIFORM_RADIUS + 1) ** 2
-    residual = np.sqrt(np.mean((images - a_near - b_near * codes) ** 2, axis=0)) / np.maximum(b_near, MIN_MODULATION)
-    fit = 1.0 - residual
-    filled = candidate & inside & uniform & enough & (fit >= min_confidence)
+    seen = images.reshape(len(images), -1)[:, index]
+    fit = 1.0 - np.sqrt(np.mean((seen - a_near - b_near * codes) ** 2, axis=0)) / np.maximum(b_near, MIN_MODULATION)
+    keep = inside & uniform & enough & (fit >= min_confidence)
+    index, fit = index[keep], fit[keep]
     with np.errstate(invalid="ignore"):
         diff = depth - field_depth
         refined = np.isfinite(diff) & (np.abs(diff) <= UNIFORM_CORRECTION_MAX_MM)
         correction, counted = _box_mean(np.where(refined, diff, 0.0), refined, UNIFORM_CORRECTION_RADIUS)
-    out[filled] = (field_depth + np.where(counted > 0, correction, 0.0))[filled]
-    lonely = filled & (neighbours_within(out, AGREE_MM) < 2)  # a lone fill: no surface of its neighbours
-    out[lonely] = np.nan
-    filled &= ~lonely
-    confidence[filled] = fit[filled]
+    flat = out.reshape(-1)  # a view: writes go to out
+    flat[index] = (field_depth + np.where(counted > 0, correction, 0.0)).reshape(-1)[index]
+    lonely = neighbours_within(out, AGREE_MM, index) < 2  # a lone fill: no surface of its neighbours
+    flat[index[lonely]] = np.nan
+    index, fit = index[~lonely], fit[~lonely]
+    filled = np.zeros(depth.shape, bool)
+    filled.reshape(-1)[index] = True
+    confidence.reshape(-1)[index] = fit
     return out, confidence, filled
 
 

@@ -271,10 +271,23 @@ def grow_repair(depth: np.ndarray, seeds: np.ndarray, camera, projector, images,
     return out, grown
 
 
-def neighbours_within(depth: np.ndarray, tol_mm: float) -> np.ndarray:
-    """[H, W] int: how many of each pixel's 8 neighbours have a depth within tol_mm of its own."""
+def neighbours_within(depth: np.ndarray, tol_mm: float, index: np.ndarray | None = None) -> np.ndarray:
+    """[H, W] int: how many of each pixel's 8 neighbours have a depth within tol_mm of its own; with index (flat
+    pixel indices [P]) the same counts [P] at those pixels only."""
+    if index is None:
+        with np.errstate(invalid="ignore"):
+            return (np.abs(neighbour_stack(depth) - depth) < tol_mm).sum(0).astype(np.int32)
+    d = np.asarray(depth, np.float64)
+    pad = np.pad(d, 1, constant_values=np.nan)
+    y, x = np.divmod(np.asarray(index), d.shape[1])
+    own = d[y, x]
+    count = np.zeros(len(own), np.int32)
     with np.errstate(invalid="ignore"):
-        return (np.abs(neighbour_stack(depth) - depth) < tol_mm).sum(0).astype(np.int32)
+        for dy in range(3):
+            for dx in range(3):
+                if (dy, dx) != (1, 1):
+                    count += np.abs(pad[y + dy, x + dx] - own) < tol_mm
+    return count
 
 
 def component_sizes(depth: np.ndarray, tol_mm: float) -> np.ndarray:
