@@ -93,12 +93,24 @@ def mesh_depth(mesh, camera, device=None, hits: int = 1, eps_mm: float = 1.0) ->
         return depth.numpy().reshape(shape)
 
 
+# the 8 neighbours as (dy, dx) into the map padded by one pixel, in the order of neighbour_stack's rows
+_NEIGHBOURS = tuple((dy, dx) for dy in range(3) for dx in range(3) if (dy, dx) != (1, 1))
+
+
 def neighbour_stack(depth: np.ndarray) -> np.ndarray:
     """[8, H, W] float64: each pixel's 8 neighbours' depths (NaN outside the image)."""
     d = np.asarray(depth, np.float64)
     H, W = d.shape
     pad = np.pad(d, 1, constant_values=np.nan)
-    return np.stack([pad[dy : dy + H, dx : dx + W] for dy in range(3) for dx in range(3) if (dy, dx) != (1, 1)])
+    return np.stack([pad[dy : dy + H, dx : dx + W] for dy, dx in _NEIGHBOURS])
+
+
+def neighbours_at(depth: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """[8, P] float64: neighbour_stack at the pixels of flat indices index [P] only."""
+    d = np.asarray(depth, np.float64)
+    pad = np.pad(d, 1, constant_values=np.nan)
+    y, x = np.divmod(np.asarray(index), d.shape[1])
+    return np.stack([pad[y + dy, x + dx] for dy, dx in _NEIGHBOURS])
 
 
 def flying_pixel_filter(depth: np.ndarray, camera, footprints: float = 10.0) -> np.ndarray:

@@ -18,7 +18,7 @@ import numpy as np
 from ..decode.triangulate import camera_rays
 from ..devices import warp_device
 from .confidence import photometric_confidence
-from .extract import neighbour_stack
+from .extract import neighbour_stack, neighbours_at
 from .pattern_model import lit_with_contrast, offset_and_modulation
 from slwarp.kernels import runtime
 from slwarp.kernels.geometry import projector_params
@@ -277,17 +277,9 @@ def neighbours_within(depth: np.ndarray, tol_mm: float, index: np.ndarray | None
     if index is None:
         with np.errstate(invalid="ignore"):
             return (np.abs(neighbour_stack(depth) - depth) < tol_mm).sum(0).astype(np.int32)
-    d = np.asarray(depth, np.float64)
-    pad = np.pad(d, 1, constant_values=np.nan)
-    y, x = np.divmod(np.asarray(index), d.shape[1])
-    own = d[y, x]
-    count = np.zeros(len(own), np.int32)
+    own = np.asarray(depth, np.float64).reshape(-1)[index]
     with np.errstate(invalid="ignore"):
-        for dy in range(3):
-            for dx in range(3):
-                if (dy, dx) != (1, 1):
-                    count += np.abs(pad[y + dy, x + dx] - own) < tol_mm
-    return count
+        return (np.abs(neighbours_at(depth, index) - own) < tol_mm).sum(0).astype(np.int32)
 
 
 def component_sizes(depth: np.ndarray, tol_mm: float) -> np.ndarray:
