@@ -81,6 +81,38 @@ def test_photometric_residual_of_a_sparse_map_equals_the_dense_one(blurred_scan,
     assert np.isnan(photometric_residual(np.full_like(depth, np.nan), s.camera, s.projector, s.images, pats)).all()
 
 
+def test_patterns_sampled_on_a_device_equal_cv2_remap():
+    """sample_patterns_torch has sample_patterns_at's conventions (pixel centres at integer coordinates, zeros
+    outside, bilinear): equal at coordinates on OpenCV 4's 1/32 px grid, edges and outside included."""
+    from slwarp.neural.pattern_model import sample_patterns_at, sample_patterns_torch
+
+    rng = np.random.default_rng(2)
+    pats = rng.uniform(0.0, 1.0, (3, 12, 17)).astype(np.float32)
+    uv = (np.round(rng.uniform(-2.0, 19.0, (500, 2)) * 32) / 32).astype(np.float32)
+    uv[:5] = [[-0.5, 0.0], [16.5, 11.5], [-1.0, -1.0], [16.0, 11.0], [-10.0, -10.0]]
+    got = sample_patterns_torch(torch.as_tensor(pats), torch.as_tensor(uv)).numpy()
+    np.testing.assert_allclose(got, sample_patterns_at(pats, uv), atol=2e-6)
+
+
+@pytest.mark.parametrize("share", [1.0, 0.1])
+def test_photometric_residual_on_a_device_equals_the_host_path(blurred_scan, share):
+    """With tensors (here on the CPU; the extraction passes its GPU's) the residual is computed by torch on their
+    device: the host path's values within a float's rounding (OpenCV 5's remap; OpenCV 4 rounds projector
+    coordinates to 1/32 px first), NaN at the same pixels, dense and sparse maps alike."""
+    import cv2
+
+    s = blurred_scan
+    pats = blur_patterns(torch.as_tensor(s.patterns), 1.0).numpy()
+    rng = np.random.default_rng(4)
+    depth = np.where(rng.random(s.gt_depth.shape) < share, s.gt_depth + rng.normal(0, 2, s.gt_depth.shape), np.nan)
+    depth[0, :5] = 1.0  # projects far off the projector's image
+    depth = depth.astype(np.float32)
+    host = photometric_residual(depth, s.camera, s.projector, s.images, pats)
+    device = photometric_residual(depth, s.camera, s.projector, torch.as_tensor(s.images), torch.as_tensor(pats))
+    np.testing.assert_array_equal(np.isfinite(device), np.isfinite(host))
+    np.testing.assert_allclose(device, host, rtol=0, atol=1e-6 if int(cv2.__version__.split(".")[0]) >= 5 else 2e-2)
+
+
 def test_least_squares_residual_fits_offset_and_modulation_per_pixel():
     rng = np.random.default_rng(0)
     codes = rng.uniform(0.2, 0.7, (6, 5))  # codes that never reach 0 or 1 (blur), as min/max cannot handle

@@ -82,6 +82,28 @@ def test_repair_fills_holes_and_replaces_contradicted_depths(scene):
     assert np.isnan(out[~valid]).all()
 
 
+def test_search_and_repair_take_tensors_as_the_extraction_on_a_gpu_passes_them(scene):
+    """The frames as tensors (the GPU extraction passes the renderer's; here on the CPU): the search's map is the
+    same as from numpy bit for bit, and the repair, whose confidences torch then computes, decides the same."""
+    scan, patterns, valid = scene
+    images_t, patterns_t = torch.as_tensor(scan.images), torch.as_tensor(patterns)
+    for kw in (dict(radius=1, stride=1), dict(radius=2, stride=2)):
+        host = _search(scan, patterns, valid, **kw)
+        got = search_depth(scan.camera, scan.projector, images_t, patterns_t, scan.depth_range, valid=valid,
+                           device="cpu", **kw)[0]
+        np.testing.assert_array_equal(got, host)
+    depth = np.where(valid, scan.gt_depth, np.nan).astype(np.float32)
+    depth[40:70, 60:90] += 40.0
+    depth[120:150, 150:180] = np.nan
+    common = (scan.depth_range, valid)
+    out_host, info_host = repair_by_search(depth, scan.camera, scan.projector, scan.images, patterns, *common,
+                                           min_confidence=0.6, device="cpu")
+    out_t, info_t = repair_by_search(depth, scan.camera, scan.projector, images_t, patterns_t, *common,
+                                     min_confidence=0.6, device="cpu")
+    assert info_t == info_host and info_host["switched"] > 0 and info_host["filled"] > 0
+    np.testing.assert_array_equal(out_t, out_host)
+
+
 def test_repair_keeps_only_large_groups_of_changes_when_asked(scene):
     scan, patterns, valid = scene
     gt = np.where(valid, scan.gt_depth, np.nan).astype(np.float32)

@@ -44,6 +44,7 @@ __all__ = [
     "combine",
     "depth_confidence",
     "confidence_terms",
+    "pattern_model_inputs",
 ]
 
 CONFIDENCE_KINDS = ("photometric", "peak", "agreement", "uniqueness", "combined")
@@ -63,9 +64,10 @@ def _on_depth(values: np.ndarray, depth: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(depth), np.clip(values, 0.0, 1.0), np.nan).astype(np.float32)
 
 
-def photometric_confidence(depth: np.ndarray, camera, projector, images: np.ndarray, patterns: np.ndarray) -> np.ndarray:
+def photometric_confidence(depth: np.ndarray, camera, projector, images, patterns) -> np.ndarray:
     """[H, W]: 1 - relative RMS residual of the pattern model at depth (mm; NaN invalid). images [N, H, W],
-    patterns [N, Hp, Wp] as rendered (blurred)."""
+    patterns [N, Hp, Wp] as rendered (blurred): numpy, or tensors on the device to compute on
+    (`pattern_model.photometric_residual`)."""
     return _on_depth(1.0 - photometric_residual(depth, camera, projector, images, patterns), depth)
 
 
@@ -185,6 +187,17 @@ def _trainer_inputs(trainer):
             trainer.renderer.rendered_patterns.detach().cpu().numpy())
 
 
+def pattern_model_inputs(trainer) -> tuple:
+    """(images [N, H, W], patterns as rendered [N, Hp, Wp]) of a trainer's frames for the pattern model
+    (photometric_confidence, the depth searches): on a GPU the renderer's own tensors, so that the model runs
+    there (pattern_model._residual_on_device); else numpy, on the host."""
+    patterns = trainer.renderer.rendered_patterns.detach()
+    if trainer.device.type == "cuda":
+        cam = trainer.scan.camera
+        return trainer.renderer.images_flat.t().reshape(-1, cam.height, cam.width), patterns
+    return trainer.scan.images[: trainer.n_frames], patterns.cpu().numpy()
+
+
 def confidence_terms(trainer, depth: np.ndarray, kinds=CONFIDENCE_KINDS) -> dict[str, np.ndarray]:
     """{kind: [H, W] confidence} of a depth map extracted from `trainer`'s field, for the kinds asked
     (see the module docstring; 'combined' computes the terms it needs)."""
@@ -196,7 +209,7 @@ def confidence_terms(trainer, depth: np.ndarray, kinds=CONFIDENCE_KINDS) -> dict
     cam, prj, images, patterns = _trainer_inputs(trainer)
     terms = {}
     if "photometric" in need:
-        terms["photometric"] = photometric_confidence(depth, cam, prj, images, patterns)
+        terms["photometric"] = photometric_confidence(depth, cam, prj, *pattern_model_inputs(trainer))
     if need & {"peak", "agreement"}:
         field = trainer.field
         was_training = field.training

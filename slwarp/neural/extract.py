@@ -97,8 +97,14 @@ def mesh_depth(mesh, camera, device=None, hits: int = 1, eps_mm: float = 1.0) ->
 _NEIGHBOURS = tuple((dy, dx) for dy in range(3) for dx in range(3) if (dy, dx) != (1, 1))
 
 
-def neighbour_stack(depth: np.ndarray) -> np.ndarray:
-    """[8, H, W] float64: each pixel's 8 neighbours' depths (NaN outside the image)."""
+def neighbour_stack(depth):
+    """[8, H, W] float64: each pixel's 8 neighbours' depths (NaN outside the image); depth [H, W] numpy, or a
+    tensor (a tensor back, on its device)."""
+    if isinstance(depth, torch.Tensor):
+        d = depth.double()
+        H, W = d.shape
+        pad = torch.nn.functional.pad(d, (1, 1, 1, 1), value=float("nan"))
+        return torch.stack([pad[dy : dy + H, dx : dx + W] for dy, dx in _NEIGHBOURS])
     d = np.asarray(depth, np.float64)
     H, W = d.shape
     pad = np.pad(d, 1, constant_values=np.nan)
@@ -113,7 +119,7 @@ def neighbours_at(depth: np.ndarray, index: np.ndarray) -> np.ndarray:
     return np.stack([pad[y + dy, x + dx] for dy, dx in _NEIGHBOURS])
 
 
-def flying_pixel_filter(depth: np.ndarray, camera, footprints: float = 10.0) -> np.ndarray:
+def flying_pixel_filter(depth: np.ndarray, camera, footprints: float = 10.0, device=None) -> np.ndarray:
     """Depth with "flying pixels" removed (NaN): pixels whose depth differs from one of their 8 neighbours
     by more than `footprints` pixel footprints (z / f mm each) lie on a depth edge.
 
@@ -121,12 +127,13 @@ def flying_pixel_filter(depth: np.ndarray, camera, footprints: float = 10.0) -> 
     over a few pixels toward the background instead of stopping, and those pixels get depths in between
     (measured on the small-rig bunny: 76% of the pixels wrong by more than 5 mm were within 3 px of a depth
     edge). A slanted surface changes depth by a few footprints per pixel at most, so it is kept.
+    Computed by torch on `device` (default the CPU; the GPU extraction's takes 0.02 s where numpy took 0.2 s).
     """
-    d = np.asarray(depth, np.float64)
+    d = torch.as_tensor(np.asarray(depth, np.float64), device=device)
     limit = footprints * d / min(camera.fx, camera.fy)
-    jump = np.nan_to_num(np.abs(neighbour_stack(d) - d), nan=0.0).max(0)
-    out = np.where(jump > limit, np.nan, d)
-    return out.astype(np.float32)
+    jump = torch.nan_to_num(torch.abs(neighbour_stack(d) - d), nan=0.0).amax(0)
+    out = torch.where(jump > limit, torch.full_like(d, float("nan")), d)
+    return out.float().cpu().numpy()
 
 
 def readmit_edge_pixels(before: np.ndarray, after: np.ndarray, camera, footprints: float, confidence_of,

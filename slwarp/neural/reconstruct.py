@@ -29,7 +29,7 @@ from ..evaluation.outputs import (check_output_folder, staged_outputs, write_con
                                   write_points_ply)
 from .extract import (depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, readmit_edge_pixels,
                       sphere_trace_depth)
-from .confidence import depth_confidence
+from .confidence import depth_confidence, pattern_model_inputs
 from .pattern_model import fill_uniform_codes, refine_where_model_fits, refinement_generalises
 from .search import doubt_by_search, grow_repair, repair_by_search
 from .config import TrainConfig, save_config
@@ -133,6 +133,8 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
         new = depth_confidence(trainer, np.where(changed, depth, np.nan).astype(np.float32), ex.confidence)
         return np.where(changed, new, confidence).astype(np.float32)
 
+    # the frames for the pattern model's confidences and the depth searches: on a GPU its own tensors
+    model_inputs = pattern_model_inputs(trainer)
     near, far = trainer.depth_range
     before = depth.copy()
     depth[(depth < near) | (depth > far)] = np.nan
@@ -140,7 +142,7 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     readmitted = 0
     if ex.edge_filter > 0:
         before = depth
-        depth = flying_pixel_filter(depth, cam, ex.edge_filter)
+        depth = flying_pixel_filter(depth, cam, ex.edge_filter, device=trainer.device)
         if ex.edge_readmit:
             # the edge pixels on one side of the edge, whose own codes confirm them (extract.readmit_edge_pixels)
             back = readmit_edge_pixels(before, depth, cam, ex.edge_filter,
@@ -163,8 +165,7 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     t3 = time.perf_counter()
     repair_s, repair = 0.0, None
     if (ex.search_repair or ex.search_doubt) and valid is not None:
-        search_inputs = (cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames],
-                         trainer.renderer.rendered_patterns.detach().cpu().numpy(), trainer.depth_range, valid)
+        search_inputs = (cam, trainer.scan.projector, *model_inputs, trainer.depth_range, valid)
         search_options = dict(step_mm=trainer.cfg.init.search_step_mm, device=trainer.device)
         if ex.search_repair:
             # where a per-pixel depth search contradicts the field or fills its holes (thin parts it missed):
@@ -214,9 +215,7 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     if ex.repair_grow and ex.search_repair and valid is not None:
         # pixels beside the repaired ones that kept another surface's depth by a chance fit of their codes:
         # slwarp.neural.search.grow_repair (after the refinement, so that the repaired depths it spreads are refined)
-        depth, grown = grow_repair(depth, fate == FATE["repaired"], cam, trainer.scan.projector,
-                                   trainer.scan.images[: trainer.n_frames],
-                                   trainer.renderer.rendered_patterns.detach().cpu().numpy())
+        depth, grown = grow_repair(depth, fate == FATE["repaired"], cam, trainer.scan.projector, *model_inputs)
         if grown.any():
             fate[grown] = FATE["repaired"]
             confidence = rescored(grown, depth, confidence)

@@ -14,9 +14,10 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import torch
 
 from ..decode.triangulate import camera_rays
-from ..devices import warp_device
+from ..devices import torch_device, warp_device
 from .confidence import photometric_confidence
 from .extract import neighbour_stack, neighbours_at
 from .pattern_model import lit_with_contrast, offset_and_modulation
@@ -30,7 +31,7 @@ def search_depth(camera, projector, images, patterns, depth_range, *, valid=None
                  exclude_mm: float = 6.0, centres=None, median: bool = True, device=None) -> tuple[np.ndarray, dict]:
     """Depth map [H, W] (camera z, mm; NaN where not confident) and info (timings, counts).
 
-    images [N, H, W], patterns [N, Hp, Wp] in [0, 1]; valid [H, W]: the pixels to search and that the windows
+    images [N, H, W], patterns [N, Hp, Wp] in [0, 1] (numpy, or tensors on `device`); valid [H, W]: the pixels to search and that the windows
     count (default: those lit with contrast, `pattern_model.lit_with_contrast`); centres [H, W] (default: valid):
     the pixels to search when only some are wanted. Hypotheses every `step_mm` (at most `max_hypotheses`)
     between the near and far depth. A pixel is confident when its best cost < `ratio` x the best cost farther
@@ -40,11 +41,13 @@ def search_depth(camera, projector, images, patterns, depth_range, *, valid=None
     wp = runtime.init()
     device = warp_device(device)
     t0 = time.perf_counter()
-    images = np.asarray(images, np.float32)
+    if not isinstance(images, torch.Tensor):
+        images = np.asarray(images, np.float32)
     N, H, W = images.shape
     a, b = offset_and_modulation(images)
     if valid is None:
         valid = lit_with_contrast(b)
+    valid = valid.cpu().numpy() if isinstance(valid, torch.Tensor) else np.asarray(valid, bool)
     near, far = (float(x) for x in depth_range)
     n_hyp = int(min(max_hypotheses, max(16, np.ceil((far - near) / step_mm))))
     rays = camera_rays(camera).astype(np.float32)
@@ -55,44 +58,66 @@ def search_depth(camera, projector, images, patterns, depth_range, *, valid=None
         best = wp.empty((hs, ws), dtype=float)
         second = wp.empty((hs, ws), dtype=float)
         wp.launch(kernel, dim=(hs, ws), inputs=[
-            wp.array(rays, dtype=wp.vec3), wp.array(np.ascontiguousarray(images.transpose(1, 2, 0))),
-            wp.array(a), wp.array(b), wp.array(valid.astype(np.int32)),
+            wp.array(rays, dtype=wp.vec3), _warp_array(_frames_last(images)), _warp_array(a), _warp_array(b),
+            wp.array(valid.astype(np.int32)),
             wp.array((valid if centres is None else np.asarray(centres, bool) & valid).astype(np.int32)),
-            wp.array(np.ascontiguousarray(np.asarray(patterns, np.float32).transpose(1, 2, 0))),
+            _warp_array(_frames_last(patterns)),
             projector_params(projector), near, far, n_hyp, int(radius), int(stride),
             int(np.ceil(exclude_mm / ((far - near) / n_hyp))),
         ], outputs=[depth, best, second])
-        d, c1, c2 = depth.numpy(), best.numpy(), second.numpy()
+        # the answers' confidence, outlier rule and spreading on the search's device (a full-resolution map's
+        # 3x3 median took 0.25 s on the host, twice per search repair)
+        d, c1, c2 = wp.to_torch(depth), wp.to_torch(best), wp.to_torch(second)
+        found = torch.isfinite(d)
+        confident = found & (c1 < ratio * c2)
+        coarse = torch.where(confident, d, torch.full_like(d, float("nan")))
+        if median:
+            coarse = _median3(coarse)
+        full = coarse.repeat_interleave(stride, 0).repeat_interleave(stride, 1)[:H, :W]
+        full = torch.where(torch.as_tensor(valid, device=full.device), full, torch.full_like(full, float("nan")))
+        full = full.cpu().numpy().astype(np.float32)  # a copy: the Warp arrays go with this block
+        share = float(confident[found].double().mean()) if bool(found.any()) else 0.0
     t1 = time.perf_counter()
-    confident = np.isfinite(d) & (c1 < ratio * c2)
-    coarse = np.where(confident, d, np.nan)
-    if median:
-        coarse = _median3(coarse)
-    full = np.repeat(np.repeat(coarse, stride, axis=0), stride, axis=1)[:H, :W]
-    full[~valid] = np.nan
     info = {"hypotheses": n_hyp, "step_mm": (far - near) / n_hyp, "stride": stride, "radius": radius,
-            "confident_share": float(confident[np.isfinite(d)].mean()) if np.isfinite(d).any() else 0.0,
-            "search_s": t1 - t0, "total_s": time.perf_counter() - t0, "device": device}
-    return full.astype(np.float32), info
+            "confident_share": share, "search_s": t1 - t0, "total_s": time.perf_counter() - t0, "device": device}
+    return full, info
 
 
-def _median3(x: np.ndarray) -> np.ndarray:
-    """3x3 median ignoring NaN (a cell keeps NaN when it was NaN): removes isolated wrong answers.
+def _frames_last(x):
+    """[N, H, W] numpy or tensor -> [H, W, N] float32 of the same kind."""
+    if isinstance(x, torch.Tensor):
+        return x.float().permute(1, 2, 0)
+    return np.asarray(x, np.float32).transpose(1, 2, 0)
+
+
+def _warp_array(x):
+    """A Warp array of a numpy array (copied to the launch's device) or of a tensor on that device (shared)."""
+    wp = runtime.init()
+    if isinstance(x, torch.Tensor):
+        return wp.from_torch(x.contiguous())
+    return wp.array(np.ascontiguousarray(x))
+
+
+def _median3(x):
+    """x [H, W] (numpy or torch, the same kind back) without the values more than 10 mm from their 3x3
+    neighbourhood's median, NaN ignored (a cell keeps NaN when it was NaN): removes isolated wrong answers.
 
     The median as np.nanmedian takes it (the mean of the two middle values of an even count), from one sort of
-    each pixel's 9 values with the NaNs last: 0.25 s at 1280 x 1024 against 0.72 s for np.nanmedian (CPU,
-    bench/residual_speed.py)."""
-    x = np.asarray(x)
-    # [9, H, W] in x's own precision, where np.nanmedian took its mean of the two middle values
-    stack = np.sort(np.concatenate([neighbour_stack(x), x[None]]).astype(x.dtype), axis=0)
-    count = np.isfinite(stack).sum(0)  # NaN sorts last, so the finite values come first in order
-    lo = np.take_along_axis(stack, np.maximum(count - 1, 0)[None] // 2, 0)[0]
-    hi = np.take_along_axis(stack, count[None] // 2, 0)[0]
-    med = np.where(count > 0, 0.5 * (lo + hi), np.nan)
+    each pixel's 9 values with the NaNs last, in x's precision and on x's device (CPU: 0.25 s at 1280 x 1024
+    against 0.72 s for np.nanmedian, bench/residual_speed.py)."""
+    if not isinstance(x, torch.Tensor):
+        return _median3(torch.from_numpy(np.ascontiguousarray(x))).numpy()
+    H, W = x.shape
+    pad = torch.nn.functional.pad(x, (1, 1, 1, 1), value=float("nan"))
+    stack = torch.stack([pad[dy : dy + H, dx : dx + W] for dy in range(3) for dx in range(3)])  # [9, H, W]
+    stack = torch.sort(stack, dim=0).values  # NaN sorts last, so the finite values come first in order
+    count = torch.isfinite(stack).sum(0)
+    lo = torch.gather(stack, 0, (torch.clamp(count - 1, min=0) // 2)[None])[0]
+    hi = torch.gather(stack, 0, (count // 2)[None])[0]
+    nan = torch.full_like(x, float("nan"))
+    med = torch.where(count > 0, 0.5 * (lo + hi), nan)
     # a value far from its neighbourhood's median is an outlier
-    with np.errstate(invalid="ignore"):
-        out = np.where(np.abs(x - med) < 10.0, x, np.nan)
-    return out
+    return torch.where(torch.abs(x - med) < 10.0, x, nan)
 
 
 # a pixel's depth and a confident search's answer "disagree" beyond this (mm): the search's own exclusion zone
@@ -162,7 +187,7 @@ def repair_by_search(depth: np.ndarray, camera, projector, images, patterns, dep
     change = fill | switch
     if support > 0 and change.any():
         # an isolated change is a search's chance match: keep those that `support` of their 8 neighbours agree with
-        agreeing = neighbours_within(out, AGREE_MM)
+        agreeing = neighbours_within(out, AGREE_MM, device=torch_device(device))
         drop = change & (agreeing < support)
         out[drop] = depth[drop]
         fill &= ~drop
@@ -271,12 +296,13 @@ def grow_repair(depth: np.ndarray, seeds: np.ndarray, camera, projector, images,
     return out, grown
 
 
-def neighbours_within(depth: np.ndarray, tol_mm: float, index: np.ndarray | None = None) -> np.ndarray:
-    """[H, W] int: how many of each pixel's 8 neighbours have a depth within tol_mm of its own; with index (flat
-    pixel indices [P]) the same counts [P] at those pixels only."""
+def neighbours_within(depth: np.ndarray, tol_mm: float, index: np.ndarray | None = None,
+                      device=None) -> np.ndarray:
+    """[H, W] int: how many of each pixel's 8 neighbours have a depth within tol_mm of its own (computed by torch
+    on `device`, default the CPU); with index (flat pixel indices [P]) the same counts [P] at those pixels only."""
     if index is None:
-        with np.errstate(invalid="ignore"):
-            return (np.abs(neighbour_stack(depth) - depth) < tol_mm).sum(0).astype(np.int32)
+        d = torch.as_tensor(np.asarray(depth, np.float64), device=device)
+        return (torch.abs(neighbour_stack(d) - d) < tol_mm).sum(0).int().cpu().numpy()
     own = np.asarray(depth, np.float64).reshape(-1)[index]
     with np.errstate(invalid="ignore"):
         return (np.abs(neighbours_at(depth, index) - own) < tol_mm).sum(0).astype(np.int32)

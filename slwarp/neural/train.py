@@ -49,7 +49,7 @@ from ..devices import torch_device
 from ..scans.scan import ScanError
 from .config import TrainConfig
 from .field import Volume, make_field
-from .confidence import photometric_confidence
+from .confidence import pattern_model_inputs, photometric_confidence
 from .pattern_model import blur_patterns, estimate_pattern_blur, lit_with_contrast, offset_and_modulation
 from .progress import Progress
 from . import ops
@@ -352,8 +352,7 @@ class Trainer:
             return None
         cam = self.scan.camera
         d = self.init_depth.reshape(cam.height, cam.width).cpu().numpy()
-        conf = photometric_confidence(d, cam, self.scan.projector, self.scan.images[: self.n_frames],
-                                      self.renderer.rendered_patterns.detach().cpu().numpy())
+        conf = photometric_confidence(d, cam, self.scan.projector, *pattern_model_inputs(self))
         kept = np.where(conf >= SURFACE_CONFIDENCE, d, np.nan).astype(np.float32)
         kept[component_sizes(kept, AGREE_MM) < SURFACE_MIN_GROUP] = np.nan
         return torch.as_tensor(kept.reshape(-1), device=self.device)
