@@ -82,15 +82,16 @@ def test_photometric_residual_of_a_sparse_map_equals_the_dense_one(blurred_scan,
 
 
 def test_patterns_sampled_on_a_device_equal_cv2_remap():
-    """sample_patterns_torch has sample_patterns_at's conventions (pixel centres at integer coordinates, zeros
+    """twin.bilinear_patterns, which the residual on a device samples with, has sample_patterns_at's conventions (pixel centres at integer coordinates, zeros
     outside, bilinear): equal at coordinates on OpenCV 4's 1/32 px grid, edges and outside included."""
-    from slwarp.neural.pattern_model import sample_patterns_at, sample_patterns_torch
+    from slwarp.neural.pattern_model import sample_patterns_at
+    from slwarp.neural.twin import bilinear_patterns
 
     rng = np.random.default_rng(2)
     pats = rng.uniform(0.0, 1.0, (3, 12, 17)).astype(np.float32)
     uv = (np.round(rng.uniform(-2.0, 19.0, (500, 2)) * 32) / 32).astype(np.float32)
     uv[:5] = [[-0.5, 0.0], [16.5, 11.5], [-1.0, -1.0], [16.0, 11.0], [-10.0, -10.0]]
-    got = sample_patterns_torch(torch.as_tensor(pats), torch.as_tensor(uv)).numpy()
+    got = bilinear_patterns(torch.as_tensor(pats), torch.as_tensor(uv)).t().numpy()
     np.testing.assert_allclose(got, sample_patterns_at(pats, uv), atol=2e-6)
 
 

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from ..decode.triangulate import camera_rays
+from .twin import bilinear_patterns
 __all__ = [
     "CONTRAST_THRESHOLD",
     "offset_and_modulation",
@@ -162,26 +163,6 @@ def _sparse_residual(depth: np.ndarray, camera, projector, images: np.ndarray, p
     return out
 
 
-def sample_patterns_torch(patterns: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-    """[N, P]: sample_patterns_at on the patterns' device: patterns [N, Hp, Wp] float32 sampled bilinearly at
-    projector pixels uv [P, 2] float32, taps outside the image 0 (OpenCV 5's cv2.remap within 2e-7, a float's
-    rounding; OpenCV 4 rounds the coordinates to 1/32 px first)."""
-    _, Hp, Wp = patterns.shape
-    x0, y0 = torch.floor(uv[:, 0]), torch.floor(uv[:, 1])
-    fx, fy = uv[:, 0] - x0, uv[:, 1] - y0
-    x0, y0 = x0.long(), y0.long()
-
-    def tap(x, y):
-        inside = (x >= 0) & (x < Wp) & (y >= 0) & (y < Hp)
-        v = patterns[:, y.clamp(0, Hp - 1), x.clamp(0, Wp - 1)]
-        return torch.where(inside, v, torch.zeros_like(v))
-
-    p00, p01, p10, p11 = tap(x0, y0), tap(x0 + 1, y0), tap(x0, y0 + 1), tap(x0 + 1, y0 + 1)
-    top = p00 + (p01 - p00) * fx
-    bottom = p10 + (p11 - p10) * fx
-    return top + (bottom - top) * fy
-
-
 # each camera's unit rays [H*W, 3] float64 on a device (the last few), for _residual_on_device
 _DEVICE_RAYS: dict = {}
 
@@ -201,7 +182,8 @@ def _rays_on(camera, device) -> torch.Tensor:
 def _residual_on_device(depth: np.ndarray, camera, projector, images, patterns: torch.Tensor) -> np.ndarray:
     """photometric_residual at the finite pixels of depth, on the device of patterns (a tensor; images numpy or a
     tensor [N, H, W]): the host path's arithmetic in the same order (projection in float64, the RMS summed frame
-    by frame in float32), the sampling as sample_patterns_torch. 0.03 s a call on the host at 1280 x 1024, ten to
+    by frame in float32), the sampling the torch twin's (`twin.bilinear_patterns`, OpenCV 5's cv2.remap within
+    2e-7, a float's rounding; OpenCV 4 rounds the coordinates to 1/32 px first). 0.03 s a call on the host at 1280 x 1024, ten to
     twenty calls per GPU extraction."""
     dev = patterns.device
     flat = torch.as_tensor(np.asarray(depth, np.float32).reshape(-1), device=dev)
@@ -211,7 +193,7 @@ def _residual_on_device(depth: np.ndarray, camera, projector, images, patterns: 
         rays = _rays_on(camera, dev)[idx]
         uv = projector.project_camera_points(rays * (flat[idx].double() / rays[:, 2])[:, None])
         uv = torch.where(torch.isfinite(uv), uv, torch.full_like(uv, OFF_IMAGE_PX)).float()
-        pred = sample_patterns_torch(patterns.float(), uv)  # [N, P]
+        pred = bilinear_patterns(patterns.float(), uv).t()  # [N, P]
         obs = torch.as_tensor(images, dtype=torch.float32, device=dev).reshape(len(pred), -1)[:, idx]  # [N, P]
         a, b = offset_and_modulation(obs)
         diff = obs - a - b * pred
