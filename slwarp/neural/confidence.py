@@ -181,12 +181,6 @@ def combine(terms: dict, names=COMBINED_TERMS) -> np.ndarray:
     return np.where(np.isfinite(stack).all(0), g, np.nan).astype(np.float32)
 
 
-def _trainer_inputs(trainer):
-    scan = trainer.scan
-    return (scan.camera, scan.projector, scan.images[: trainer.n_frames],
-            trainer.renderer.rendered_patterns.detach().cpu().numpy())
-
-
 def pattern_model_inputs(trainer) -> tuple:
     """(images [N, H, W], patterns as rendered [N, Hp, Wp]) of a trainer's frames for the pattern model
     (photometric_confidence, the depth searches): on a GPU the renderer's own tensors, so that the model runs
@@ -206,7 +200,7 @@ def confidence_terms(trainer, depth: np.ndarray, kinds=CONFIDENCE_KINDS) -> dict
     if unknown:
         raise ValueError(f"unknown confidence kind(s) {unknown}; kinds: {', '.join(CONFIDENCE_KINDS)}")
     need = set(kinds) | (set(COMBINED_TERMS) if "combined" in kinds else set())
-    cam, prj, images, patterns = _trainer_inputs(trainer)
+    cam, prj = trainer.scan.camera, trainer.scan.projector
     terms = {}
     if "photometric" in need:
         terms["photometric"] = photometric_confidence(depth, cam, prj, *pattern_model_inputs(trainer))
@@ -219,6 +213,8 @@ def confidence_terms(trainer, depth: np.ndarray, kinds=CONFIDENCE_KINDS) -> dict
         finally:
             field.train(was_training)
     if "uniqueness" in need:
+        # the host's arrays (uniqueness_confidence uploads what it needs itself)
+        images, patterns = trainer.scan.images[: trainer.n_frames], trainer.renderer.rendered_patterns.detach().cpu().numpy()
         terms["uniqueness"] = uniqueness_confidence(depth, cam, prj, images, patterns, trainer.depth_range,
                                                     device=trainer.device)
     if "combined" in kinds:

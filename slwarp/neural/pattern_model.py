@@ -25,6 +25,7 @@ import torch
 
 from ..decode.triangulate import camera_rays
 from .twin import bilinear_patterns
+
 __all__ = [
     "CONTRAST_THRESHOLD",
     "offset_and_modulation",
