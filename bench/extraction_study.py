@@ -71,7 +71,7 @@ def rendered_depth(trainer, valid: np.ndarray, chunk: int = 2048) -> np.ndarray:
     for s in range(0, idx.numel(), chunk):
         i = idx[s : s + chunk]
         with torch.enable_grad():
-            o, _ = r.render(r.batch(i), perturb=False)
+            o, _, _ = r.render(r.batch(i), perturb=False)
         out[i] = o.depth.detach()
     return out.reshape(valid.shape).cpu().numpy()
 

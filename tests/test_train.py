@@ -324,6 +324,42 @@ def test_surface_term_weights_warm_up_and_after():
     assert got.tolist() == [0.0, 0.5, 0.0, 0.0]
 
 
+def test_free_space_weights_only_where_the_field_lies_in_front():
+    from slwarp.neural.train import MISSED_MM, free_space_weights
+
+    target = torch.tensor([900.0, 900.0, 900.0, float("nan")])
+    rendered = torch.tensor([900.0 - MISSED_MM - 1.0, 899.0, 950.0, 600.0])
+    # after the warm-up: only the pixel whose field shows a surface more than MISSED_MM in front of the map's
+    assert free_space_weights(target, rendered, 0.0, 0.5).tolist() == [0.5, 0.0, 0.0, 0.0]
+    assert free_space_weights(target, rendered, 1.0, 0.5).tolist() == [0.0, 0.0, 0.0, 0.0]  # not in the warm-up
+    assert free_space_weights(target, rendered, torch.tensor(0.0), 0.5).tolist() == [0.5, 0.0, 0.0, 0.0]
+
+
+def test_free_space_term_by_hand(small_scan):
+    """A plane at 700 mm and a map depth 100 mm behind it: the samples more than MISSED_MM before the map's point
+    and behind the plane are inside (f < 0) and the term is the sum of their -f; its gradient moves the plane away
+    from the camera. With the map's depth on the plane the term is 0."""
+    from slwarp.neural import ops
+    from slwarp.neural.train import MISSED_MM
+
+    tr = Trainer(small_scan.select("0:6"), tiny(init="sphere"), sdf=PlaneSDF(700.0), progress=False)
+    batch = tr.renderer.sample_pixels(16, torch.Generator().manual_seed(0))
+    _, d, _, _ = ops.camera_rays(batch.uv, small_scan.camera, tr.depth_range, backend="torch")
+    z = torch.linspace(500.0, 900.0, 81).expand(16, -1)  # distances along each unit ray
+    sdf = tr.field(z[..., None] * d[:, None, :])
+    w, n = torch.ones(16), torch.tensor(16.0)
+    target = torch.full((16,), 800.0)
+    t = target / d[:, 2]
+    before = z < (t - MISSED_MM)[:, None]
+    expected = (torch.relu(-sdf) * before).sum().item() / 16 / tr.volume.scale
+    assert expected > 0
+    assert tr._free_space_term(batch, target, w, z, sdf, n).item() == pytest.approx(expected, rel=1e-5)
+    assert tr._free_space_term(batch, torch.full((16,), 700.0), w, z, sdf, n).item() == pytest.approx(0.0, abs=1e-6)
+    tr.field.zero_grad()
+    tr._free_space_term(batch, target, w, z, sdf, n).backward()
+    assert float(tr.field.z0.grad) < 0  # descending moves z0 up: the plane recedes toward the map's depth
+
+
 def test_surface_term_uses_only_the_map_depths_the_codes_confirm(small_scan):
     """The surface term's depths: the initial map's where the pixel's own codes fit (right depths), not a
     block moved 40 mm (another code's depth) nor the pixels without depth; the warm-up's depth loss keeps the

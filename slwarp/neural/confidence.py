@@ -97,7 +97,7 @@ def ray_confidence(renderer, depth: np.ndarray, rays_per_chunk: int = 4096, wind
         if n < rays_per_chunk:  # pad with the last pixel: the same shape for every chunk
             idx = torch.cat([idx, idx[-1:].expand(rays_per_chunk - n)])
         batch = renderer.batch(idx)
-        out, z = renderer.render(batch, perturb=False)
+        out, z, _ = renderer.render(batch, perturb=False)
         _, d, t_near, t_far = ops.camera_rays(batch.uv, renderer.camera, renderer.depth_range, backend=renderer.backend)
         t_surf = flat_depth[idx] / d[:, 2]
         half = window * (t_far - t_near) / renderer.n_samples

@@ -169,6 +169,10 @@ class InitConfig:
     surface_after: float = option(0.0, "after the warm-up: weight of the same SDF term, only at pixels where the "
                                   "field's rendered depth is more than 5 mm behind the initial map's (a thin part in "
                                   "front that training lost; 0: off)", min=0.0)
+    free_space: float = option(0.0, "after the warm-up: weight of a free-space term at pixels where the field's "
+                               "rendered depth is more than 5 mm in front of the initial map's confirmed depth (a gap "
+                               "or background the field bridged): relu(-SDF) summed over the ray's samples more than "
+                               "5 mm before the map's point (0: off)", min=0.0)
     surface_band_mm: float = option(0.5, "surface term: the distance (mm) along the ray of its points in "
                                     "front of and behind the initial map's point", above=0.0)
     search_step_mm: float = option(1.0, "depth-search hypothesis spacing (mm)", above=0.0)
@@ -587,11 +591,15 @@ _HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, gr
 # bench/results/accuracy-cuda-hashgrid-schedule.md): mean MAE 0.200 / 0.165 mm; default-rig bunny
 # 0.325 -> 0.119 mm for 7.1 s from a loaded scan instead of 5.6 (bench/results/train-speed-cuda-fast-x.md). 2048
 # rays gave 0.202 / 0.163 mm in 8.4 s, 600 iterations of 1024 rays 0.280 / 0.268 mm in 6.2 s
+# The free-space term (free_space; one H100, 8 scenes x default / vertical rig,
+# bench/results/accuracy-cuda-free-space.md, -free-space-2.md): mean MAE 0.196 / 0.170 -> 0.176 / 0.162 mm at 0.2
+# (boxes 0.240 -> 0.160, steps 0.368 -> 0.293 on the default rig), 0.184 / 0.160 at 0.1, 0.197 / 0.161 at 0.5 and
+# 0.260 / 0.161 at 1 (default-rig steps lost 8 points of completeness: 1000 steps of the fast tables overshoot)
 _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 1000 iterations of 1024 rays, levels switched on "
-        "quickly, with tuned's surface term and extraction: a depth map as soon as possible (GPU)",
+        "quickly, with tuned's surface term and extraction and a free-space term: a depth map as soon as possible (GPU)",
         matmul="tf32", iters=1000, init_iters=200, rays=1024, grid_levels=8, grid_gradient="finite_difference_4",
         grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, surface_weight=1.0,
-        surface_after=1.0, uniform_fill=True, **_DEFAULT_EXTRACTION, **_HASHGRID)
+        surface_after=1.0, free_space=0.2, uniform_fill=True, **_DEFAULT_EXTRACTION, **_HASHGRID)
 # the accurate hash-grid recipe: 8 levels (growth 2), the 4-tap gradient, and tuned's surface term and extraction.
 # Default and vertical rigs, 8 scenes each, H200 (bench/results/accuracy-cuda-hashgrid.md): 8 levels gave a mean
 # MAE of 0.378 / 0.282 mm against 0.351 / 0.268 with 16 and 0.369 / 0.295 with 12; the 4-tap gradient (f from the
@@ -608,11 +616,16 @@ _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 1000 iteratio
 # 7.8 s, scan to depth map 19.6 -> 12.9 s (bench/results/train-speed-cuda-accurate-2000.md). A smaller finest level
 # (1024 cells: 0.198 / 0.169), two hidden layers (0.195 / 0.164) and a table learning rate of 3x lr (0.201 / 0.162)
 # at 4000 iterations did not help
+# The free-space term (free_space = 1; one H100, the same 16 scans, bench/results/accuracy-cuda-free-space.md and
+# -free-space-2.md): mean MAE 0.188 / 0.153 -> 0.151 / 0.153 and 0.152 / 0.153 mm in two runs (0.151 / 0.153 at
+# 0.5): default-rig steps 0.439 -> 0.141 (the field had bridged the gaps between the steps: 847 pixels of the wall
+# 250 mm in front), bunny 0.131 -> 0.120; no scan more than 0.005 mm worse
 _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations of the paper's batch, levels "
-        "coarse to fine, with tuned's surface term and extraction: several times faster than tuned, less accurate (GPU)",
+        "coarse to fine, with tuned's surface term and extraction and a free-space term: several times faster than "
+        "tuned, less accurate (GPU)",
         matmul="tf32", iters=2000, grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2,
-        grid_level_every=100,
-        surface_weight=1.0, surface_after=1.0, uniform_fill=True, **_DEFAULT_EXTRACTION, **_HASHGRID)
+        grid_level_every=100, surface_weight=1.0, surface_after=1.0, free_space=1.0, uniform_fill=True,
+        **_DEFAULT_EXTRACTION, **_HASHGRID)
 # CPU: the cpu preset's step on a small hash grid (8 levels of 2^15 entries; finer tables are cache-bound on
 # one thread): small rig, bunny/vase/boxes mean MAE 0.575 mm against 0.749 for cpu at about its time per step
 # its extraction: the refinement and, as tuned, the search repair in groups of >= 100 pixels: small rig, 8 scenes,

@@ -32,7 +32,8 @@ from .pattern_model import CONTRAST_THRESHOLD, blur_patterns, lit_with_contrast,
 
 class RenderLosses(NamedTuple):
     """color (L_rc), surface (L_sc), eikonal (L_reg): scalar tensors; output: the RenderOutput;
-    z_vals [R, S]: the sample distances used; valid [R]: pixels the colour losses counted."""
+    z_vals [R, S]: the sample distances used; valid [R]: pixels the colour losses counted; sdf [R, S]: the
+    field's SDF (mm) at the samples, differentiable (for terms on the samples, e.g. the trainer's free space)."""
 
     color: torch.Tensor
     surface: torch.Tensor
@@ -40,6 +41,7 @@ class RenderLosses(NamedTuple):
     output: ops.RenderOutput
     z_vals: torch.Tensor
     valid: torch.Tensor
+    sdf: torch.Tensor
 
 
 class PixelBatch(NamedTuple):
@@ -236,8 +238,10 @@ class StructuredLightRenderer(nn.Module):
 
     # --- forward ------------------------------------------------------------------------------
     def render(self, batch: PixelBatch, *, cos_anneal_ratio: float = 1.0, perturb: bool = True,
-               generator: torch.Generator | None = None, jitter: torch.Tensor | None = None) -> tuple[ops.RenderOutput, torch.Tensor]:
-        """(RenderOutput, z_vals) for a batch: gradients reach the SDF module and the variance."""
+               generator: torch.Generator | None = None, jitter: torch.Tensor | None = None
+               ) -> tuple[ops.RenderOutput, torch.Tensor, torch.Tensor]:
+        """(RenderOutput, z_vals [R, S], sdf [R, S] mm at the samples) for a batch: gradients reach the SDF module
+        and the variance."""
         o, d, z = self.sample_rays(batch, perturb, generator, jitter)
         self.mark_phase("field")
         # sample-major memory ([S, R] viewed as [R, S]): consecutive rays are adjacent, so the kernels'
@@ -251,13 +255,14 @@ class StructuredLightRenderer(nn.Module):
             cos_anneal_ratio=cos_anneal_ratio, backend=self.backend, bounds=self.volume.as_bounds(),
             patterns_layout="HWN",
         )
-        return out, z_sr.t()
+        return out, z_sr.t(), sdf.t()
 
     def forward(self, batch: PixelBatch, *, cos_anneal_ratio: float = 1.0, perturb: bool = True,
                 generator: torch.Generator | None = None, jitter: torch.Tensor | None = None) -> RenderLosses:
-        out, z = self.render(batch, cos_anneal_ratio=cos_anneal_ratio, perturb=perturb, generator=generator, jitter=jitter)
+        out, z, sdf = self.render(batch, cos_anneal_ratio=cos_anneal_ratio, perturb=perturb, generator=generator,
+                                  jitter=jitter)
         color, surface, eikonal = structured_light_losses(out, batch.observed, batch.valid)
-        return RenderLosses(color, surface, eikonal, out, z, batch.valid)
+        return RenderLosses(color, surface, eikonal, out, z, batch.valid, sdf)
 
 
 def structured_light_losses(out: ops.RenderOutput, observed: torch.Tensor, valid: torch.Tensor):

@@ -11,7 +11,9 @@ default), `init.iters` warm-up iterations pull the volume-rendered depth onto a 
 surfaces hundreds of mm from the truth stuck in other minima (measured: 232 mm MAE on the small-rig bunny
 without it). With init.surface_weight > 0 the warm-up also puts the field's zero level at the map's points
 (`Trainer._surface_term`), and init.surface_after > 0 keeps that term after the warm-up where the field lost a
-surface in front of the one it shows (thin parts: bench/thin_stages.py). Incremental mode (paper Fig. 8): start
+surface in front of the one it shows (thin parts: bench/thin_stages.py); init.free_space > 0 adds the opposite
+after the warm-up: where the field shows a surface in front of the map's, its samples before the map's point are
+pushed out of the solid (`Trainer._free_space_term`: gaps and background the field bridged). Incremental mode (paper Fig. 8): start
 with `start_frames` frames and add the next one every `add_every` iterations without restarting;
 `Trainer.add_frames` lets a caller add captured frames to a running optimisation.
 
@@ -57,6 +59,7 @@ from .render import StructuredLightRenderer
 from .search import AGREE_MM, component_sizes, search_depth
 
 MISSED_MM = 5.0  # after the warm-up, the surface term acts where the field's depth is this far behind the map's
+# (and the free-space term where it is this far in front, on the samples this far before the map's point)
 SURFACE_CONFIDENCE = 0.8  # the surface term's depths: the map's where the pixel's own codes fit this well ...
 SURFACE_MIN_GROUP = 50  # ... inside a connected group of at least this many such pixels (search.AGREE_MM apart)
 
@@ -72,7 +75,16 @@ def surface_term_weights(target: torch.Tensor, rendered: torch.Tensor, warm, dur
     return ok.to(rendered.dtype) * (warm * during) + missed.to(rendered.dtype) * ((1.0 - warm) * after)
 
 
-__all__ = ["Trainer", "surface_term_weights", "TrainingDiverged", "TrainingInterrupted", "CheckpointError",
+def free_space_weights(target: torch.Tensor, rendered: torch.Tensor, warm, after: float) -> torch.Tensor:
+    """Per-pixel weights [R] of the free-space term (Trainer._free_space_term): `after` (outside the warm-up: warm 0)
+    where the rendered depth [R] (mm) lies more than MISSED_MM in front of the map's confirmed depth target [R]
+    (mm, NaN: none), else 0. The pixel's own codes put its surface at the target, so the field's surface in front of
+    it is one the field bridged across a gap or grew over the background (steps, boxes: notes/accuracy.md)."""
+    bridged = torch.isfinite(target) & (torch.nan_to_num(target, nan=-1.0) > rendered + MISSED_MM)
+    return bridged.to(rendered.dtype) * ((1.0 - warm) * after)
+
+
+__all__ = ["Trainer", "surface_term_weights", "free_space_weights", "TrainingDiverged", "TrainingInterrupted", "CheckpointError",
            "CheckpointExists", "RunMismatch", "History", "run_identity"]
 
 
@@ -348,7 +360,7 @@ class Trainer:
         codes may fit them well but comes in small scattered groups (rolled-rig spheres: 3224 targets more than
         20 mm in front of the truth, down to the near plane, raised floaters; none lies in a group of 50)."""
         init = self.cfg.init
-        if self.init_depth is None or not (init.surface_weight > 0 or init.surface_after > 0):
+        if self.init_depth is None or not (init.surface_weight > 0 or init.surface_after > 0 or init.free_space > 0):
             return None
         cam = self.scan.camera
         d = self.init_depth.reshape(cam.height, cam.width).cpu().numpy()
@@ -565,7 +577,7 @@ class Trainer:
         captured = torch.is_tensor(warm)
         loss = self.cfg.schedule.lambda_reg * losses.eikonal
         init = self.cfg.init
-        if self.init_depth is not None and (captured or warm != 0.0 or init.surface_after > 0):
+        if self.init_depth is not None and (captured or warm != 0.0 or init.surface_after > 0 or init.free_space > 0):
             target = self.init_depth[batch.index]
             ok = torch.isfinite(target).to(target.dtype)
             n = ok.sum().clamp(min=1.0)
@@ -579,6 +591,9 @@ class Trainer:
                 per_pixel = surface_term_weights(surface, losses.output.depth.detach(), warm, init.surface_weight,
                                                  init.surface_after)
                 loss = loss + self._surface_term(batch, surface, per_pixel, n)
+                if init.free_space > 0:
+                    bridged = free_space_weights(surface, losses.output.depth.detach(), warm, init.free_space)
+                    loss = loss + self._free_space_term(batch, surface, bridged, losses.z_vals, losses.sdf, n)
         if captured or warm != 1.0:
             photometric = self.cfg.schedule.lambda_rc * losses.color
             if captured or w_sc != 0.0:
@@ -607,6 +622,20 @@ class Trainer:
         f = self.field(along[..., None] * d[None])  # [3, R] mm
         term = f[1].abs() + torch.relu(-f[0]) + torch.relu(f[2])
         return (term * weight).sum() / n / self.volume.scale
+
+    def _free_space_term(self, batch, target: torch.Tensor, weight: torch.Tensor, z_vals: torch.Tensor,
+                         sdf: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
+        """The free-space term (dimensionless: mm over the volume's scale), summed over the batch's pixels with
+        per-pixel weights [R] (0 where none) over n: the sum of relu(-f) over the ray's samples (z_vals [R, S] along
+        the unit ray, sdf [R, S] mm, differentiable) more than MISSED_MM in front of the point at camera depth
+        target [R] (mm). The pixel sees its surface at the target, so the ray is empty before it; the samples
+        there are the ones NeuS's up-sampling put on the field's wrong surface, so the term acts where that
+        surface is, at no extra field evaluation."""
+        _, d, _, _ = ops.camera_rays(batch.uv, self.scan.camera, self.depth_range, backend=self.cfg.runtime.backend)
+        t = torch.nan_to_num(target) / d[:, 2]
+        before = (z_vals < (t - MISSED_MM)[:, None]).to(sdf.dtype)
+        per_ray = (torch.relu(-sdf) * before).sum(1)
+        return (per_ray * weight).sum() / n / self.volume.scale
 
     def _graph_step(self, pick: torch.Tensor, jitter: torch.Tensor, weights: dict) -> dict | None:
         """Replay the captured step on this iteration's draws and weights (capturing it first when needed);
