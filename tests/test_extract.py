@@ -5,7 +5,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from slwarp.neural.config import ExtractionConfig
-from slwarp.neural.extract import flying_pixel_filter, neighbour_stack, readmit_edge_pixels
+from slwarp.neural.extract import denoise_depth, flying_pixel_filter, neighbour_stack, readmit_edge_pixels
 
 CAMERA = SimpleNamespace(fx=500.0, fy=500.0)  # a pixel footprint of 1 mm at 500 mm
 # the edge readmission's default bars (the options edge_readmit_support and edge_readmit_confidence)
@@ -28,6 +28,51 @@ def test_flying_pixel_filter_drops_both_sides_of_a_jump_and_keeps_a_slope():
     assert np.isfinite(out[:, :2]).all() and np.isfinite(out[:, 4:]).all()
     slope = 500.0 + 3.0 * np.arange(6, dtype=np.float32)[None, :].repeat(6, 0)  # 3 footprints per pixel
     np.testing.assert_array_equal(flying_pixel_filter(slope, CAMERA, footprints=10.0), slope)
+
+
+def _plane(h=40, w=50, z0=500.0, gu=0.4, gv=-0.25):
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    return z0 + gu * u + gv * v
+
+
+def test_denoise_depth_keeps_a_plane_and_averages_its_noise():
+    """A slanted plane (0.4 and 0.25 footprints per pixel) stays as it is; with 0.2 mm of noise the plane fit over
+    a 9x9 window leaves about 0.2 / 9 (the corners see fewer pixels)."""
+    plane = _plane()
+    np.testing.assert_allclose(denoise_depth(plane.astype(np.float32), CAMERA, 4), plane, atol=2e-4)
+    noisy = plane + np.random.default_rng(0).normal(0.0, 0.2, plane.shape)
+    out = denoise_depth(noisy.astype(np.float32), CAMERA, 4)
+    inner = (slice(4, -4), slice(4, -4))
+    assert np.abs(out - plane)[inner].mean() < 0.2 * 0.8 / 9 * 1.5
+    assert np.abs(out - plane).mean() < 0.5 * np.abs(noisy - plane).mean()
+
+
+def test_denoise_depth_keeps_each_side_of_a_depth_edge_and_the_holes():
+    """A 20 mm step (20 footprints) between two noisy planes: the pixels beside it are fitted on their own side
+    only (a mixed fit would be mm off); NaN pixels stay NaN and take no part; radius 0 changes nothing."""
+    rng = np.random.default_rng(1)
+    truth = _plane()
+    truth[:, 25:] += 20.0
+    noisy = (truth + rng.normal(0.0, 0.1, truth.shape)).astype(np.float32)
+    noisy[10:14, 5:9] = np.nan
+    out = denoise_depth(noisy, CAMERA, 3, footprints=4.0)
+    np.testing.assert_array_equal(np.isnan(out), np.isnan(noisy))
+    ok = np.isfinite(out)
+    assert np.abs(out - truth)[ok].max() < 0.3
+    assert np.abs(out - truth)[:, 23:27].mean() < np.abs(noisy - truth)[:, 23:27].mean()
+    np.testing.assert_array_equal(denoise_depth(noisy, CAMERA, 0), noisy)
+
+
+def test_denoise_depth_bias_on_a_sphere_is_the_stated_one():
+    """The cap of a sphere of radius 50 mm at 500 mm (1 mm footprints): the plane fit's bias at the apex is about
+    mean(u^2 + v^2) / (2 R) over the window (denoise_depth's docstring): 0.04 mm for radius 2, with u, v in mm."""
+    R, z0, r = 50.0, 500.0, 2
+    v, u = np.mgrid[-20:21, -20:21].astype(np.float64)  # mm, as the footprint is 1 mm
+    cap = z0 - np.sqrt(np.maximum(R * R - u * u - v * v, 0.0)) + R
+    out = denoise_depth(cap.astype(np.float32), CAMERA, r, footprints=10.0)
+    w = np.arange(-r, r + 1, dtype=np.float64)
+    expected = 2 * np.mean(w * w) / (2 * R)
+    assert abs((out[20, 20] - cap[20, 20]) - expected) < 0.1 * expected
 
 
 def test_readmit_edge_pixels_gives_back_each_side_of_an_edge_but_not_what_lies_between():
@@ -104,6 +149,22 @@ def test_extract_depth_uniform_fill_only_adds_pixels_without_contrast(tiny_rods_
     assert np.isfinite(conf[new]).all()
     none = extract_depth(trainer, lit, region=np.zeros_like(lit))[0]
     np.testing.assert_array_equal(np.isfinite(none), had)
+
+
+def test_extract_depth_denoises_last_without_adding_or_losing_pixels(tiny_rods_field):
+    """extract_depth with denoise_radius: the same pixels have depth, their depths are denoise_depth's of the map
+    without it, and the stage's time is reported."""
+    from slwarp.neural.reconstruct import extract_depth
+
+    scan, cfg, trainer = tiny_rods_field
+    trainer.cfg = cfg
+    lit = trainer.renderer.valid_map.cpu().numpy()
+    plain = extract_depth(trainer, lit).depth
+    trainer.cfg = cfg.with_options(denoise_radius=3, denoise_footprints=4.0)
+    got = extract_depth(trainer, lit)
+    np.testing.assert_array_equal(np.isfinite(got.depth), np.isfinite(plain))
+    np.testing.assert_allclose(got.depth, denoise_depth(plain, scan.camera, 3, 4.0), rtol=0, atol=1e-4)
+    assert not np.array_equal(got.depth, plain) and got.timings["denoise_s"] >= 0.0
 
 
 def test_extract_depth_refine_check_reports_and_follows_its_decision(tiny_rods_field, monkeypatch):

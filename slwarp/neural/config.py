@@ -256,6 +256,12 @@ class ExtractionConfig:
                                       "median relative misfit of the lit pixels at the depth before refinement is above "
                                       "this (simulated scans 0.015-0.022, the real capture 0.026; 0: always refine)",
                                       min=0.0, resumable=True)
+    denoise_radius: int = option(0, "last: each depth becomes the value at its pixel of a plane fitted (least squares "
+                                 "in pixel coordinates) to the depths of its (2r + 1)^2 window that lie within "
+                                 "denoise_footprints pixel footprints of its own (0: off)", min=0, resumable=True)
+    denoise_footprints: float = option(4.0, "denoising: a window's depth takes part in the plane fit when within this "
+                                       "many pixel footprints (z / f mm each) of the centre's depth", above=0.0,
+                                       resumable=True)
 
 
 SECTIONS = {"field": FieldConfig, "sampling": SamplingConfig, "schedule": ScheduleConfig, "init": InitConfig,

@@ -6,6 +6,7 @@
   depth = camera z of the first hit (or the first K hits), NaN where no hit.
 - `flying_pixel_filter`: removes the pixels on depth edges, where a smooth SDF bends from the foreground
   to the background over a few pixels.
+- `denoise_depth`: an edge-aware local plane fit of the final depth map (the field's fine-scale noise).
 - `sphere_trace_depth`: the alternative without a mesh: march each ray with steps of the SDF value,
   then refine the first sign change by the secant method.
 - `depth_to_points`: back-projection of a depth map.
@@ -159,6 +160,53 @@ def readmit_edge_pixels(before: np.ndarray, after: np.ndarray, camera, footprint
         return candidates
     confidence = np.asarray(confidence_of(np.where(candidates, b, np.nan).astype(np.float32)))
     return candidates & (np.nan_to_num(confidence, nan=0.0) >= min_confidence)
+
+
+@torch.no_grad()
+def denoise_depth(depth: np.ndarray, camera, radius: int, footprints: float = 4.0, device=None) -> np.ndarray:
+    """Depth [H, W] (mm, NaN kept NaN) with each finite pixel replaced by the value at the pixel of the plane
+    d = c0 + c1 u + c2 v fitted by least squares to the depths of its (2 radius + 1)^2 window (u, v in pixels from
+    the centre, the centre included) that lie within `footprints` pixel footprints (z / f mm each) of its own depth.
+
+    Why: the field's surface carries noise at the scale of a few pixels (a hash grid's finest cells are about one
+    pixel footprint and fit the images' noise; the refinement moves windows, not single pixels). A smooth surface
+    is locally a plane; the tolerance keeps other surfaces out (a depth edge jumps by more: the flying-pixel filter
+    drops jumps of 10 footprints), and a slanted surface whose far window pixels leave the tolerance is fitted on
+    the part that stays. On a curved surface of radius R the fit's bias is about mean(u^2 + v^2) fp^2 / (2 R), fp
+    the footprint in mm: 0.02 mm for R = 50 mm, radius 4 and the default rig's 0.39 mm at 700 mm.
+    Computed by torch in float64 on `device` (default the CPU)."""
+    d = torch.as_tensor(np.asarray(depth, np.float64), device=device)
+    if radius <= 0 or not torch.isfinite(d).any():
+        return np.asarray(depth, np.float32).copy()
+    H, W = d.shape
+    tol = footprints * d / min(camera.fx, camera.fy)
+    pad = torch.nn.functional.pad(d, (radius, radius, radius, radius), value=float("nan"))
+    # normal equations of the fit to the offsets n - d: sums over the window's accepted pixels
+    n0 = torch.zeros_like(d)
+    su, sv, suu, suv, svv = (torch.zeros_like(d) for _ in range(5))
+    b0, bu, bv = (torch.zeros_like(d) for _ in range(3))
+    for dy in range(2 * radius + 1):
+        for dx in range(2 * radius + 1):
+            n = pad[dy : dy + H, dx : dx + W]
+            ok = (torch.abs(n - d) <= tol).to(d.dtype)  # NaN on either side compares False
+            off = torch.nan_to_num(n - d) * ok
+            u, v = float(dx - radius), float(dy - radius)
+            n0 += ok
+            su += u * ok
+            sv += v * ok
+            suu += u * u * ok
+            suv += u * v * ok
+            svv += v * v * ok
+            b0 += off
+            bu += u * off
+            bv += v * off
+    A = torch.stack([torch.stack([n0, su, sv], -1), torch.stack([su, suu, suv], -1),
+                     torch.stack([sv, suv, svv], -1)], -2)  # [H, W, 3, 3]
+    # a tiny ridge: a window whose accepted pixels lie on one line leaves the slope across it at 0
+    A = A + 1e-6 * torch.eye(3, dtype=d.dtype, device=d.device)
+    c0 = torch.linalg.solve(A, torch.stack([b0, bu, bv], -1)[..., None])[..., 0, 0]
+    out = torch.where(torch.isfinite(d), d + c0, d)
+    return out.float().cpu().numpy()
 
 
 @torch.no_grad()

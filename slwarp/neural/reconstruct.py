@@ -27,7 +27,7 @@ import torch
 
 from ..evaluation.outputs import (check_output_folder, staged_outputs, write_confidence, write_depth, write_mesh_ply,
                                   write_points_ply)
-from .extract import (depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, readmit_edge_pixels,
+from .extract import (denoise_depth, depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, readmit_edge_pixels,
                       sphere_trace_depth)
 from .confidence import depth_confidence, pattern_model_inputs
 from .pattern_model import fill_uniform_codes, refine_where_model_fits, refinement_generalises
@@ -93,8 +93,9 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     model's misfit there is above it (`pattern_model.refine_where_model_fits`; timings["refine_misfit"],
     timings["refined"]), kept with `refine_check` only if it explains held-out frames better (`pattern_model.refinement_generalises`; timings["refine_check"]), and with `uniform_fill` the lit
     pixels without contrast inside `region` (default: all) that the field's predicted codes explain
-    (`pattern_model.fill_uniform_codes`), and last, with `repair_grow`, the repair's changes spread to neighbours
-    that kept another surface's depth (`search.grow_repair`; timings["repair_grown"]);
+    (`pattern_model.fill_uniform_codes`), with `repair_grow` the repair's changes spread to neighbours that kept
+    another surface's depth (`search.grow_repair`; timings["repair_grown"]), and last, with denoise_radius > 0, an
+    edge-aware plane fit over each pixel's window (`extract.denoise_depth`; depth changes, no pixel added or lost);
     depth is otherwise kept only inside `valid`. Both maps are NaN where no depth. timings["dropped"] counts the
     pixels each stage left without depth (no_surface inside `valid`, out_of_range, flying_pixel, low_confidence,
     search_doubt); timings["filled_uniform"] the pixels the uniform-code fill added; `fate` says the same per pixel
@@ -219,13 +220,17 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
         if grown.any():
             fate[grown] = FATE["repaired"]
             confidence = rescored(grown, depth, confidence)
+    t6 = time.perf_counter()
+    if ex.denoise_radius > 0:
+        # last: the field's fine-scale noise, as a plane fit over each pixel's window of one surface (extract.denoise_depth)
+        depth = denoise_depth(depth, cam, ex.denoise_radius, ex.denoise_footprints, device=trainer.device)
     return Extraction(depth, confidence, mesh, {"marching_cubes_s": t1 - t0, "depth_s": t2 - t1,
                                      "confidence_s": t3 - t2 - repair_s, "repair_s": repair_s, "repair": repair,
                                      "refine_s": t4 - t3, "refine_misfit": misfit,
                                      "refined": refined_applied,
                                      "refine_check": check, "fill_s": t5 - t4,
                                      "filled_uniform": int(filled.sum()) if filled is not None else 0,
-                                     "grow_s": time.perf_counter() - t5,
+                                     "grow_s": t6 - t5, "denoise_s": time.perf_counter() - t6,
                                      "repair_grown": int(grown.sum()) if grown is not None else 0,
                                      "edge_readmitted": readmitted, "dropped": dropped}, fate)
 
