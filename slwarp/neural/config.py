@@ -559,6 +559,15 @@ _preset("paper", "the paper's recipe, unchanged: 4000 iterations, 2048 rays, 32+
 # on the small rig with cpu-hashgrid nothing grows on any of the 8 scenes (accuracy-cpu-grow.md)
 _DEFAULT_EXTRACTION = dict(refine_range=3.0, refine_max_misfit=REFINE_MAX_MISFIT, search_doubt=True, search_repair=True,
                            repair_min_component=100, repair_grow=True)
+# the GPU presets' last stage, the edge-aware plane fit of 9x9 windows within 8 footprints (extract.denoise_depth):
+# one H100, 8 scenes x default / vertical rig, the same trained fields extracted again
+# (bench/results/accuracy-cuda-denoise.md): mean MAE tuned 0.134 / 0.137 -> 0.094 / 0.096 mm, accurate 0.152 / 0.153
+# -> 0.098 / 0.099, fast 0.174 / 0.162 -> 0.124 / 0.113; better on each of the 48 scans (rods included: tuned 0.196 /
+# 0.261 -> 0.151 / 0.216), completeness unchanged (it moves depths only). Radius 2 / 3 / 4 within 4 footprints:
+# tuned 0.109 / 0.101 / 0.094 on the default rig; 8 footprints tied with 4 on tuned and was 0.002-0.003 mm better on
+# the hash-grid presets. Larger windows not yet measured. Not on the small rig's CPU presets: unmeasured there, and
+# its footprint is 4x the default rig's (a 9x9 window spans 14 mm at 700 mm: 0.3 mm of bias on a 50 mm sphere)
+_GPU_DENOISE = dict(denoise_radius=4, denoise_footprints=8.0)
 # the surface term (surface_weight = surface_after = 1, its depths only in confirmed groups of >= 50 pixels) and the
 # uniform-code fill: 32 scans (8 scenes x 4 rigs, 2 H200s, bench/results/accuracy-cuda-surface-group.md) give a mean
 # MAE of 0.136 / 0.139 / 0.093 / 0.176 mm (default / vertical / oblique / rolled) against 0.166 / 0.178 / 0.129 /
@@ -572,9 +581,10 @@ _DEFAULT_EXTRACTION = dict(refine_range=3.0, refine_max_misfit=REFINE_MAX_MISFIT
 _preset("tuned", "paper with lr 5e-4, cosine decay, no surface-colour loss, an SDF term at the depths the codes "
         "confirm, photometric depth refinement (+-3 mm, where the pattern model fits the images), the search repair "
         "(changes in groups of >= 100 pixels, grown into the neighbours that kept another surface), the uniform-code "
-        "fill and the edge readmission: the most accurate measured on the virtual scanner (GPU default)",
+        "fill, the edge readmission and the edge-aware denoising: the most accurate measured on the virtual scanner (GPU "
+        "default)",
         matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0, surface_weight=1.0, surface_after=1.0,
-        uniform_fill=True, edge_readmit=True, **_DEFAULT_EXTRACTION)
+        uniform_fill=True, edge_readmit=True, **_DEFAULT_EXTRACTION, **_GPU_DENOISE)
 # CPU: the tuned recipe with a smaller field and batch, minutes on two cores (small rig)
 _preset("cpu", "tuned with a 4x64 field, 384 rays, 1500 iterations: minutes on two CPU cores (small rig)",
         iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, lr=5e-4, lr_decay="cosine",
@@ -605,7 +615,7 @@ _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 1000 iteratio
         "quickly, with tuned's surface term and extraction and a free-space term: a depth map as soon as possible (GPU)",
         matmul="tf32", iters=1000, init_iters=200, rays=1024, grid_levels=8, grid_gradient="finite_difference_4",
         grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, surface_weight=1.0,
-        surface_after=1.0, free_space=0.2, uniform_fill=True, **_DEFAULT_EXTRACTION, **_HASHGRID)
+        surface_after=1.0, free_space=0.2, uniform_fill=True, **_DEFAULT_EXTRACTION, **_GPU_DENOISE, **_HASHGRID)
 # the accurate hash-grid recipe: 8 levels (growth 2), the 4-tap gradient, and tuned's surface term and extraction.
 # Default and vertical rigs, 8 scenes each, H200 (bench/results/accuracy-cuda-hashgrid.md): 8 levels gave a mean
 # MAE of 0.378 / 0.282 mm against 0.351 / 0.268 with 16 and 0.369 / 0.295 with 12; the 4-tap gradient (f from the
@@ -631,7 +641,7 @@ _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations
         "tuned, less accurate (GPU)",
         matmul="tf32", iters=2000, grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2,
         grid_level_every=100, surface_weight=1.0, surface_after=1.0, free_space=1.0, uniform_fill=True,
-        **_DEFAULT_EXTRACTION, **_HASHGRID)
+        **_DEFAULT_EXTRACTION, **_GPU_DENOISE, **_HASHGRID)
 # CPU: the cpu preset's step on a small hash grid (8 levels of 2^15 entries; finer tables are cache-bound on
 # one thread): small rig, bunny/vase/boxes mean MAE 0.575 mm against 0.749 for cpu at about its time per step
 # its extraction: the refinement and, as tuned, the search repair in groups of >= 100 pixels: small rig, 8 scenes,
