@@ -565,8 +565,8 @@ _DEFAULT_EXTRACTION = dict(refine_range=3.0, refine_max_misfit=REFINE_MAX_MISFIT
 # -> 0.098 / 0.099, fast 0.174 / 0.162 -> 0.124 / 0.113; better on each of the 48 scans (rods included: tuned 0.196 /
 # 0.261 -> 0.151 / 0.216), completeness unchanged (it moves depths only). Radius 2 / 3 / 4 within 4 footprints:
 # tuned 0.109 / 0.101 / 0.094 on the default rig; 8 footprints tied with 4 on tuned and was 0.002-0.003 mm better on
-# the hash-grid presets. Larger windows not yet measured. Not on the small rig's CPU presets: unmeasured there, and
-# its footprint is 4x the default rig's (a 9x9 window spans 14 mm at 700 mm: 0.3 mm of bias on a 50 mm sphere)
+# the hash-grid presets. Larger windows not yet measured. The small rig's footprint is 4x the default rig's (a 9x9
+# window would span 14 mm at 700 mm: 0.3 mm of bias on a 50 mm sphere), so cpu-hashgrid denoises 5x5 windows
 _GPU_DENOISE = dict(denoise_radius=4, denoise_footprints=8.0)
 # the surface term (surface_weight = surface_after = 1, its depths only in confirmed groups of >= 50 pixels) and the
 # uniform-code fill: 32 scans (8 scenes x 4 rigs, 2 H200s, bench/results/accuracy-cuda-surface-group.md) give a mean
@@ -652,12 +652,16 @@ _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations
 # (bench/results/cpu-hashgrid-gradient-cpu.md). The uniform-code fill: small rig, 8 scenes, the same fields
 # (bench/results/accuracy-cpu-uniform-fill.md): completeness 93.33 -> 94.31%, MAE 0.410 -> 0.414 mm (checker
 # 0.365 -> 0.392, the others within +0.003 or better); not yet measured on a GPU, so tuned keeps it off
+# the edge-aware denoising of 5x5 windows within 4 footprints (small rig, 8 scenes, the same fields extracted again;
+# python bench/accuracy_sweep.py --small --presets cpu-hashgrid --rigs default --also-extract denoise_radius=1,...
+# --workers 2, bench/results/accuracy-cpu-denoise.md): mean MAE 0.421 -> 0.361 mm (3x3: 0.385; 8 footprints 0.362),
+# better on all 8 scenes (bunny 0.243 -> 0.196, rods 0.896 -> 0.834)
 _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4-tap gradient), photometric depth "
-        "refinement (+-3 mm, where the pattern model fits the images), the search repair in groups (grown) and the "
-        "uniform-code fill: better MAE in less time than cpu (small rig)",
+        "refinement (+-3 mm, where the pattern model fits the images), the search repair in groups (grown), the "
+        "uniform-code fill and the edge-aware denoising (5x5 windows): better MAE in less time than cpu (small rig)",
         grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2,
         search_step_mm=2.0, mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
-        uniform_fill=True, **_DEFAULT_EXTRACTION, **_HASHGRID)
+        uniform_fill=True, denoise_radius=2, denoise_footprints=4.0, **_DEFAULT_EXTRACTION, **_HASHGRID)
 
 # the preset a run gets when it names none, per device type. CPU: cpu-hashgrid, measured on the small rig with the
 # trainer (bunny MAE 0.479 mm against 0.606 for cpu; mean of bunny, vase, boxes 0.575 against 0.749 mm at 0.95x cpu's
