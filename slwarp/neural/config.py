@@ -655,7 +655,8 @@ _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations
 # the edge-aware denoising of 5x5 windows within 4 footprints (small rig, 8 scenes, the same fields extracted again;
 # python bench/accuracy_sweep.py --small --presets cpu-hashgrid --rigs default --also-extract denoise_radius=1,...
 # --workers 2, bench/results/accuracy-cpu-denoise.md): mean MAE 0.421 -> 0.361 mm (3x3: 0.385; 8 footprints 0.362),
-# better on all 8 scenes (bunny 0.243 -> 0.196, rods 0.896 -> 0.834)
+# better on all 8 scenes (bunny 0.243 -> 0.196, rods 0.896 -> 0.834); small vertical rig 0.356 -> 0.295 mm, all 8 better
+# (accuracy-cpu-denoise-vertical.md)
 _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4-tap gradient), photometric depth "
         "refinement (+-3 mm, where the pattern model fits the images), the search repair in groups (grown), the "
         "uniform-code fill and the edge-aware denoising (5x5 windows): better MAE in less time than cpu (small rig)",
