@@ -80,7 +80,7 @@ def free_space_weights(target: torch.Tensor, rendered: torch.Tensor, warm, after
     where the rendered depth [R] (mm) lies more than MISSED_MM in front of the map's confirmed depth target [R]
     (mm, NaN: none), else 0. The pixel's own codes put its surface at the target, so the field's surface in front of
     it is one the field bridged across a gap or grew over the background (steps, boxes: notes/accuracy.md)."""
-    bridged = torch.isfinite(target) & (torch.nan_to_num(target, nan=-1.0) > rendered + MISSED_MM)
+    bridged = torch.isfinite(target) & (torch.nan_to_num(target) > rendered + MISSED_MM)
     return bridged.to(rendered.dtype) * ((1.0 - warm) * after)
 
 
