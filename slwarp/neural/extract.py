@@ -1,7 +1,7 @@
 """From a trained SDF to a mesh, a depth map and a point cloud (all in mm, camera frame).
 
 - `sdf_grid`: the field on a regular grid over the working volume, evaluated in chunks.
-- `extract_mesh`: marching cubes (scikit-image) at level 0 -> trimesh.Trimesh.
+- `extract_mesh`: marching cubes at level 0 (Warp's on a GPU, scikit-image's on the CPU) -> trimesh.Trimesh.
 - `mesh_depth`: camera rays (through pixel centres, undistorted) cast at the mesh with Warp's BVH:
   depth = camera z of the first hit (or the first K hits), NaN where no hit.
 - `flying_pixel_filter`: removes the pixels on depth edges, where a smooth SDF bends from the foreground
@@ -12,6 +12,8 @@
 - `depth_to_points`: back-projection of a depth map.
 """
 from __future__ import annotations
+
+import contextlib
 
 import numpy as np
 import torch
@@ -25,14 +27,18 @@ from slwarp.kernels.simulate import first_hit_depth, mesh_hits
 
 
 @torch.no_grad()
-def sdf_grid(field, volume: Volume, resolution: int, device, chunk: int = 1 << 18, progress: bool = False):
-    """SDF values [nx, ny, nz] (float32 numpy, mm) on a grid with `resolution` cells along the volume's
-    largest side; returns (values, origin [3] mm, spacing mm)."""
+def sdf_grid(field, volume: Volume, resolution: int, device, chunk: int | None = None, progress: bool = False,
+             as_tensor: bool = False):
+    """SDF values [nx, ny, nz] (float32, mm) on a grid with `resolution` cells along the volume's largest side;
+    returns (values, origin [3] mm, spacing mm). values: numpy, or with as_tensor a tensor on `device`.
+    chunk: points per field call (default 2^18 on the CPU, 2^21 on a GPU, where each call is a launch)."""
     lo, hi = np.asarray(volume.lo), np.asarray(volume.hi)
     h = float((hi - lo).max() / resolution)
     n = np.maximum(np.ceil((hi - lo) / h).astype(int) + 1, 2)
+    device = torch.device(device)
+    chunk = chunk or (1 << 21 if device.type == "cuda" else 1 << 18)
     axes = [torch.arange(n[i], device=device, dtype=torch.float32) * h + float(lo[i]) for i in range(3)]
-    out = np.empty((n[0], n[1], n[2]), np.float32)
+    out = torch.empty((int(n[0]), int(n[1]), int(n[2])), dtype=torch.float32, device=device)
     plane = n[1] * n[2]
     yz = torch.stack(torch.meshgrid(axes[1], axes[2], indexing="ij"), -1).reshape(-1, 2)
     step = max(1, chunk // plane)
@@ -40,14 +46,19 @@ def sdf_grid(field, volume: Volume, resolution: int, device, chunk: int = 1 << 1
         for i0 in range(0, n[0], step):
             xs = axes[0][i0 : i0 + step]
             pts = torch.cat([xs[:, None, None].expand(-1, plane, 1), yz[None].expand(len(xs), -1, -1)], -1)
-            out[i0 : i0 + len(xs)] = field(pts.reshape(-1, 3)).reshape(len(xs), n[1], n[2]).float().cpu().numpy()
+            out[i0 : i0 + len(xs)] = field(pts.reshape(-1, 3)).reshape(len(xs), n[1], n[2]).float()
             bar.update()
-    return out, lo, h
+    return (out if as_tensor else out.cpu().numpy()), lo, h
 
 
 def extract_mesh(field, volume: Volume, resolution: int = 384, device="cpu", progress: bool = False,
                  depth_range=None):
-    """Marching cubes of the zero level set -> trimesh.Trimesh in mm (None if the SDF never crosses 0).
+    """Marching cubes of the zero level set -> trimesh.Trimesh in mm (None if the SDF never crosses 0), faces
+    wound outward (towards positive SDF) and vertex normals outward.
+
+    On a GPU the grid stays there and Warp's marching cubes runs on it (default-rig fast, 256 cells: 0.23 s of
+    scikit-image on the host saved); on the CPU scikit-image's is faster than Warp's. Both interpolate each
+    crossing linearly along the cell edge: the same vertices, the ambiguous cells triangulated alike or nearly.
 
     depth_range (near, far) in mm of camera z: the grid's planes nearer than `near` are set empty (SDF +h)
     first. Training samples rays only beyond the near plane, so the field is unconstrained in the volume's
@@ -56,18 +67,43 @@ def extract_mesh(field, volume: Volume, resolution: int = 384, device="cpu", pro
     likely on that side: beyond `far` lies the wall that every ray renders). Beyond `far` nothing is cut: there the field is the inside of the farthest surfaces, and a cut
     would close them with a cap that rays never reach."""
     import trimesh
-    from skimage.measure import marching_cubes
 
-    values, origin, h = sdf_grid(field, volume, resolution, device, progress=progress)
+    on_gpu = torch.device(device).type == "cuda"
+    values, origin, h = sdf_grid(field, volume, resolution, device, progress=progress, as_tensor=True)
     if depth_range is not None:
         z = origin[2] + h * np.arange(values.shape[2])
-        values[:, :, z < float(depth_range[0])] = h
-    if not (values.min() < 0.0 < values.max()):
+        values[:, :, torch.as_tensor(z < float(depth_range[0]), device=values.device)] = h
+    lo_hi = torch.stack([values.min(), values.max()]).cpu()
+    if not (lo_hi[0] < 0.0 < lo_hi[1]):
         return None
-    verts, faces, normals, _ = marching_cubes(values, level=0.0, spacing=(h, h, h))
-    verts = verts + origin
-    # skimage orients normals toward increasing values (outside): keep that orientation
-    return trimesh.Trimesh(verts, faces[:, ::-1], vertex_normals=-normals, process=False)
+    if on_gpu:
+        verts, faces = _marching_cubes_warp(values, origin, h)
+        # normals from the faces (wound outward): the SDF's gradient direction at the surface
+        return trimesh.Trimesh(verts, faces, process=False)
+    from skimage.measure import marching_cubes
+
+    verts, faces, normals, _ = marching_cubes(values.numpy(), level=0.0, spacing=(h, h, h))
+    # scikit-image winds its faces towards increasing values here (outward, as the SDF grows outside) and its
+    # normals point the other way
+    return trimesh.Trimesh(verts + origin, faces, vertex_normals=-normals, process=False)
+
+
+def _marching_cubes_warp(values: torch.Tensor, origin: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices [V, 3] mm, faces [F, 3]) of the zero level of a CUDA tensor [nx, ny, nz] by Warp's marching
+    cubes, faces wound outward (towards positive values)."""
+    wp = runtime.init()
+    from warp.geometry import IsoSurfaceMarchingCubes
+
+    n = np.asarray(values.shape)
+    lo = tuple(float(x) for x in origin)
+    hi = tuple(float(x) for x in np.asarray(origin) + h * (n - 1))
+    device = warp_device(values.device)
+    with wp.ScopedDevice(device):
+        # on torch's stream: after the field's evaluation of the grid, with no host synchronisation between them
+        stream = wp.ScopedStream(wp.stream_from_torch(values.device)) if values.is_cuda else contextlib.nullcontext()
+        with stream:
+            verts, tris = IsoSurfaceMarchingCubes.extract(wp.from_torch(values.contiguous()), 0.0, lower=lo, upper=hi)
+            return verts.numpy().astype(np.float64), tris.numpy().reshape(-1, 3).astype(np.int64)
 
 
 def mesh_depth(mesh, camera, device=None, hits: int = 1, eps_mm: float = 1.0) -> np.ndarray:
