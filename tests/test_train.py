@@ -402,3 +402,28 @@ def test_surface_term_drops_small_groups_of_depths(small_scan):
     kept = np.isfinite(tr.surface_depth.cpu().numpy().reshape(gt.shape))
     assert kept[y0 : y0 + 20, x0 : x0 + 20].mean() > 0.8
     assert not kept[y1 : y1 + 3, x1 : x1 + 3].any()
+
+
+def test_draw_ahead_gives_the_step_by_step_draws_and_generator_state():
+    """DrawAhead (the CUDA-graph trainer's draws, here on the CPU): the same draws in the same order as drawing
+    step by step, the generator's state after the steps taken (a checkpoint's), and a change of key mid-block
+    rewinds to the steps taken before drawing anew."""
+    from slwarp.neural.train import DrawAhead
+
+    def draw(g, n=7):
+        return torch.randint(0, n, (5,), generator=g), torch.rand(5, generator=g)
+
+    plain = torch.Generator().manual_seed(3)
+    ahead = DrawAhead(torch.Generator().manual_seed(3), "cpu", 4)
+    for step in range(10):
+        want = draw(plain)
+        got = ahead.next(draw, key=7)
+        assert all(torch.equal(a, b) for a, b in zip(want, got)), step
+        assert torch.equal(ahead.generator_state(), plain.get_state()), step
+    assert not torch.equal(ahead.generator.get_state(), plain.get_state())  # the generator itself is ahead
+    # another key after 2 of the block's 4 draws: the next draws continue from the steps taken, with the new key
+    want = draw(plain, n=11)
+    got = ahead.next(lambda g: draw(g, n=11), key=11)
+    assert all(torch.equal(a, b) for a, b in zip(want, got))
+    ahead.rewind()
+    assert torch.equal(ahead.generator.get_state(), plain.get_state())
