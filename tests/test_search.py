@@ -386,3 +386,69 @@ def test_extract_depth_readmits_edge_pixels_and_only_them(tiny_rods_field):
     np.testing.assert_array_equal(back.depth[kept], plain.depth[kept])
     assert back.timings["dropped"]["flying_pixel"] == plain.timings["dropped"]["flying_pixel"] - back.timings["edge_readmitted"]
     assert strict.timings["edge_readmitted"] < back.timings["edge_readmitted"]
+
+
+def _brute_force_search(scan, patterns, valid, centres, radius, step_mm, exclude_mm=6.0):
+    """(depth [P], best [P], second [P]) at centres [P, 2] (row, col): each window projects and samples its own
+    pixels at every hypothesis (the torch twin's projection and bilinear taps), hypotheses in order, the rival
+    the best cost more than `exclude` cells from the best (the search kernel's rule, written out in float64)."""
+    from slwarp.decode.triangulate import camera_rays
+    from slwarp.neural import ops, twin
+
+    images = np.asarray(scan.images, np.float64)
+    a, b = offset_and_modulation(images)
+    near, far = scan.depth_range
+    n_hyp = int(min(1024, max(16, np.ceil((far - near) / step_mm))))
+    exclude = int(np.ceil(exclude_mm / ((far - near) / n_hyp)))
+    rays = torch.tensor(camera_rays(scan.camera), dtype=torch.float64)
+    prj = ops.pack_projector(scan.projector)
+    pats = torch.as_tensor(patterns, dtype=torch.float64)
+    H, W = valid.shape
+    out = []
+    for v, u in centres:
+        pix = [(y, x) for y in range(v - radius, v + radius + 1) for x in range(u - radius, u + radius + 1)
+               if 0 <= y < H and 0 <= x < W and valid[y, x]]
+        ys, xs = np.array(pix).T
+        d = rays[ys, xs]  # [Q, 3]
+        z = near + (far - near) * (np.arange(n_hyp) + 0.5) / n_hyp
+        pts = d[None] * (torch.as_tensor(z)[:, None, None] / d[None, :, 2:])  # [n_hyp, Q, 3]
+        uv, ok = twin.project_to_projector(pts.reshape(-1, 3), prj)
+        p = twin.bilinear_patterns(pats, uv) * ok[:, None]  # [n_hyp * Q, N]
+        pred = a[ys, xs][None, :, None] + b[ys, xs][None, :, None] * p.reshape(n_hyp, len(ys), -1).numpy()
+        cost = np.abs(pred - images[:, ys, xs].T[None]).sum((1, 2)) / (len(ys) * len(images))
+        best, best_h, rival = np.inf, -1, np.inf
+        for h, c in enumerate(cost):
+            if c < best:
+                if best_h >= 0 and abs(h - best_h) > exclude:
+                    rival = min(rival, best)
+                best, best_h = c, h
+            elif abs(h - best_h) > exclude:
+                rival = min(rival, c)
+        out.append((z[best_h], best, rival))
+    return np.array(out).T
+
+
+@pytest.mark.parametrize("radius,stride", [(1, 1), (2, 2)])
+def test_search_is_the_brute_force_window_search(scene, radius, stride):
+    """search_depth's two passes (each pixel's cost once per hypothesis, then the windows' sums across blocks of
+    hypotheses) give the brute-force search's answer: the best hypothesis of 40 centres, and where the ratio
+    test is clear of rounding, the same confident ones."""
+    from slwarp.neural import search
+
+    scan, patterns, valid = scene
+    rng = np.random.default_rng(1)
+    on_grid = np.argwhere(valid[::stride, ::stride]) * stride
+    centres = on_grid[rng.choice(len(on_grid), 40, replace=False)]
+    depth, best, rival = _brute_force_search(scan, patterns, valid, centres, radius, step_mm=2.0)
+    old = search.SEARCH_BLOCK_VALUES
+    try:
+        search.SEARCH_BLOCK_VALUES = 37 * valid.size  # several blocks, the last one partly beyond the hypotheses
+        every = _search(scan, patterns, valid, radius=radius, stride=stride, step_mm=2.0, median=False, ratio=1e9)
+        confident = _search(scan, patterns, valid, radius=radius, stride=stride, step_mm=2.0, median=False, ratio=0.8)
+    finally:
+        search.SEARCH_BLOCK_VALUES = old
+    got = every[centres[:, 0], centres[:, 1]]
+    np.testing.assert_allclose(got, depth, atol=1e-3)
+    clear = np.abs(best - 0.8 * rival) > 1e-4
+    assert clear.sum() > 30
+    np.testing.assert_array_equal(np.isfinite(confident[centres[:, 0], centres[:, 1]])[clear], (best < 0.8 * rival)[clear])

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import time
 
+import cv2
 import numpy as np
 import torch
 
@@ -23,7 +24,11 @@ from .extract import neighbour_stack, neighbours_at
 from .pattern_model import lit_with_contrast, offset_and_modulation
 from slwarp.kernels import runtime
 from slwarp.kernels.geometry import projector_params
-from slwarp.kernels.search import search_kernel
+from slwarp.kernels.search import NO_COST, search_kernels
+
+
+# values of one block of per-pixel costs [hypotheses, H, W] (128 MB of float32; `search_depth`)
+SEARCH_BLOCK_VALUES = 1 << 25
 
 
 def search_depth(camera, projector, images, patterns, depth_range, *, valid=None, step_mm: float = 1.0,
@@ -52,19 +57,31 @@ def search_depth(camera, projector, images, patterns, depth_range, *, valid=None
     n_hyp = int(min(max_hypotheses, max(16, np.ceil((far - near) / step_mm))))
     rays = camera_rays(camera).astype(np.float32)
     hs, ws = (H + stride - 1) // stride, (W + stride - 1) // stride
-    kernel = search_kernel(int(N))
+    pixel_costs, window_search, finish = search_kernels(int(N))
+    searched = np.zeros((H, W), bool)  # the centres the windows sit on
+    searched[::stride, ::stride] = (valid if centres is None else np.asarray(centres, bool) & valid)[::stride, ::stride]
+    # the pixels whose own costs some searched window sums
+    k = 2 * int(radius) + 1
+    needed = cv2.dilate(searched.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool) & valid
+    block = int(max(1, min(n_hyp, SEARCH_BLOCK_VALUES // (H * W))))
     with wp.ScopedDevice(device):
         depth = wp.empty((hs, ws), dtype=float)
-        best = wp.empty((hs, ws), dtype=float)
-        second = wp.empty((hs, ws), dtype=float)
-        wp.launch(kernel, dim=(hs, ws), inputs=[
-            wp.array(rays, dtype=wp.vec3), _warp_array(_frames_last(images)), _warp_array(a), _warp_array(b),
-            wp.array(valid.astype(np.int32)),
-            wp.array((valid if centres is None else np.asarray(centres, bool) & valid).astype(np.int32)),
-            _warp_array(_frames_last(patterns)),
-            projector_params(projector), near, far, n_hyp, int(radius), int(stride),
-            int(np.ceil(exclude_mm / ((far - near) / n_hyp))),
-        ], outputs=[depth, best, second])
+        best = wp.full((hs, ws), NO_COST, dtype=float)
+        best_h = wp.full((hs, ws), -1, dtype=wp.int32)
+        second = wp.full((hs, ws), NO_COST, dtype=float)
+        cost = wp.empty((block, H, W), dtype=float)
+        rays_w, obs_w = wp.array(rays, dtype=wp.vec3), _warp_array(_frames_last(images))
+        a_w, b_w, pat_w = _warp_array(a), _warp_array(b), _warp_array(_frames_last(patterns))
+        valid_w, needed_w = wp.array(valid.astype(np.int32)), wp.array(needed.astype(np.int32))
+        centre_w = wp.array(searched.astype(np.int32))
+        prm = projector_params(projector)
+        exclude = int(np.ceil(exclude_mm / ((far - near) / n_hyp)))
+        for h0 in range(0, n_hyp, block):
+            wp.launch(pixel_costs, dim=(block, H, W), inputs=[rays_w, obs_w, a_w, b_w, needed_w, pat_w, prm, near, far,
+                                                             n_hyp, h0], outputs=[cost])
+            wp.launch(window_search, dim=(hs, ws), inputs=[cost, valid_w, centre_w, n_hyp, h0, int(radius), int(stride),
+                                                          exclude], outputs=[best, best_h, second])
+        wp.launch(finish, dim=(hs, ws), inputs=[best_h, near, far, n_hyp], outputs=[best, second, depth])
         # the answers' confidence, outlier rule and spreading on the search's device (a full-resolution map's
         # 3x3 median took 0.25 s on the host, twice per search repair)
         d, c1, c2 = wp.to_torch(depth), wp.to_torch(best), wp.to_torch(second)
