@@ -13,6 +13,25 @@ from slwarp.kernels.geometry import ProjectorParams, pattern_sampler, project_to
 NO_COST = 1.0e30  # the cost of "no hypothesis yet": above any mean L1 cost of intensities in [0, 1]
 
 
+@wp.func
+def window_total(cost: wp.array3d(dtype=float), valid: wp.array2d(dtype=wp.int32), k: int, v: int, u: int,
+                 radius: int) -> wp.vec2:
+    """(sum of cost[k] over the valid pixels of the (2 radius + 1)^2 window at (v, u), their count)."""
+    H = cost.shape[1]
+    W = cost.shape[2]
+    total = float(0.0)
+    count = float(0.0)
+    for dv in range(-radius, radius + 1):
+        for du in range(-radius, radius + 1):
+            y = v + dv
+            x = u + du
+            if y >= 0 and y < H and x >= 0 and x < W:
+                if valid[y, x] != 0:
+                    total += cost[k, y, x]
+                    count += 1.0
+    return wp.vec2(total, count)
+
+
 @functools.lru_cache(maxsize=None)
 def search_kernels(N: int):
     """(pixel_costs, window_search, finish) for N patterns: the search in two passes over blocks of hypotheses.
@@ -73,21 +92,12 @@ def search_kernels(N: int):
         costs_far: wp.array2d(dtype=float),  # NO_COST before the first block
     ):
         i, j = wp.tid()
-        H = cost.shape[1]
-        W = cost.shape[2]
         v = i * stride
         u = j * stride
         if centre[v, u] == 0:  # v < H and u < W: the grid is ceil(H / stride) x ceil(W / stride)
             return
         # the window's valid pixels (the same at every hypothesis)
-        count = float(0.0)
-        for dv in range(-radius, radius + 1):
-            for du in range(-radius, radius + 1):
-                y = v + dv
-                x = u + du
-                if y >= 0 and y < H and x >= 0 and x < W:
-                    if valid[y, x] != 0:
-                        count += float(N)
+        count = window_total(cost, valid, 0, v, u, radius)[1] * float(N)
         if count == 0.0:
             return
         b_cost = best[i, j]
@@ -96,15 +106,7 @@ def search_kernels(N: int):
         for k in range(cost.shape[0]):
             h = h0 + k
             if h < n_hyp:
-                c = float(0.0)
-                for dv in range(-radius, radius + 1):
-                    for du in range(-radius, radius + 1):
-                        y = v + dv
-                        x = u + du
-                        if y >= 0 and y < H and x >= 0 and x < W:
-                            if valid[y, x] != 0:
-                                c += cost[k, y, x]
-                c = c / count
+                c = window_total(cost, valid, k, v, u, radius)[0] / count
                 if c < b_cost:
                     if b_h >= 0 and wp.abs(h - b_h) > exclude:
                         far = wp.min(far, b_cost)

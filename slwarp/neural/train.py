@@ -244,6 +244,7 @@ class DrawAhead:
     def __init__(self, generator: torch.Generator, device, ahead: int):
         self.generator, self.device, self.ahead = generator, torch.device(device), int(ahead)
         self.state, self.used, self.key, self.drawn = None, 0, None, None
+        self._shapes = self._host = self._dev = self._copied = None  # the pinned and device buffers (`_send`)
 
     def next(self, draw, key=None) -> tuple:
         """This step's draws: `draw(generator)` -> a tuple of CPU tensors, here on `device`."""
@@ -262,7 +263,7 @@ class DrawAhead:
         if self.device.type != "cuda":
             return tuple(b.to(self.device) for b in blocks)
         shapes = [(b.shape, b.dtype) for b in blocks]
-        if getattr(self, "_shapes", None) != shapes:
+        if self._shapes != shapes:
             self._shapes = shapes
             self._host = [torch.empty(sh, dtype=dt, pin_memory=True) for sh, dt in shapes]
             self._dev = [torch.empty(sh, dtype=dt, device=self.device) for sh, dt in shapes]
