@@ -1,4 +1,6 @@
-"""The fused structured-light renderer: one thread per ray, all S samples and all N patterns.
+"""The fused structured-light renderer: one thread per ray, all S samples and all N patterns, after a pass with one
+thread per sample that samples the N patterns at it (`samples`: the per-ray passes are latency-bound, and the
+projection and 4 x N bilinear taps of each sample in their loops made most of their time).
 
 Forward, per ray r with samples x_k = o + z_k d (k = 0..S-1):
     dz_k      = z_{k+1} - z_k (last: `last_delta`, or the previous interval when last_delta < 0)
@@ -75,8 +77,22 @@ def neus_alpha_vjp(sdf: float, true_cos: float, dz: float, inv_s: float, anneal:
 
 @functools.lru_cache(maxsize=None)
 def render_kernels(N: int):
-    """(forward, backward) kernels for N patterns."""
+    """(samples, forward, backward) kernels for N patterns: `samples` writes P_n(pi(x_k)) of every sample, one
+    thread per sample, which both per-ray passes then read (the samples' distances carry no gradient, so their
+    pattern values are constants of the backward)."""
     vecN, sample_all, sample_all_grad = pattern_sampler(N)
+
+    @wp.kernel(module="unique")
+    def samples(
+        z: wp.array2d(dtype=float),
+        rays_o: wp.array(dtype=wp.vec3),
+        rays_d: wp.array(dtype=wp.vec3),
+        pat: wp.array3d(dtype=float),
+        prm: ProjectorParams,
+        values: wp.array2d(dtype=vecN),  # [R, S]: the N patterns' bilinear values at sample k of ray r
+    ):
+        r, k = wp.tid()
+        values[r, k] = sample_all(pat, project_to_projector(prm, rays_o[r] + rays_d[r] * z[r, k]))
 
     @wp.kernel(module="unique")
     def forward(
@@ -94,6 +110,7 @@ def render_kernels(N: int):
         last_delta: float,
         bmin: wp.vec3,
         bmax: wp.vec3,
+        pvals: wp.array2d(dtype=vecN),
         weights: wp.array2d(dtype=float),
         rendered: wp.array2d(dtype=float),
         surface: wp.array(dtype=wp.vec3),
@@ -120,15 +137,18 @@ def render_kernels(N: int):
         f_next = sdf[r, 0]
         g_next = grad[r, 0]
         z_next = z[r, 0]
+        p_next = pvals[r, 0]
         z_prev = z_next
         for k in range(S):
             f = f_next
             g = g_next
             zk = z_next
+            pk = p_next
             if k + 1 < S:
                 f_next = sdf[r, k + 1]
                 g_next = grad[r, k + 1]
                 z_next = z[r, k + 1]
+                p_next = pvals[r, k + 1]
             dz = z_next - zk
             if k + 1 == S:
                 dz = wp.where(last_delta >= 0.0, last_delta, wp.where(S > 1, zk - z_prev, 0.0))
@@ -141,7 +161,7 @@ def render_kernels(N: int):
             wsum += w
             x = o + d * zk
             sp += w * x
-            acc += w * sample_all(pat, project_to_projector(prm, x))
+            acc += w * pk
             e = float(0.0)
             if inside_box(x, bmin, bmax):
                 nrm = wp.sqrt(wp.dot(g, g) + NORM_EPS)
@@ -178,6 +198,7 @@ def render_kernels(N: int):
         last_delta: float,
         bmin: wp.vec3,
         bmax: wp.vec3,
+        pvals: wp.array2d(dtype=vecN),
         trans_saved: wp.array2d(dtype=float),
         surface: wp.array(dtype=wp.vec3),
         weight_sum: wp.array(dtype=float),
@@ -230,6 +251,7 @@ def render_kernels(N: int):
         g_next = grad[r, k0]
         z_next = z[r, k0]
         t_next = trans_saved[r, k0]
+        p_next = pvals[r, k0]
         z_after = z_next  # z of sample k + 1
         for kk in range(S):
             k = S - 1 - kk
@@ -237,11 +259,13 @@ def render_kernels(N: int):
             g = g_next
             zk = z_next
             t_k = t_next
+            pk = p_next
             if k > 0:
                 f_next = sdf[r, k - 1]
                 g_next = grad[r, k - 1]
                 z_next = z[r, k - 1]
                 t_next = trans_saved[r, k - 1]
+                p_next = pvals[r, k - 1]
             dz = z_after - zk
             if k + 1 == S:
                 dz = wp.where(last_delta >= 0.0, last_delta, wp.where(S > 1, zk - z_next, 0.0))
@@ -249,7 +273,7 @@ def render_kernels(N: int):
             cos_k = wp.dot(d, g)
             alpha = neus_alpha(f, cos_k, dz, inv_s, anneal)
             x = o + d * zk
-            gw = common + br * wp.dot(gr, sample_all(pat, project_to_projector(prm, x))) + wp.dot(g_s, x - sp)
+            gw = common + br * wp.dot(gr, pk) + wp.dot(g_s, x - sp)
             if has_g_weights != 0:
                 gw += g_weights[r, k]
             g_alpha = t_k * (gw - u_suffix)
@@ -268,4 +292,4 @@ def render_kernels(N: int):
             g_inv_s += v[2]
         d_inv_s[r] = g_inv_s
 
-    return forward, backward
+    return samples, forward, backward

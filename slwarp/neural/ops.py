@@ -201,8 +201,8 @@ class RenderInputs(NamedTuple):
 
 
 class _KernelOutputs(NamedTuple):
-    """What the forward kernel writes: the RenderOutput's tensors plus T_k (trans [R, S], kept for the
-    backward). The order is the custom op's."""
+    """What the forward kernels write: the RenderOutput's tensors plus T_k (trans [R, S]) and the patterns' values
+    at the samples (pattern_values [R, S, N]), kept for the backward. The order is the custom op's."""
 
     weights: torch.Tensor
     rendered: torch.Tensor
@@ -214,6 +214,7 @@ class _KernelOutputs(NamedTuple):
     eikonal_sum: torch.Tensor
     eikonal_count: torch.Tensor
     trans: torch.Tensor
+    pattern_values: torch.Tensor
 
 
 # the inputs autograd saves as tensors (the others are constants)
@@ -237,20 +238,22 @@ def _render_forward_impl(inp: RenderInputs) -> _KernelOutputs:
         weights=_empty_like_layout(inp.z_vals), rendered=torch.empty(R, N, **opts), surface=torch.empty(R, 3, **opts),
         surface_rendered=torch.empty(R, N, **opts), depth=torch.empty(R, **opts), weight_sum=torch.empty(R, **opts),
         eikonal=_empty_like_layout(inp.z_vals), eikonal_sum=torch.empty(R, **opts), eikonal_count=torch.empty(R, **opts),
-        trans=_empty_like_layout(inp.z_vals))
+        trans=_empty_like_layout(inp.z_vals), pattern_values=_empty_like_layout(inp.z_vals, N))
     if R > 0:
-        forward, _ = render_kernels(int(N))
-        _launch(forward, R, _kernel_inputs(inp) + [
+        samples, forward, _ = render_kernels(int(N))
+        _launch(samples, (R, S), [_desc(inp.z_vals), _desc(inp.rays_o, 3), _desc(inp.rays_d, 3), _desc(inp.patterns_hwn),
+                                  _wp_params(inp.projector), _desc(out.pattern_values, N)], dev)
+        _launch(forward, R, _kernel_inputs(inp) + [_desc(out.pattern_values, N),
             _desc(out.weights), _desc(out.rendered), _desc(out.surface, 3), _desc(out.surface_rendered), _desc(out.depth),
             _desc(out.weight_sum), _desc(out.eikonal), _desc(out.eikonal_sum), _desc(out.eikonal_count), _desc(out.trans),
         ], dev)
     return out
 
 
-def _render_backward_impl(inp: RenderInputs, trans, surface, weight_sum, g_weights, g_rendered, g_surface,
+def _render_backward_impl(inp: RenderInputs, trans, surface, weight_sum, pattern_values, g_weights, g_rendered, g_surface,
                           g_surface_rendered, g_depth, g_weight_sum, g_eikonal, g_eikonal_sum):
     """(d sdf [R, S], d sdf_grad [R, S, 3], d inv_s [1]) from the cotangents of the outputs (see
-    `_cotangents`); trans, surface and weight_sum are the forward's."""
+    `_cotangents`); trans, surface, weight_sum and pattern_values are the forward's."""
     R, S = inp.z_vals.shape
     dev = inp.z_vals.device
     d_sdf = _empty_like_layout(inp.sdf)
@@ -258,9 +261,10 @@ def _render_backward_impl(inp: RenderInputs, trans, surface, weight_sum, g_weigh
     d_inv_s = torch.empty(R, dtype=torch.float32, device=dev)
     if R > 0:
         dummy = torch.zeros(1, 1, dtype=torch.float32, device=dev)  # stands in for a cotangent no loss produced
-        _, backward = render_kernels(int(inp.patterns_hwn.shape[2]))
+        N = int(inp.patterns_hwn.shape[2])
+        _, _, backward = render_kernels(N)
         _launch(backward, R, _kernel_inputs(inp) + [
-            _desc(trans), _desc(surface, 3), _desc(weight_sum),
+            _desc(pattern_values, N), _desc(trans), _desc(surface, 3), _desc(weight_sum),
             _desc(g_weights if g_weights is not None else dummy), int(g_weights is not None), _desc(g_rendered),
             _desc(g_surface, 3), _desc(g_surface_rendered), _desc(g_depth), _desc(g_weight_sum),
             _desc(g_eikonal if g_eikonal is not None else dummy), int(g_eikonal is not None), _desc(g_eikonal_sum),
@@ -294,7 +298,8 @@ def _cotangents(z_vals, N, grads):
 
 def _save_for_backward(ctx, inputs, outputs, opaque: bool) -> None:
     inp, out = RenderInputs(*inputs), _KernelOutputs(*outputs)
-    ctx.save_for_backward(*(getattr(inp, k) for k in _SAVED_INPUTS), out.trans, out.surface, out.weight_sum)
+    ctx.save_for_backward(*(getattr(inp, k) for k in _SAVED_INPUTS), out.trans, out.surface, out.weight_sum,
+                          out.pattern_values)
     ctx.constants = inp._replace(**{k: None for k in _SAVED_INPUTS})
     ctx.opaque = opaque  # backward through the custom op (compiled graphs) or the launch itself (eager)
 
@@ -303,12 +308,12 @@ def _backward(ctx, *grads):
     saved = ctx.saved_tensors
     n = len(_SAVED_INPUTS)
     inp = ctx.constants._replace(**{k: t.detach() for k, t in zip(_SAVED_INPUTS, saved[:n])})
-    trans, surface, weight_sum = (t.detach() for t in saved[n:])
+    trans, surface, weight_sum, values = (t.detach() for t in saved[n:])
     cots = _cotangents(inp.z_vals, inp.patterns_hwn.shape[2], grads[:8])
     if ctx.opaque:
-        d_sdf, d_grad, d_inv_s = _render_backward(*inp, trans, surface, weight_sum, *cots)
+        d_sdf, d_grad, d_inv_s = _render_backward(*inp, trans, surface, weight_sum, values, *cots)
     else:
-        d_sdf, d_grad, d_inv_s = _render_backward_impl(inp, trans, surface, weight_sum, *cots)
+        d_sdf, d_grad, d_inv_s = _render_backward_impl(inp, trans, surface, weight_sum, values, *cots)
     grads_in = dict(sdf=d_sdf, sdf_grad=d_grad, inv_s=d_inv_s)  # the differentiable inputs
     return tuple(grads_in.get(k) for k in RenderInputs._fields)
 
@@ -320,7 +325,7 @@ class _RenderFunction(torch.autograd.Function):
     def forward(ctx, *inputs):
         out = _render_forward_impl(RenderInputs(*inputs))
         _save_for_backward(ctx, inputs, out, opaque=False)
-        ctx.mark_non_differentiable(out.eikonal_count, out.trans)
+        ctx.mark_non_differentiable(out.eikonal_count, out.trans, out.pattern_values)
         return tuple(out)
 
     backward = staticmethod(_backward)
@@ -332,7 +337,7 @@ def _render_forward(
     a: torch.Tensor, b: torch.Tensor, patterns_hwn: torch.Tensor, projector: list[float], inv_s: torch.Tensor,
     cos_anneal_ratio: float, last_delta: float, bounds: list[float],
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
-           torch.Tensor, torch.Tensor, torch.Tensor]:
+           torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """RenderInputs -> _KernelOutputs, as a custom op."""
     return tuple(_render_forward_impl(RenderInputs(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector,
                                                    inv_s, cos_anneal_ratio, last_delta, bounds)))
@@ -345,7 +350,8 @@ def _(*inputs):
     N = inp.patterns_hwn.shape[2]
     e = lambda *shape: inp.z_vals.new_empty(shape, dtype=torch.float32)  # noqa: E731
     return tuple(_KernelOutputs(weights=e(R, S), rendered=e(R, N), surface=e(R, 3), surface_rendered=e(R, N), depth=e(R),
-                                weight_sum=e(R), eikonal=e(R, S), eikonal_sum=e(R), eikonal_count=e(R), trans=e(R, S)))
+                                weight_sum=e(R), eikonal=e(R, S), eikonal_sum=e(R), eikonal_count=e(R), trans=e(R, S),
+                                pattern_values=e(R, S, N)))
 
 
 @torch.library.custom_op("slwarp::render_backward", mutates_args=())
@@ -353,14 +359,14 @@ def _render_backward(
     sdf: torch.Tensor, sdf_grad: torch.Tensor, z_vals: torch.Tensor, rays_o: torch.Tensor, rays_d: torch.Tensor,
     a: torch.Tensor, b: torch.Tensor, patterns_hwn: torch.Tensor, projector: list[float], inv_s: torch.Tensor,
     cos_anneal_ratio: float, last_delta: float, bounds: list[float], trans: torch.Tensor, surface: torch.Tensor,
-    weight_sum: torch.Tensor, g_weights: torch.Tensor | None, g_rendered: torch.Tensor, g_surface: torch.Tensor,
+    weight_sum: torch.Tensor, pattern_values: torch.Tensor, g_weights: torch.Tensor | None, g_rendered: torch.Tensor, g_surface: torch.Tensor,
     g_surface_rendered: torch.Tensor, g_depth: torch.Tensor, g_weight_sum: torch.Tensor, g_eikonal: torch.Tensor | None,
     g_eikonal_sum: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """`_render_backward_impl` as a custom op (RenderInputs, then the saved tensors and the cotangents)."""
     inp = RenderInputs(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector, inv_s, cos_anneal_ratio,
                        last_delta, bounds)
-    return _render_backward_impl(inp, trans, surface, weight_sum, g_weights, g_rendered, g_surface, g_surface_rendered,
+    return _render_backward_impl(inp, trans, surface, weight_sum, pattern_values, g_weights, g_rendered, g_surface, g_surface_rendered,
                                  g_depth, g_weight_sum, g_eikonal, g_eikonal_sum)
 
 
@@ -429,7 +435,8 @@ def render_structured_light(
     if backend == "torch":
         pat_nhw = patterns if patterns_layout == "NHW" else patterns.permute(2, 0, 1)
         out = _KernelOutputs(*twin.render_structured_light(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, pat_nhw, proj, inv_s,
-                                                           float(cos_anneal_ratio), ld, bnd), trans=None)
+                                                           float(cos_anneal_ratio), ld, bnd), trans=None,
+                             pattern_values=None)
     else:
         pat_hwn = pack_patterns(patterns) if patterns_layout == "NHW" else patterns.detach().to(torch.float32).contiguous()
         sg = sdf_grad.to(torch.float32)
