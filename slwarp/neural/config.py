@@ -611,9 +611,15 @@ _HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, gr
 # bench/results/accuracy-cuda-free-space.md, -free-space-2.md): mean MAE 0.196 / 0.170 -> 0.176 / 0.162 mm at 0.2
 # (boxes 0.240 -> 0.160, steps 0.368 -> 0.293 on the default rig), 0.184 / 0.160 at 0.1, 0.197 / 0.161 at 0.5 and
 # 0.260 / 0.161 at 1 (default-rig steps lost 8 points of completeness: 1000 steps of the fast tables overshoot)
+# Two up-sampling steps instead of four (the same 32 + 32 samples; one H100, 8 scenes x default / vertical rig,
+# bench/results/fast-upsample-steps.md): mean MAE 0.130 / 0.114 mm against 0.126 / 0.113 with four (0.137 / 0.117 with
+# one), training 2.68 -> 2.41 s of 3.97 -> 3.67 s from a loaded scan (default-rig bunny). Fewer iterations or samples
+# cost far more (bench/results/fast-speed-variants.md: 600 + 120 iterations 0.234 / 0.196 mm)
 _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 1000 iterations of 1024 rays, levels switched on "
-        "quickly, with tuned's surface term and extraction and a free-space term: a depth map as soon as possible (GPU)",
-        matmul="tf32", iters=1000, init_iters=200, rays=1024, grid_levels=8, grid_gradient="finite_difference_4",
+        "quickly, two up-sampling steps, with tuned's surface term and extraction and a free-space term: a depth map as "
+        "soon as possible (GPU)",
+        matmul="tf32", iters=1000, init_iters=200, rays=1024, up_sample_steps=2, grid_levels=8,
+        grid_gradient="finite_difference_4",
         grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, surface_weight=1.0,
         surface_after=1.0, free_space=0.2, uniform_fill=True, **_DEFAULT_EXTRACTION, **_GPU_DENOISE, **_HASHGRID)
 # the accurate hash-grid recipe: 8 levels (growth 2), the 4-tap gradient, and tuned's surface term and extraction.
