@@ -613,7 +613,8 @@ _HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, gr
 # 0.260 / 0.161 at 1 (default-rig steps lost 8 points of completeness: 1000 steps of the fast tables overshoot)
 # Two up-sampling steps instead of four (the same 32 + 32 samples; one H100, 8 scenes x default / vertical rig,
 # bench/results/fast-upsample-steps.md): mean MAE 0.130 / 0.114 mm against 0.126 / 0.113 with four (0.137 / 0.117 with
-# one), training 2.68 -> 2.41 s of 3.97 -> 3.67 s from a loaded scan (default-rig bunny). Fewer iterations or samples
+# one); steady state 1.79 -> 1.61 ms per step, 4.4 -> 4.0 s from a loaded scan (default-rig bunny, python
+# bench/train_speed.py --preset fast --end-to-end: bench/results/train-speed-cuda-fast-e2e-16b.md, -16c.md). Fewer iterations or samples
 # cost far more (bench/results/fast-speed-variants.md: 600 + 120 iterations 0.234 / 0.196 mm)
 _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 1000 iterations of 1024 rays, levels switched on "
         "quickly, two up-sampling steps, with tuned's surface term and extraction and a free-space term: a depth map as "

@@ -239,7 +239,8 @@ class DrawAhead:
     `generator_state` the state after the steps taken so far (for a checkpoint), `rewind` sets the generator
     there. A change of `key` (what the draws depend on, e.g. the count of valid pixels) rewinds and draws anew.
     Why: the training step's draws, copied to the GPU from pageable memory each step, made the host wait for the
-    GPU's previous step (`fast`, H100: 2.57 ms per iteration in reconstruct against 2.18 ms of GPU work)."""
+    GPU's previous step (`fast`, H100: 2.57 ms per iteration in reconstruct against 2.18 ms in
+    bench/train_speed.py's steady state)."""
 
     def __init__(self, generator: torch.Generator, device, ahead: int):
         self.generator, self.device, self.ahead = generator, torch.device(device), int(ahead)
@@ -259,7 +260,8 @@ class DrawAhead:
 
     def _send(self, blocks: list) -> tuple:
         """The blocks of draws on `device`. To a GPU: through pinned buffers allocated once (a fresh pinned
-        allocation for each block cost 10-18 ms, measured as slower steps), reused once their last copy is done."""
+        allocation for each block made that block's 20 profiled steps 10-18 ms slower in all), reused once their last
+        copy is done."""
         if self.device.type != "cuda":
             return tuple(b.to(self.device) for b in blocks)
         shapes = [(b.shape, b.dtype) for b in blocks]
