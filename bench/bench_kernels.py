@@ -8,8 +8,12 @@ for backend warp, the twin in eager mode, and torch.compile of the twin. It also
 bytes the fused Warp kernels must move (each input read once, each output written once) over the
 device's measured copy bandwidth, and the fraction of it the Warp path achieves.
 
+The sampling ops of a training step (`bench_sampling`: one NeuS up-sampling step and the merge of the new
+samples, at the training step's ray counts) are timed the same way, with the GPU time of each of their kernels.
+
     python bench/bench_kernels.py                  # CUDA if present, else CPU (a reduced grid)
     python bench/bench_kernels.py --device cpu --sizes 2048x64x6
+    python bench/bench_kernels.py --sampling-only  # only the up-sampling and merge ops
 Writes bench/results/kernels-<device>.json and prints a markdown table.
 """
 from __future__ import annotations
@@ -236,6 +240,93 @@ def bench_size(R, S, N, device, reps, backends, layout) -> dict:
     return row
 
 
+# (R rays, S current samples, n new samples): the fast preset's two up-sampling steps (32 + 16, 48 + 16 at 1024 rays),
+# four steps of 64 + 64 samples, and a large batch
+SAMPLING_GRID = [(1024, 32, 16), (1024, 48, 16), (1024, 112, 16), (16384, 64, 16)]
+CPU_SAMPLING_GRID = [(1024, 32, 16), (1024, 48, 16)]
+
+
+def sampling_inputs(R, S, device, seed=0):
+    """Rays of the default rig, stratified samples (row-major [R, S], as the sampler makes them) and an SDF with
+    a surface near 750 mm, plus the bounds of the working volume."""
+    cam, _ = make_rig("default")
+    g = torch.Generator().manual_seed(seed)
+    pix = (torch.rand(R, 2, generator=g) * torch.tensor([cam.width - 1.0, cam.height - 1.0])).to(device)
+    o, d, near, far = ops.camera_rays(pix, cam, (450.0, 1100.0))
+    z = ops.stratified_samples(near, far, S, (torch.rand(R, generator=g) - 0.5).to(device))
+    t_surf = 750.0 / d[:, 2] + (torch.randn(R, generator=g) * 40).to(device)
+    sdf = t_surf[:, None] - z + (torch.randn(R, S, generator=g) * 0.5).to(device)
+    return dict(z=z, sdf=sdf, o=o, d=d, t_surf=t_surf, bounds=[[-500.0, -400.0, 450.0], [500.0, 400.0, 1100.0]])
+
+
+def graphed_repeat(fn, device, n=20):
+    """Replay of a CUDA graph holding n calls of fn, and n: the GPU time per call without launch overhead."""
+    replay = graphed(lambda: [fn() for _ in range(n)], device)
+    return replay, n
+
+
+def sampling_kernel_times(fns, device) -> dict:
+    """GPU time per call (us) of each Warp kernel the sampling ops launch, from the torch profiler."""
+    from torch.profiler import ProfilerActivity, profile
+
+    for f in fns:
+        f()
+    torch.cuda.synchronize(device)
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        for _ in range(10):
+            for f in fns:
+                f()
+        torch.cuda.synchronize(device)
+    out = {}
+    for ev in prof.key_averages():
+        t = getattr(ev, "device_time_total", None) or getattr(ev, "cuda_time_total", 0)
+        if t and ("upsample" in ev.key or "merge_sorted" in ev.key):
+            out[ev.key[:60]] = t / 10
+    return out
+
+
+def bench_sampling(R, S, n, device, reps) -> dict:
+    """Median ms per call of one up-sampling step (S -> n new samples) and of the merge S + n, for Warp (eager
+    and, on CUDA, replayed from a graph of 20 calls) and the torch twin; the Warp results against the twin."""
+    inp = sampling_inputs(R, S, device)
+    z, sdf, o, d, bounds = inp["z"], inp["sdf"], inp["o"], inp["d"], inp["bounds"]
+    inv_s = 64.0 / 500.0
+    z_new = ops.upsample_samples(z, sdf, o, d, n, inv_s, bounds=bounds)
+    f_new = inp["t_surf"][:, None] - z_new
+    row = {"R": R, "S": S, "n": n}
+    ref = ops.upsample_samples(z, sdf, o, d, n, inv_s, bounds=bounds, backend="torch")
+    row["upsample_max_abs_err_mm"] = float((z_new - ref).abs().max())
+    mz, mf = ops.merge_samples(z, sdf, z_new, f_new)
+    tz, tf = ops.merge_samples(z, sdf, z_new, f_new, backend="torch")
+    row["merge_equal"] = bool(torch.equal(mz, tz) and torch.equal(mf, tf))
+    calls = {
+        "upsample": lambda be: ops.upsample_samples(z, sdf, o, d, n, inv_s, bounds=bounds, backend=be),
+        "merge": lambda be: ops.merge_samples(z, sdf, z_new, f_new, backend=be),
+    }
+    for name, call in calls.items():
+        for be in ("warp", "torch"):
+            row[f"{name}_{be}_ms"] = timeit(lambda: call(be), device, reps) * 1e3
+        if device.type == "cuda":
+            replay, k = graphed_repeat(lambda: call("warp"), device)
+            row[f"{name}_warp+graph_ms"] = timeit(replay, device, reps) * 1e3 / k
+    if device.type == "cuda":
+        row["kernel_us"] = sampling_kernel_times([lambda: calls["upsample"]("warp"), lambda: calls["merge"]("warp")], device)
+    return row
+
+
+def format_sampling_table(rows) -> str:
+    cols = [c for c in ("warp", "warp+graph", "torch") if any(f"upsample_{c}_ms" in r for r in rows)]
+    head = "| R | S | n | " + " | ".join(f"upsample {c}" for c in cols) + " | " + " | ".join(f"merge {c}" for c in cols) + \
+           " | upsample vs twin (mm) | merge equal |"
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for r in rows:
+        cells = [str(r["R"]), str(r["S"]), str(r["n"])]
+        cells += [f"{r[f'upsample_{c}_ms']:.4f}" for c in cols] + [f"{r[f'merge_{c}_ms']:.4f}" for c in cols]
+        cells += [f"{r['upsample_max_abs_err_mm']:.1e}", str(r["merge_equal"])]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -246,6 +337,7 @@ def main(argv=None):
     p.add_argument("--layout", default="sample-major", choices=["sample-major", "ray-major"],
                    help="memory order of the [R, S] inputs (default: sample-major, as the renderer builds them)")
     p.add_argument("--out", default=str(REPO / "bench" / "results"))
+    p.add_argument("--sampling-only", action="store_true", help="time only the up-sampling and merge ops (bench_sampling)")
     args = p.parse_args(argv)
     device = torch.device(args.device)
     grid = [tuple(int(v) for v in s.split("x")) for s in args.sizes] if args.sizes else (FULL_GRID if device.type == "cuda" else CPU_GRID)
@@ -254,8 +346,15 @@ def main(argv=None):
     bw = measure_bandwidth(device)
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else (platform.processor() or platform.machine()) + f" ({torch.get_num_threads()} threads)"
     print(f"device: {name}; measured copy bandwidth {bw / 1e9:.0f} GB/s")
+    sampling_rows = []
+    for R, S, n in (SAMPLING_GRID if device.type == "cuda" else CPU_SAMPLING_GRID):
+        row = bench_sampling(R, S, n, device, reps)
+        sampling_rows.append(row)
+        print(json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()}), flush=True)
+    sampling_table = format_sampling_table(sampling_rows)
+    print(sampling_table)
     rows = []
-    for R, S, N in grid:
+    for R, S, N in ([] if args.sampling_only else grid):
         row = bench_size(R, S, N, device, reps, backends, args.layout)
         for key in ("fwd", "fwd_bwd"):
             row[f"floor_{key}_ms"] = row["floor_bytes"][key] / bw * 1e3
@@ -270,7 +369,7 @@ def main(argv=None):
     out.mkdir(parents=True, exist_ok=True)
     tag = "cuda" if device.type == "cuda" else "cpu"
     meta = {"device": name, "date": datetime.date.today().isoformat(), "torch": torch.__version__, "layout": args.layout,
-            "copy_bandwidth_GBps": bw / 1e9, "rows": rows}
+            "copy_bandwidth_GBps": bw / 1e9, "rows": rows, "sampling": sampling_rows}
     try:
         import warp
 
@@ -278,9 +377,13 @@ def main(argv=None):
     except ImportError:
         pass
     tag += "" if args.layout == "sample-major" else "-raymajor"
+    tag += "-sampling" if args.sampling_only else ""
     (out / f"kernels-{tag}.json").write_text(json.dumps(meta, indent=1))
     (out / f"kernels-{tag}.md").write_text(f"# Fused render + losses, {name}, {meta['date']}\n\n"
-                                           f"Copy bandwidth {bw / 1e9:.0f} GB/s (read + write). Inputs {args.layout}. Times: median ms.\n\n" + table + "\n")
+                                           f"Copy bandwidth {bw / 1e9:.0f} GB/s (read + write). Inputs {args.layout}. Times: median ms.\n\n" + table + "\n\n"
+                                           "## Sampling ops (one up-sampling step, S -> n new samples; the merge S + n)\n\n"
+                                           "warp+graph: per call, replayed from a CUDA graph of 20 calls. Times: median ms.\n\n"
+                                           + sampling_table + "\n")
     return 0
 
 

@@ -1,11 +1,16 @@
 """Ray generation and sample placement (no gradients flow through these).
 
-camera_rays:    pixels -> unit camera-frame rays and [near, far] distances from a camera-z depth range
-stratified:     S samples per ray at near + (far - near) (k + 0.5 + jitter_r) / S (one jitter per ray)
-upsample:       one NeuS hierarchical up-sampling step: NeuS's "estimated" alpha from the SDF at the
-                current samples with a fixed inv_s, then inverse-CDF placement of n new samples at
-                deterministic quantiles (k + 0.5) / n (NeuS's sample_pdf with det=True)
-merge_sorted:   merge two per-ray sorted sample lists (z and SDF) into one, stable
+camera_rays:        pixels -> unit camera-frame rays and [near, far] distances from a camera-z depth range
+stratified:         S samples per ray at near + (far - near) (k + 0.5 + jitter_r) / S (one jitter per ray)
+upsample_*:         one NeuS hierarchical up-sampling step (NeuS's sample_pdf with det=True) in two launches,
+                    parallel over samples instead of one serial thread per ray:
+  upsample_intervals  one thread per (ray, interval): NeuS's "estimated" alpha from the SDF at the current
+                      samples with a fixed inv_s (needs only the interval's neighbours)
+  upsample_place      one thread per (ray, new sample): the weights' total, then the normalised CDF until it
+                      passes the thread's quantile (j + 0.5) / n, and the inverse-CDF distance there (the serial
+                      part: a few flops per interval)
+merge_sorted:       merge two per-ray sorted sample lists (z and SDF) into one, stable (a before b on ties):
+                    one thread per input element, which computes its output rank by binary search
 """
 
 import warp as wp
@@ -69,8 +74,17 @@ def upsample_alpha(z: wp.array2d(dtype=float), sdf: wp.array2d(dtype=float), r: 
     return (prev_cdf - next_cdf + ALPHA_EPS) / (prev_cdf + ALPHA_EPS)
 
 
+# The up-sampling step used to be one thread per ray walking its S samples twice: with ~1000 rays per training step
+# that is a few warps on a GPU of 132 SMs, latency-bound on the per-interval sigmoids. Split in two launches, the
+# sigmoids run one thread per interval, and what stays serial is a chain of a few flops per interval, which each
+# new sample's thread runs for itself (its ray's threads read the same alphas, so the copies cost no memory
+# traffic) while watching for its own quantile: no CDF buffer and no third launch. The arithmetic is the per-ray
+# walk's (the same alpha, the same products and sums in the same order): the results were bit-identical to it on
+# the CPU and on an H100.
+
+
 @wp.kernel
-def upsample(
+def upsample_intervals(
     z: wp.array2d(dtype=float),
     sdf: wp.array2d(dtype=float),
     rays_o: wp.array(dtype=wp.vec3),
@@ -78,45 +92,130 @@ def upsample(
     inv_s: float,
     bmin: wp.vec3,
     bmax: wp.vec3,
-    z_new: wp.array2d(dtype=float),
+    alpha: wp.array2d(dtype=float),
 ):
-    r = wp.tid()
-    S = z.shape[1]
-    n_new = z_new.shape[1]
+    """alpha [R, S-1]: NeuS's estimated alpha of interval [z_i, z_{i+1}] (launch dim (R, S-1)); the cosine
+    counts where either end is inside the box [bmin, bmax]."""
+    r, i = wp.tid()
     o = rays_o[r]
     d = rays_d[r]
-    # pass 1: total of the (regularised) weights
+    inside = inside_box(o + d * z[r, i], bmin, bmax) or inside_box(o + d * z[r, i + 1], bmin, bmax)
+    alpha[r, i] = upsample_alpha(z, sdf, r, i, inside, inv_s)
+
+
+@wp.func
+def upsample_total(alpha: wp.array2d(dtype=float), r: int) -> float:
+    """sum_i w_i, w_i = alpha_i T_i + PDF_EPS, T_i = prod_{k<i} (1 - alpha_k + TRANS_EPS), summed in order."""
+    n = alpha.shape[1]
+    n4 = n - n % 4
     total = float(0.0)
     trans = float(1.0)
-    in_prev = inside_box(o + d * z[r, 0], bmin, bmax)
-    for i in range(S - 1):
-        in_next = inside_box(o + d * z[r, i + 1], bmin, bmax)
-        alpha = upsample_alpha(z, sdf, r, i, in_prev or in_next, inv_s)
-        total += alpha * trans + PDF_EPS
-        trans = trans * (1.0 - alpha + TRANS_EPS)
-        in_prev = in_next
-    # pass 2: walk the CDF and place quantiles (j + 0.5) / n_new in order
-    j = int(0)
-    cdf_lo = float(0.0)
+    # 4 intervals a step: their loads issue together instead of each stalling the chain (Warp does not unroll
+    # loops of a run-time length); the same operations in the same order as one at a time
+    for i in range(0, n4, 4):
+        a0 = alpha[r, i]
+        a1 = alpha[r, i + 1]
+        a2 = alpha[r, i + 2]
+        a3 = alpha[r, i + 3]
+        total += a0 * trans + PDF_EPS
+        trans = trans * (1.0 - a0 + TRANS_EPS)
+        total += a1 * trans + PDF_EPS
+        trans = trans * (1.0 - a1 + TRANS_EPS)
+        total += a2 * trans + PDF_EPS
+        trans = trans * (1.0 - a2 + TRANS_EPS)
+        total += a3 * trans + PDF_EPS
+        trans = trans * (1.0 - a3 + TRANS_EPS)
+    for i in range(n4, n):
+        a = alpha[r, i]
+        total += a * trans + PDF_EPS
+        trans = trans * (1.0 - a + TRANS_EPS)
+    return total
+
+
+@wp.func
+def upsample_cdf_step(a: float, trans: float, c: float, total: float, u: float, i: int, k: int, c0: float, c1: float):
+    """One interval of the CDF walk: (T_{i+1}, cdf_{i+1}, k, c0, c1). k, the first CDF index above u, and the CDF at
+    its interval's ends c0, c1 are set at the first interval whose CDF passes u (k = -1 until then)."""
+    c_next = c + (a * trans + PDF_EPS) / total
+    hit = k < 0 and u < c_next
+    return (trans * (1.0 - a + TRANS_EPS), c_next, wp.where(hit, i + 1, k), wp.where(hit, c, c0),
+            wp.where(hit, c_next, c1))
+
+
+@wp.func
+def upsample_inverse_cdf(z: wp.array2d(dtype=float), alpha: wp.array2d(dtype=float), r: int, total: float,
+                         u: float) -> float:
+    """The distance at quantile u of ray r: walk the CDF (running sum of w_i / total) to the first interval whose
+    end passes u, then interpolate in it. A CDF that rises by less than CDF_EPS over the interval puts u at its
+    start; u beyond the last CDF value (rounding) sits on the last sample."""
+    n = alpha.shape[1]
+    n4 = n - n % 4
+    k = int(-1)
+    c0 = float(0.0)
+    c1 = float(0.0)
+    c = float(0.0)
     trans = float(1.0)
-    in_prev = inside_box(o + d * z[r, 0], bmin, bmax)
-    for i in range(S - 1):
-        in_next = inside_box(o + d * z[r, i + 1], bmin, bmax)
-        alpha = upsample_alpha(z, sdf, r, i, in_prev or in_next, inv_s)
-        cdf_hi = cdf_lo + (alpha * trans + PDF_EPS) / total
-        trans = trans * (1.0 - alpha + TRANS_EPS)
-        in_prev = in_next
-        denom = cdf_hi - cdf_lo
-        if denom < CDF_EPS:
-            denom = 1.0
-        while j < n_new and (float(j) + 0.5) / float(n_new) < cdf_hi:
-            u = (float(j) + 0.5) / float(n_new)
-            z_new[r, j] = z[r, i] + (u - cdf_lo) / denom * (z[r, i + 1] - z[r, i])
-            j += 1
-        cdf_lo = cdf_hi
-    while j < n_new:  # quantiles beyond the (rounded) last CDF value sit on the last sample
-        z_new[r, j] = z[r, S - 1]
-        j += 1
+    for i in range(0, n4, 4):
+        a0 = alpha[r, i]
+        a1 = alpha[r, i + 1]
+        a2 = alpha[r, i + 2]
+        a3 = alpha[r, i + 3]
+        trans, c, k, c0, c1 = upsample_cdf_step(a0, trans, c, total, u, i, k, c0, c1)
+        trans, c, k, c0, c1 = upsample_cdf_step(a1, trans, c, total, u, i + 1, k, c0, c1)
+        trans, c, k, c0, c1 = upsample_cdf_step(a2, trans, c, total, u, i + 2, k, c0, c1)
+        trans, c, k, c0, c1 = upsample_cdf_step(a3, trans, c, total, u, i + 3, k, c0, c1)
+        if k >= 0:  # found: the rest of the CDF does not matter to this quantile
+            break
+    if k < 0:
+        for i in range(n4, n):
+            trans, c, k, c0, c1 = upsample_cdf_step(alpha[r, i], trans, c, total, u, i, k, c0, c1)
+    if k < 0:
+        return z[r, z.shape[1] - 1]
+    denom = c1 - c0
+    if denom < CDF_EPS:
+        denom = 1.0
+    return z[r, k - 1] + (u - c0) / denom * (z[r, k] - z[r, k - 1])
+
+
+@wp.kernel
+def upsample_place(
+    z: wp.array2d(dtype=float),
+    alpha: wp.array2d(dtype=float),
+    z_new: wp.array2d(dtype=float),
+):
+    """z_new [R, n]: the distance at quantile u_j = (j + 0.5) / n by inverse CDF of the weights of alpha [R, S-1]
+    (launch dim (R, n); z [R, S]). The CDF is normalised by the total, so the total comes first."""
+    r, j = wp.tid()
+    u = (float(j) + 0.5) / float(z_new.shape[1])
+    z_new[r, j] = upsample_inverse_cdf(z, alpha, r, upsample_total(alpha, r), u)
+
+
+@wp.func
+def count_less(z: wp.array2d(dtype=float), r: int, v: float) -> int:
+    """Number of entries of the sorted row z[r] below v (binary search)."""
+    lo = int(0)
+    hi = z.shape[1]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if z[r, mid] < v:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@wp.func
+def count_not_above(z: wp.array2d(dtype=float), r: int, v: float) -> int:
+    """Number of entries of the sorted row z[r] at or below v (binary search)."""
+    lo = int(0)
+    hi = z.shape[1]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if z[r, mid] <= v:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
 
 
 @wp.kernel
@@ -128,18 +227,19 @@ def merge_sorted(
     z_out: wp.array2d(dtype=float),
     f_out: wp.array2d(dtype=float),
 ):
-    r = wp.tid()
+    """Stable merge of sorted rows z_a [R, na] and z_b [R, nb] (values f_a, f_b alongside) into z_out, f_out
+    [R, na + nb]; launch dim (R, na + nb), one thread per input element. a_k lands at k + #{b < a_k} and b_j at
+    j + #{a <= b_j}: on ties a goes first, as in the sequential merge (and a stable sort of [a, b])."""
+    r, k = wp.tid()
     na = z_a.shape[1]
-    nb = z_b.shape[1]
-    i = int(0)
-    j = int(0)
-    for k in range(na + nb):
-        take_a = j >= nb or (i < na and z_a[r, i] <= z_b[r, j])
-        if take_a:
-            z_out[r, k] = z_a[r, i]
-            f_out[r, k] = f_a[r, i]
-            i += 1
-        else:
-            z_out[r, k] = z_b[r, j]
-            f_out[r, k] = f_b[r, j]
-            j += 1
+    if k < na:
+        v = z_a[r, k]
+        dst = k + count_less(z_b, r, v)
+        z_out[r, dst] = v
+        f_out[r, dst] = f_a[r, k]
+    else:
+        j = k - na
+        v = z_b[r, j]
+        dst = j + count_not_above(z_a, r, v)
+        z_out[r, dst] = v
+        f_out[r, dst] = f_b[r, j]

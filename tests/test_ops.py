@@ -12,7 +12,10 @@ import math
 
 import pytest
 import torch
+import warp as wp
 
+from slwarp.kernels.geometry import TRANS_EPS
+from slwarp.kernels.sampling import CDF_EPS, PDF_EPS, upsample_inverse_cdf, upsample_place
 from slwarp.neural import ops, twin
 from slwarp.scans.patterns import random_binary
 from slwarp.sim.rigs import make_rig
@@ -189,6 +192,177 @@ def test_sampling_ops_match_twin(device):
     mzt, mft = ops.merge_samples(zw, sdf, zn, t_surf[:, None] - zn, backend="torch")
     assert torch.equal(mz, mzt) and torch.allclose(mf, mft)
     assert (mz[:, 1:] >= mz[:, :-1]).all()
+
+
+def sequential_merge(z_a, f_a, z_b, f_b):
+    """The textbook stable merge, row by row in Python (a before b on ties): the merge's reference."""
+    zs, fs = [], []
+    for za, fa, zb, fb in zip(z_a.tolist(), f_a.tolist(), z_b.tolist(), f_b.tolist()):
+        i = j = 0
+        z, f = [], []
+        while i < len(za) or j < len(zb):
+            if j >= len(zb) or (i < len(za) and za[i] <= zb[j]):
+                z.append(za[i]), f.append(fa[i])
+                i += 1
+            else:
+                z.append(zb[j]), f.append(fb[j])
+                j += 1
+        zs.append(z), fs.append(f)
+    return torch.tensor(zs, dtype=torch.float32).reshape(len(zs), -1), torch.tensor(fs, dtype=torch.float32).reshape(len(zs), -1)
+
+
+@pytest.mark.parametrize("na,nb", [(7, 4), (3, 11), (16, 16), (1, 5), (6, 0)])
+def test_merge_samples_is_stable_and_exact(device, na, nb):
+    """Ties between a and b and within each list: a's elements come first, each list keeps its order. The values f
+    tag every element (a_k: k, b_j: 100 + j), so any other order of equal distances shows."""
+    g = torch.Generator().manual_seed(na * 31 + nb)
+    R = 9
+    z_a = torch.sort(torch.randint(0, 6, (R, na), generator=g).float(), dim=1).values
+    z_b = torch.sort(torch.randint(0, 6, (R, nb), generator=g).float(), dim=1).values
+    z_a[0] = 2.0  # a row of one repeated value in a ...
+    z_b[0] = 2.0  # ... tied with all of b
+    z_b[1] = -1.0  # b entirely before a
+    z_b[2] = 10.0  # b entirely after a
+    f_a = torch.arange(na, dtype=torch.float32).expand(R, na).contiguous()
+    f_b = (100.0 + torch.arange(nb, dtype=torch.float32)).expand(R, nb).contiguous()
+    dev = lambda t: t.to(device)  # noqa: E731
+    z, f = ops.merge_samples(dev(z_a), dev(f_a), dev(z_b), dev(f_b))
+    assert z.shape == (R, na + nb) and f.shape == (R, na + nb)
+    zs, fs = sequential_merge(z_a, f_a, z_b, f_b)
+    zt, ft = ops.merge_samples(z_a, f_a, z_b, f_b, backend="torch")
+    assert torch.equal(z.cpu(), zs) and torch.equal(f.cpu(), fs)
+    assert torch.equal(z.cpu(), zt) and torch.equal(f.cpu(), ft)
+    if nb:
+        assert f[0].tolist() == list(range(na)) + [100.0 + j for j in range(nb)]  # all tied: a first, in order
+
+
+def upsample_rays(R, S, device, seed=0):
+    """Rays of the small rig with stratified samples and an SDF crossing zero near 700 mm (random depth per ray);
+    ray 0 has no surface (the SDF stays far positive: every weight ~PDF_EPS, a straight CDF); ray 1 reaches the
+    surface at its first samples; rays 2-3 point out of the bounds used below for most of their length."""
+    g = torch.Generator().manual_seed(seed)
+    pix = torch.rand(R, 2, generator=g) * torch.tensor([CAM.width - 1.0, CAM.height - 1.0])
+    o, d, near, far = ops.camera_rays(pix, CAM, (500.0, 900.0), backend="torch")
+    z = ops.stratified_samples(near, far, S, torch.rand(R, generator=g) - 0.5, backend="torch")
+    t_surf = 700.0 / d[:, 2] + torch.randn(R, generator=g) * 50
+    t_surf[1] = z[1, min(1, S - 1)]
+    sdf = t_surf[:, None] - z + torch.randn(R, S, generator=g) * 0.3
+    sdf[0] = 200.0 + torch.rand(S, generator=g)
+    d[2:4] = torch.nn.functional.normalize(d[2:4] + torch.tensor([0.6, 0.0, 0.0]), dim=1)
+    return [t.to(device) for t in (z, sdf, o, d)]
+
+
+@pytest.mark.parametrize("S,n_new", [(12, 9), (17, 32)])
+def test_upsample_matches_twin_on_edge_rays(device, S, n_new):
+    z, sdf, o, d = upsample_rays(10, S, device, seed=S)
+    bounds = [[-200.0, -200.0, 550.0], [200.0, 200.0, 850.0]]
+    for inv_s in (0.05, 0.64, 8.0):
+        for bnd in (None, bounds):
+            zw = ops.upsample_samples(z, sdf, o, d, n_new, inv_s, bounds=bnd)
+            zt = ops.upsample_samples(z, sdf, o, d, n_new, inv_s, bounds=bnd, backend="torch")
+            assert zw.shape == (10, n_new)
+            assert_close(zw, zt, rtol=1e-5, atol=2e-3, what=f"upsample S={S} inv_s={inv_s} bounds={bnd is not None}")
+            assert (zw[:, 1:] >= zw[:, :-1]).all()
+            assert ((zw >= z[:, :1]) & (zw <= z[:, -1:])).all()
+    # the ray without a surface: equal weights, so the new samples spread evenly between the first and last sample
+    zw = ops.upsample_samples(z, sdf, o, d, n_new, 0.64)
+    u = (torch.arange(n_new, dtype=torch.float64) + 0.5) / n_new
+    even = z[0, 0].double().cpu() + u * (z[0, -1] - z[0, 0]).double().cpu()
+    assert_close(zw[0].double(), even, rtol=0, atol=0.05 * float(z[0, 1] - z[0, 0]), what="no-surface ray")
+
+
+def test_upsample_of_a_single_sample(device):
+    """One sample per ray: no interval, an empty CDF beyond 0, so every new sample sits on the sample (the twin
+    needs two samples)."""
+    z, sdf, o, d = upsample_rays(6, 1, device, seed=1)
+    zw = ops.upsample_samples(z, sdf, o, d, 5, 0.64)
+    assert torch.equal(zw, z.expand(-1, 5))
+
+
+@wp.kernel
+def inverse_cdf_with_total(z: wp.array2d(dtype=float), alpha: wp.array2d(dtype=float), total: wp.array(dtype=float),
+                           z_new: wp.array2d(dtype=float)):
+    """The up-sampling placement with a given normaliser per ray (the op uses the weights' sum)."""
+    r, j = wp.tid()
+    z_new[r, j] = upsample_inverse_cdf(z, alpha, r, total[r], (float(j) + 0.5) / float(z_new.shape[1]))
+
+
+def inverse_cdf_reference(z, alpha, total, n):
+    """The per-ray walk in float64: CDF of w_i = alpha_i T_i + PDF_EPS over total, the first CDF value above u_j,
+    CDF_EPS and beyond-the-end rules as in twin.upsample_samples."""
+    out = []
+    for zr, ar, tot in zip(z.tolist(), alpha.tolist(), total.tolist()):
+        cdf, trans = [0.0], 1.0
+        for a in ar:
+            cdf.append(cdf[-1] + (a * trans + PDF_EPS) / tot)
+            trans *= 1.0 - a + TRANS_EPS
+        row = []
+        for j in range(n):
+            u = (j + 0.5) / n
+            k = next((k for k in range(1, len(cdf)) if cdf[k] > u), None)
+            if k is None:
+                row.append(zr[-1])
+                continue
+            denom = cdf[k] - cdf[k - 1]
+            row.append(zr[k - 1] + (u - cdf[k - 1]) / (denom if denom >= CDF_EPS else 1.0) * (zr[k] - zr[k - 1]))
+        out.append(row)
+    return torch.tensor(out, dtype=torch.float64)
+
+
+def test_upsample_placement_follows_the_cdf_rules(device):
+    """The placement on hand-made weights and normalisers, against the walk in float64: quantiles beyond a last
+    CDF value below 1 sit on the last sample, and one in an interval the CDF rises over by less than CDF_EPS sits
+    at the interval's start. Five intervals: one unrolled block of four and the remainder."""
+    z = torch.tensor([[0.0, 1.0, 3.0, 4.0, 7.0, 9.0]]) + torch.tensor([[0.0], [10.0], [20.0]])
+    alpha = torch.tensor([[0.0, 0.0, 0.0, 0.0, 0.0],  # equal weights
+                          [0.9999, 0.0, 0.0, 0.0, 0.0],  # all weight in interval 0, then flat intervals
+                          [0.05, 0.3, 0.9, 0.2, 0.1]])
+    trans = torch.cat([torch.ones(3, 1, dtype=torch.float64), torch.cumprod(1.0 - alpha.double() + TRANS_EPS, 1)[:, :-1]], 1)
+    w = alpha.double() * trans + PDF_EPS
+    # row 0: the CDF ends at 0.8 (quantiles 13/16 and 15/16 beyond it); row 1: u = 15/16 lies 4e-6 into
+    # flat interval 1 (it rises by PDF_EPS / total < CDF_EPS); row 2: the weights' own sum
+    total = torch.stack([w[0].sum() * 1.25, w[1, 0] / (0.9375 - 4e-6), w[2].sum()])
+    n_new = 8
+    zd, ad, td = z.to(device), alpha.to(device), total.float().to(device)
+    z_new = torch.empty(3, n_new, device=device)
+    ops._launch(inverse_cdf_with_total, (3, n_new), [ops._desc(zd), ops._desc(ad), ops._desc(td), ops._desc(z_new)],
+                zd.device)
+    ref = inverse_cdf_reference(z.double(), alpha.double(), total, n_new)
+    assert_close(z_new.double(), ref, rtol=0, atol=1e-4, what="placement")
+    assert z_new[0, -2:].tolist() == [9.0, 9.0] and z_new[0, -3].item() < 9.0
+    assert 0 < z_new[1, -1].item() - 11.0 < 1e-4 and z_new[1, -2].item() < 11.0
+    # and through the op's kernel (total = the weights' sum): the same walk
+    z_op = torch.empty(3, n_new, device=device)
+    ops._launch(upsample_place, (3, n_new), [ops._desc(zd), ops._desc(ad), ops._desc(z_op)], zd.device)
+    assert_close(z_op.double(), inverse_cdf_reference(z.double(), alpha.double(), w.sum(1), n_new), rtol=0, atol=1e-4,
+                 what="upsample_place")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_sampling_ops_capture_in_a_cuda_graph():
+    """Up-sampling and merge in one CUDA graph (scratch allocated inside it, no host synchronisation): the
+    replay gives the eager result, also for new inputs copied into the captured tensors."""
+    z, sdf, o, d = upsample_rays(64, 24, "cuda")
+
+    def step():
+        z_new = ops.upsample_samples(z, sdf, o, d, 16, 0.64)
+        return ops.merge_samples(z, sdf, z_new, z_new * 0.5)
+
+    stream = torch.cuda.Stream()
+    stream.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(stream):
+        step()  # warm-up: kernels built and launches recorded before the capture
+    torch.cuda.current_stream().wait_stream(stream)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        out = step()
+    z2, sdf2, _, _ = upsample_rays(64, 24, "cuda", seed=5)
+    for dst, src in ((z, z2), (sdf, sdf2)):
+        dst.copy_(src)
+    graph.replay()
+    torch.cuda.synchronize()
+    for a, b in zip(out, step()):
+        assert torch.equal(a, b)
 
 
 def test_render_under_torch_compile_has_no_graph_break():

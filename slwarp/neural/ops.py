@@ -29,7 +29,8 @@ from slwarp.kernels.render import render_kernels
 from slwarp.kernels.sampling import camera_rays as camera_rays_kernel
 from slwarp.kernels.sampling import merge_sorted as merge_sorted_kernel
 from slwarp.kernels.sampling import stratified as stratified_kernel
-from slwarp.kernels.sampling import upsample as upsample_kernel
+from slwarp.kernels.sampling import upsample_intervals as upsample_intervals_kernel
+from slwarp.kernels.sampling import upsample_place as upsample_place_kernel
 
 __all__ = [
     "RenderOutput",
@@ -494,9 +495,20 @@ def upsample_samples(z_vals: torch.Tensor, sdf: torch.Tensor, rays_o: torch.Tens
     R = z_vals.shape[0]
     if backend == "torch" or R == 0:
         return twin.upsample_samples(z_vals, sdf, rays_o, rays_d, n_new, float(inv_s), bnd)
-    z_new = torch.empty(R, n_new, dtype=torch.float32, device=z_vals.device)
-    _launch(upsample_kernel, R, [_desc(_f32(z_vals)), _desc(_f32(sdf)), _desc(_f32v(rays_o), 3), _desc(_f32v(rays_d), 3),
-                        float(inv_s), _vec3(bnd[0:3]), _vec3(bnd[3:6]), _desc(z_new)], z_vals.device)
+    S = z_vals.shape[1]
+    if S == 0:
+        raise ValueError("upsample_samples needs at least one sample per ray")
+    dev = z_vals.device
+    z = _f32(z_vals)
+    z_new = torch.empty(R, n_new, dtype=torch.float32, device=dev)
+    # scratch: the alpha of each interval (its shape is fixed by the inputs: graph-capturable). Row-major: the
+    # n_new threads of a ray walk the same row in step, and its few cache lines stay in L1 after the first load
+    alpha = torch.empty(R, S - 1, dtype=torch.float32, device=dev)
+    if S > 1:
+        _launch(upsample_intervals_kernel, (R, S - 1), [_desc(z), _desc(_f32(sdf)), _desc(_f32v(rays_o), 3),
+                _desc(_f32v(rays_d), 3), float(inv_s), _vec3(bnd[0:3]), _vec3(bnd[3:6]), _desc(alpha)], dev)
+    if n_new > 0:
+        _launch(upsample_place_kernel, (R, n_new), [_desc(z), _desc(alpha), _desc(z_new)], dev)
     return z_new
 
 
@@ -509,5 +521,7 @@ def merge_samples(z_a: torch.Tensor, f_a: torch.Tensor, z_b: torch.Tensor, f_b: 
     n = z_a.shape[1] + z_b.shape[1]
     z = torch.empty(R, n, dtype=torch.float32, device=z_a.device)
     f = torch.empty(R, n, dtype=torch.float32, device=z_a.device)
-    _launch(merge_sorted_kernel, R, [_desc(_f32(z_a)), _desc(_f32(f_a)), _desc(_f32(z_b)), _desc(_f32(f_b)), _desc(z), _desc(f)], z_a.device)
+    if n == 0:
+        return z, f
+    _launch(merge_sorted_kernel, (R, n), [_desc(_f32(z_a)), _desc(_f32(f_a)), _desc(_f32(z_b)), _desc(_f32(f_b)), _desc(z), _desc(f)], z_a.device)
     return z, f
