@@ -250,6 +250,26 @@ def test_hashgrid_cuda_graph_step_matches_plain_launches(small_scan, backend):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
+def test_compiled_map_terms_in_the_cuda_graph_match_plain_launches(small_scan):
+    """With runtime.compile the map terms (warm-up pull, surface and free-space terms) run compiled, in the plain
+    steps before the capture and in the captured step: the same losses and parameters as plain uncompiled launches,
+    through the warm-up and after it."""
+    scan = small_scan.select("0:6")
+    runs = {}
+    for compiled, graph in ((False, False), (True, False), (True, True)):
+        cfg = tiny_hashgrid(device="cuda", cuda_graph=graph, compile=compiled, iters=14, init_iters=6, grid_level_every=4,
+                            surface_weight=1.0, surface_after=1.0, free_space=1.0)
+        tr = Trainer(scan, cfg, progress=False)
+        assert tr.surface_depth is not None
+        losses = [float(tr.step()["loss"]) for _ in range(20)]
+        runs[compiled, graph] = (np.array(losses), params_vector(tr).cpu(), tr)
+    assert runs[True, True][2].graph_captured, "the step was not captured"
+    for key in ((True, False), (True, True)):
+        np.testing.assert_allclose(runs[key][0], runs[False, False][0], rtol=1e-3, atol=1e-6)
+        torch.testing.assert_close(runs[key][1], runs[False, False][1], rtol=1e-3, atol=2e-4)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
 @pytest.mark.parametrize("backend", ["warp", "torch"])
 def test_cuda_graph_step_matches_plain_launches(small_scan, backend):
     """The captured training step replays the same computation on the same draws: the same losses and
@@ -296,17 +316,17 @@ def test_surface_term_by_hand(small_scan):
     w = torch.ones(16)
     n = torch.tensor(16.0)
     on = torch.full((16,), 700.0)
-    assert tr._surface_term(batch, on, w, n).item() == pytest.approx(0.0, abs=1e-5)
+    assert tr._surface_term(d, on / d[:, 2], w, n).item() == pytest.approx(0.0, abs=1e-5)
     expected = float((20.0 - band * d[:, 2]).mean()) / tr.volume.scale
     for offset in (10.0, -10.0):
-        got = tr._surface_term(batch, on + offset, w, n)
+        got = tr._surface_term(d, (on + offset) / d[:, 2], w, n)
         assert got.item() == pytest.approx(expected, rel=1e-4)
     # a pixel of weight 0 counts nothing; its gradient reaches the field where the rendered depth's would not
     half = torch.where(torch.arange(16) < 8, 1.0, 0.0)
-    assert tr._surface_term(batch, on + 10.0, half, n).item() == pytest.approx(
+    assert tr._surface_term(d, (on + 10.0) / d[:, 2], half, n).item() == pytest.approx(
         float((20.0 - band * d[:8, 2]).sum()) / 16 / tr.volume.scale, rel=1e-4)
     tr.field.zero_grad()
-    tr._surface_term(batch, on - 300.0, w, n).backward()
+    tr._surface_term(d, (on - 300.0) / d[:, 2], w, n).backward()
     assert float(tr.field.z0.grad) > 0  # a surface 300 mm in front: the plane is pulled toward the camera
 
 
@@ -353,10 +373,10 @@ def test_free_space_term_by_hand(small_scan):
     before = z < (t - MISSED_MM)[:, None]
     expected = (torch.relu(-sdf) * before).sum().item() / 16 / tr.volume.scale
     assert expected > 0
-    assert tr._free_space_term(batch, target, w, z, sdf, n).item() == pytest.approx(expected, rel=1e-5)
-    assert tr._free_space_term(batch, torch.full((16,), 700.0), w, z, sdf, n).item() == pytest.approx(0.0, abs=1e-6)
+    assert tr._free_space_term(t, w, z, sdf, n).item() == pytest.approx(expected, rel=1e-5)
+    assert tr._free_space_term(torch.full((16,), 700.0) / d[:, 2], w, z, sdf, n).item() == pytest.approx(0.0, abs=1e-6)
     tr.field.zero_grad()
-    tr._free_space_term(batch, target, w, z, sdf, n).backward()
+    tr._free_space_term(t, w, z, sdf, n).backward()
     assert float(tr.field.z0.grad) < 0  # descending moves z0 up: the plane recedes toward the map's depth
 
 
@@ -427,3 +447,58 @@ def test_draw_ahead_gives_the_step_by_step_draws_and_generator_state():
     assert all(torch.equal(a, b) for a, b in zip(want, got))
     ahead.rewind()
     assert torch.equal(ahead.generator.get_state(), plain.get_state())
+
+
+def test_map_terms_compile_as_one_graph_with_the_same_values(small_scan):
+    """On CUDA the trainer compiles its map terms (warm-up pull, surface and free-space terms, with the surface
+    term's field evaluation of a hash grid) as one graph: fullgraph compilation (aot_eager, so that the CPU needs no
+    compiler) must not break, and gives the eager values and gradients for warm 1 (warm-up) and warm 0 (after)."""
+    from slwarp.neural import ops
+
+    scan = small_scan.select("0:6")
+    gt = np.where(np.isfinite(scan.gt_depth), scan.gt_depth, np.nan).astype(np.float32)
+    tr = Trainer(scan, tiny_hashgrid(surface_weight=1.0, surface_after=1.0, free_space=1.0), init_depth=gt + 8.0,
+                 progress=False)
+    assert tr.surface_depth is not None
+    batch = tr.renderer.sample_pixels(64, torch.Generator().manual_seed(1))
+    _, d, _, _ = ops.camera_rays(batch.uv, scan.camera, tr.depth_range, backend="torch")
+    compiled = torch.compile(tr._map_terms, fullgraph=True, backend="aot_eager", dynamic=False)
+    params = [p for p in tr.field.parameters() if p.requires_grad]
+    for warm in (1.0, 0.0):
+        out, z, sdf = tr.renderer.render(batch, jitter=torch.zeros(64))
+        args = (d, batch.index, out.depth, out.weight_sum, z, sdf, torch.tensor(warm))
+        eager = tr._map_terms(*args)
+        got = compiled(*args)
+        assert float(eager.detach()) > 0
+        torch.testing.assert_close(got, eager, rtol=1e-5, atol=1e-7)
+        ge = torch.autograd.grad(eager, params, retain_graph=True, allow_unused=True)
+        gc = torch.autograd.grad(got, params, allow_unused=True)
+        for a, b in zip(gc, ge):
+            if b is None:
+                assert a is None or not a.any()
+            else:
+                torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-7)
+        # the float weights of plain CPU steps give the same terms
+        torch.testing.assert_close(tr._map_terms(*args[:-1], warm), eager, rtol=1e-6, atol=1e-7)
+
+
+@pytest.mark.parametrize("field", ["mlp", "hashgrid"])
+def test_variance_learning_rate_factor(small_scan, field):
+    """variance_lr_factor gives NeuS's variance its own Adam rate (a multiple of lr, scaled by the schedule like
+    the others); at 1 the MLP keeps one group of everything, as its checkpoints hold it."""
+    scan = small_scan.select("0:6")
+    make = tiny_hashgrid if field == "hashgrid" else tiny
+    variance = lambda tr: [g for g in tr.optimizer.param_groups if any(p is tr.renderer.variance.v for p in g["params"])]
+    plain = Trainer(scan, make(init="sphere"), progress=False)
+    fast = Trainer(scan, make(init="sphere", variance_lr_factor=10.0), progress=False)
+    (g1,), (g10,) = variance(plain), variance(fast)
+    assert g10["base_lr"] == pytest.approx(10 * plain.cfg.schedule.lr)
+    assert len(g10["params"]) == 1 and g1["base_lr"] == pytest.approx(plain.cfg.schedule.lr)
+    if field == "mlp":
+        assert len(plain.optimizer.param_groups) == 1 and len(fast.optimizer.param_groups) == 2
+    v0 = (plain.renderer.variance.v.item(), fast.renderer.variance.v.item())
+    for tr in (plain, fast):
+        for _ in range(3):
+            tr.step()
+    moved = (abs(plain.renderer.variance.v.item() - v0[0]), abs(fast.renderer.variance.v.item() - v0[1]))
+    assert moved[1] > 5 * moved[0] > 0  # Adam's steps are about the learning rate

@@ -138,6 +138,9 @@ class ScheduleConfig:
     lr_decay: Literal["none", "cosine"] = option("none", "learning-rate schedule: none (paper: constant) or cosine "
                                                  "(NeuS: decay to lr_final x lr)")
     lr_final: float = option(0.05, "cosine decay: the final learning rate as a fraction of lr", min=0.0, max=1.0)
+    # NeuS's variance v (inv_s = exp(10 v)) moves by about Adam's step per iteration at most, so lr x iterations bound
+    # how sharp the rendering may get: a short schedule may need it faster than the field
+    variance_lr_factor: float = option(1.0, "Adam learning rate of NeuS's variance as a multiple of lr", above=0.0)
     lambda_rc: float = option(1.0, "weight of the rendered-colour loss L_rc (0 only for the loss ablation)", min=0.0)
     lambda_sc: float = option(1.0, "weight of the surface-colour loss L_sc, from sc_start on", min=0.0)
     sc_start: int = option(1000, "iteration where L_sc starts", min=0)

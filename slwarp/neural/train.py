@@ -230,6 +230,9 @@ class History:
     eikonal: list = field(default_factory=list)
     inv_s: list = field(default_factory=list)
     frames: list = field(default_factory=list)
+    # seconds of training (wall clock, resumed runs included) at each logged iteration; the loss is read there,
+    # which waits for the GPU, so the differences are the true time per step (older checkpoints: empty)
+    elapsed_s: list = field(default_factory=list)
 
 
 class DrawAhead:
@@ -393,10 +396,12 @@ class Trainer:
         self.blur_fit = None
         if init_depth is None and config.init.method == "search" and config.init.iters > 0 and not resume:
             search_blur = 1.0 if config.sampling.pattern_blur == "auto" else float(config.sampling.pattern_blur)
+            search_patterns = blur_patterns(torch.as_tensor(scan.patterns[: self.n_frames], device=self.device), search_blur)
+            # on a GPU the search reads the frames where they are (the renderer's images, the patterns blurred there)
+            search_images, search_patterns = pattern_model_inputs(self)[0], search_patterns if (
+                self.device.type == "cuda") else search_patterns.cpu().numpy()
             init_depth, self.search_info = search_depth(
-                scan.camera, scan.projector, images,
-                blur_patterns(torch.as_tensor(scan.patterns[: self.n_frames], device=self.device), search_blur).cpu().numpy(),
-                self.depth_range,
+                scan.camera, scan.projector, search_images, search_patterns, self.depth_range,
                 valid=lit, step_mm=config.init.search_step_mm, stride=config.init.search_stride, device=self.device)
         if config.sampling.pattern_blur == "auto" and not resume:
             sigma, fit = 1.0, None
@@ -506,18 +511,23 @@ class Trainer:
 
     def _parameter_groups(self) -> list[dict]:
         """Adam's groups, each with its base learning rate ("base_lr", scaled by the schedule's factor): the
-        hash grid's tables (grid_table_lr_factor x lr), the rest of the field and the NeuS variance (lr); one
-        group of everything for other fields (as checkpoints of the MLP hold it)."""
+        hash grid's tables (grid_table_lr_factor x lr), the rest of the field (lr) and the NeuS variance
+        (variance_lr_factor x lr); for other fields one group of everything (as checkpoints of the MLP hold it)
+        unless the variance has a rate of its own."""
         lr = self.cfg.schedule.lr
         variance = list(self.renderer.variance.parameters())
+        variance_lr = lr * self.cfg.schedule.variance_lr_factor
         table = getattr(self.field, "table", None)
         if self.cfg.field.kind != "hashgrid" or not isinstance(table, torch.nn.Parameter):
-            return [{"params": list(self.field.parameters()) + variance, "lr": lr, "base_lr": lr}]
+            if variance_lr == lr:
+                return [{"params": list(self.field.parameters()) + variance, "lr": lr, "base_lr": lr}]
+            return [{"params": list(self.field.parameters()), "lr": lr, "base_lr": lr},
+                    {"params": variance, "lr": variance_lr, "base_lr": variance_lr}]
         rest = [p for p in self.field.parameters() if p is not table]
         table_lr = lr * self.cfg.field.grid_table_lr_factor
         return [{"params": [table], "lr": table_lr, "base_lr": table_lr},
                 {"params": rest, "lr": lr, "base_lr": lr},
-                {"params": variance, "lr": lr, "base_lr": lr}]
+                {"params": variance, "lr": variance_lr, "base_lr": variance_lr}]
 
     def cos_anneal(self, it: int) -> float:
         return 1.0 if self.cfg.schedule.anneal_end <= 0 else min(1.0, it / self.cfg.schedule.anneal_end)
@@ -641,6 +651,8 @@ class Trainer:
             stream = torch.cuda.stream(self._stream) if self._stream is not None else _nullcontext()
             if self._stream is not None:
                 self._stream.wait_stream(torch.cuda.current_stream(self.device))
+            if self.renderer.compile_field:  # as the captured step passes them: one compiled graph of the map terms
+                weights = {k: torch.tensor(v, device=self.device) for k, v in weights.items()}
             with stream:
                 vals = self._step_body(pick.to(self.device), jitter.to(self.device), weights, self.cos_anneal(it))
             if self._stream is not None:
@@ -688,22 +700,9 @@ class Trainer:
         loss = self.cfg.schedule.lambda_reg * losses.eikonal
         init = self.cfg.init
         if self.init_depth is not None and (captured or warm != 0.0 or init.surface_after > 0 or init.free_space > 0):
-            target = self.init_depth[batch.index]
-            ok = torch.isfinite(target).to(target.dtype)
-            n = ok.sum().clamp(min=1.0)
-            if captured or warm != 0.0:
-                # warm-up: pull the rendered depth (and full opacity) onto the initial depth map
-                depth_err = ((losses.output.depth - torch.nan_to_num(target)).abs() * ok).sum() / n
-                opacity = ((1.0 - losses.output.weight_sum).abs() * ok).sum() / n
-                loss = loss + warm * (depth_err / self.volume.scale + opacity)
-            if self.surface_depth is not None:
-                surface = self.surface_depth[batch.index]
-                per_pixel = surface_term_weights(surface, losses.output.depth.detach(), warm, init.surface_weight,
-                                                 init.surface_after)
-                loss = loss + self._surface_term(batch, surface, per_pixel, n)
-                if init.free_space > 0:
-                    bridged = free_space_weights(surface, losses.output.depth.detach(), warm, init.free_space)
-                    loss = loss + self._free_space_term(batch, surface, bridged, losses.z_vals, losses.sdf, n)
+            _, d, _, _ = ops.camera_rays(batch.uv, self.scan.camera, self.depth_range, backend=self.cfg.runtime.backend)
+            loss = loss + self._map_terms_fn()(d, batch.index, losses.output.depth, losses.output.weight_sum,
+                                               losses.z_vals, losses.sdf, warm)
         if captured or warm != 1.0:
             photometric = self.cfg.schedule.lambda_rc * losses.color
             if captured or w_sc != 0.0:
@@ -718,31 +717,68 @@ class Trainer:
         return {"loss": loss.detach(), "color": losses.color.detach(), "surface": losses.surface.detach(),
                 "eikonal": losses.eikonal.detach()}
 
-    def _surface_term(self, batch, target: torch.Tensor, weight: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
+    def _map_terms_fn(self):
+        """`_map_terms`, torch.compile'd where the renderer compiles its field (CUDA with runtime.compile): the terms
+        are some 90 small element-wise kernels and one more field evaluation, which compiling fuses (the terms cost
+        `fast` 0.32 ms of its 1.93 ms step on an H100: bench/results/train-speed-cuda-fast-17a.md). Compiled, the
+        weights come as 0-d tensors in every step (`step`), so that one compiled graph serves the plain steps before
+        the capture and the captured one."""
+        fn = getattr(self, "_map_terms_compiled", None)
+        if fn is None:
+            fn = torch.compile(self._map_terms, dynamic=False) if self.renderer.compile_field else self._map_terms
+            self._map_terms_compiled = fn
+        return fn
+
+    def _map_terms(self, d: torch.Tensor, index: torch.Tensor, depth: torch.Tensor, weight_sum: torch.Tensor,
+                   z_vals: torch.Tensor, sdf: torch.Tensor, warm) -> torch.Tensor:
+        """The loss terms that use the depth-search map (dimensionless), for a batch of R pixels: unit ray
+        directions d [R, 3], flat pixel indices [R], the rendered depth [R] (mm) and opacity [R], the samples'
+        distances z_vals [R, S] (mm) and SDF [R, S] (mm, differentiable). In the warm-up (warm 1) the rendered depth
+        and full opacity are pulled onto the map; the surface term (`_surface_term`) and the free-space term
+        (`_free_space_term`) act at the confirmed depths. warm: a float, or a 0-d tensor (then every term is
+        computed, weighted)."""
+        init = self.cfg.init
+        captured = torch.is_tensor(warm)
+        target = self.init_depth[index]
+        ok = torch.isfinite(target).to(target.dtype)
+        n = ok.sum().clamp(min=1.0)
+        loss = torch.zeros((), device=depth.device)
+        if captured or warm != 0.0:
+            # warm-up: pull the rendered depth (and full opacity) onto the initial depth map
+            depth_err = ((depth - torch.nan_to_num(target)).abs() * ok).sum() / n
+            opacity = ((1.0 - weight_sum).abs() * ok).sum() / n
+            loss = loss + warm * (depth_err / self.volume.scale + opacity)
+        if self.surface_depth is not None:
+            surface = self.surface_depth[index]
+            t = torch.nan_to_num(surface) / d[:, 2]  # distance along the unit ray to camera depth surface
+            per_pixel = surface_term_weights(surface, depth.detach(), warm, init.surface_weight, init.surface_after)
+            loss = loss + self._surface_term(d, t, per_pixel, n)
+            if init.free_space > 0:
+                bridged = free_space_weights(surface, depth.detach(), warm, init.free_space)
+                loss = loss + self._free_space_term(t, bridged, z_vals, sdf, n)
+        return loss
+
+    def _surface_term(self, d: torch.Tensor, t: torch.Tensor, weight: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
         """The SDF term at the initial map's points (dimensionless: mm over the volume's scale), summed over the
-        batch's pixels with per-pixel weights [R] (0 where no target) over n: |f(p)| at the point p of camera
-        depth target [R] (mm) on each pixel's ray, plus relu(-f) at band mm before it and relu(f) at band mm
+        batch's pixels with per-pixel weights [R] (0 where no target) over n: |f(p)| at the point p at distance t [R]
+        (mm) along each pixel's unit ray d [R, 3], plus relu(-f) at band mm before it and relu(f) at band mm
         behind it along the ray. The rendered depth's gradient reaches the SDF only through NeuS weights near
         the field's current surface, so it cannot raise a surface far in front of it (a 2.5 mm rod 100 mm in
         front of the background: bench/thin_stages.py); this term acts on the field at the point itself."""
-        _, d, _, _ = ops.camera_rays(batch.uv, self.scan.camera, self.depth_range, backend=self.cfg.runtime.backend)
-        t = torch.nan_to_num(target) / d[:, 2]  # distance along the unit ray to camera depth target
         band = self.cfg.init.surface_band_mm
         along = torch.stack([t - band, t, t + band])  # [3, R]
         f = self.field(along[..., None] * d[None])  # [3, R] mm
         term = f[1].abs() + torch.relu(-f[0]) + torch.relu(f[2])
         return (term * weight).sum() / n / self.volume.scale
 
-    def _free_space_term(self, batch, target: torch.Tensor, weight: torch.Tensor, z_vals: torch.Tensor,
-                         sdf: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
+    def _free_space_term(self, t: torch.Tensor, weight: torch.Tensor, z_vals: torch.Tensor, sdf: torch.Tensor,
+                         n: torch.Tensor) -> torch.Tensor:
         """The free-space term (dimensionless: mm over the volume's scale), summed over the batch's pixels with
         per-pixel weights [R] (0 where none) over n: the sum of relu(-f) over the ray's samples (z_vals [R, S] along
-        the unit ray, sdf [R, S] mm, differentiable) more than MISSED_MM in front of the point at camera depth
-        target [R] (mm). The pixel sees its surface at the target, so the ray is empty before it; the samples
+        the unit ray, sdf [R, S] mm, differentiable) more than MISSED_MM in front of the map's point at distance t [R]
+        (mm) along the ray. The pixel sees its surface there, so the ray is empty before it; the samples
         there are the ones NeuS's up-sampling put on the field's wrong surface, so the term acts where that
         surface is, at no extra field evaluation."""
-        _, d, _, _ = ops.camera_rays(batch.uv, self.scan.camera, self.depth_range, backend=self.cfg.runtime.backend)
-        t = torch.nan_to_num(target) / d[:, 2]
         before = (z_vals < (t - MISSED_MM)[:, None]).to(sdf.dtype)
         per_ray = (torch.relu(-sdf) * before).sum(1)
         return (per_ray * weight).sum() / n / self.volume.scale
@@ -843,6 +879,7 @@ class Trainer:
                     h.eikonal.append(v["eikonal"])
                     h.inv_s.append(float(self.renderer.inv_s().detach()))
                     h.frames.append(self.n_frames)
+                    h.elapsed_s.append(time.perf_counter() - t_start)
                     bar.set_postfix(loss=f"{v['loss']:.4f}", rc=f"{v['color']:.4f}", sc=f"{v['surface']:.4f}",
                                     eik=f"{v['eikonal']:.3f}", inv_s=f"{h.inv_s[-1]:.3g}", frames=self.n_frames)
                     if callback is not None:
