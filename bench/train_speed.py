@@ -146,14 +146,18 @@ def parse_spec(spec: str) -> dict:
                             cuda_graph="graph" in parts[3:]), "twin": "twin" in parts[3:]}
 
 
-def time_config(scan, spec: str, preset_name: str, warmup: int, iters: int, dev: str, options: dict | None = None) -> dict:
+def time_config(scan, spec: str, preset_name: str, warmup: int, iters: int, dev: str, options: dict | None = None,
+                init: str = "preset") -> dict:
     import torch
 
     from slwarp.neural.config import preset
     from slwarp.neural.train import Trainer
 
     parsed = parse_spec(spec)
-    cfg = preset(preset_name, **{**(options or {}), **parsed["options"], "init": "sphere"})
+    # init "preset": the preset's own start (its depth search, so the step carries the terms that need the map: the
+    # surface and free-space terms); "sphere": NeuS's sphere, no map and none of those terms (the figures before
+    # 2026-11-25 were timed so, and read 0.6 ms per step faster than `fast` trains)
+    cfg = preset(preset_name, **{**(options or {}), **parsed["options"], **({"init": "sphere"} if init == "sphere" else {})})
     if dev == "cuda":
         torch.cuda.reset_peak_memory_stats()
     tr = Trainer(scan, cfg, progress=False)
@@ -175,7 +179,7 @@ def time_config(scan, spec: str, preset_name: str, warmup: int, iters: int, dev:
         tr.step()
     sync()
     ms = (time.perf_counter() - t0) / iters * 1e3
-    row = {"config": spec, "preset": preset_name, "field": cfg.field.kind, "ms_per_it": ms, "it_per_s": 1e3 / ms, "warmup_s": t_warm,
+    row = {"config": spec, "preset": preset_name, "init": cfg.init.method, "field": cfg.field.kind, "ms_per_it": ms, "it_per_s": 1e3 / ms, "warmup_s": t_warm,
            "projected_s": cfg.schedule.iters * ms / 1e3, "iters_of_preset": cfg.schedule.iters, "graph_used": tr.graph_captured}
     if dev == "cuda":
         b = breakdown(tr)
@@ -215,11 +219,25 @@ def end_to_end(scan, backend: str, preset_name: str, dev: str, options: dict | N
     row = {"backend": backend, "preset": preset_name, "field": cfg.field.kind, "warmup_s": warmup_s, "wall_s": wall,
            "timings": t, "it_per_s": t["iterations"] / t["train_s"],
            "graph_used": res.trainer.graph_captured, "pattern_blur_px": res.trainer.renderer.pattern_blur,
-           "metrics": res.metrics}
+           "metrics": res.metrics, "timeline": timeline(res.trainer)}
     if dev == "cuda":
         row["peak_gpu_mem_GB"] = torch.cuda.max_memory_allocated() / 1e9
     torch.backends.cuda.matmul.allow_tf32 = False
     return row
+
+
+def timeline(trainer) -> list[dict]:
+    """Wall ms per step between the run's logged iterations (each log reads the loss, which waits for the GPU),
+    with NeuS's inv_s (1/mm) at the segment's end, the hash grid's active levels and whether the step was in the
+    depth-search warm-up."""
+    h = trainer.history
+    rows, prev_it, prev_t = [], 0, 0.0
+    for it, t, inv_s in zip(h.iters, h.elapsed_s, h.inv_s):
+        if it > prev_it:
+            rows.append({"from": prev_it, "to": it, "ms_per_it": (t - prev_t) / (it - prev_it) * 1e3, "inv_s": inv_s,
+                         "levels": trainer.active_levels(it - 1), "warmup": trainer.in_warmup(it - 1)})
+        prev_it, prev_t = it, t
+    return rows
 
 
 def markdown(doc: dict) -> str:
@@ -228,7 +246,7 @@ def markdown(doc: dict) -> str:
     lines = [f"# Training speed, preset `{doc['preset']}`{opts}, {doc['scene']} ({doc['rig']} rig), {doc['device']}, {doc['date']}", ""]
     if doc["rows"]:
         lines += [f"Per iteration ({doc['iters']} timed after {doc['warmup']} untimed ones, at the end of the schedule "
-                  "with every hash-grid level on; the preset runs "
+                  f"with every hash-grid level on, start `{doc['rows'][0].get('init', 'sphere')}`; the preset runs "
                   f"{doc['rows'][0]['iters_of_preset']} + the depth-search warm-up). Breakdown: GPU ms per iteration "
                   "by phase, from the profiler; 'host/idle' is the wall time the GPU had no work (Python, launches, "
                   "synchronisation)." + (" On the CPU: CPU ms per phase, our Warp kernels counted inside the phases "
@@ -259,14 +277,29 @@ def markdown(doc: dict) -> str:
     if doc.get("end_to_end"):
         lines += ["", "## End to end: loaded scan to depth map (reconstruct(), default options of the preset)", "",
                   "Warm-up: a 5 + 5 iteration run of the same preset before (kernel builds, compile, capture).", "",
-                  "| backend | warm-up s | wall s | search + blur fit s | train s | it/s | marching cubes s | depth s | MAE mm | median mm | >5 mm | complete | peak GB |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+                  "'to depth map': reconstruct() up to the finished depth map; 'wall' adds the point cloud and the metrics "
+                  "against the ground truth.", "",
+                  "| backend | warm-up s | to depth map s | wall s | search + blur fit s | train s | it/s | marching cubes s | depth s | MAE mm | median mm | >5 mm | complete | peak GB |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in doc["end_to_end"]:
             t, m = r["timings"], r["metrics"] or {}
-            lines.append(f"| {r['backend']}{' (graph)' if r['graph_used'] else ''} | {r.get('warmup_s', nan):.1f} | {r['wall_s']:.1f} | {t['setup_s']:.1f} | {t['train_s']:.1f} | "
+            lines.append(f"| {r['backend']}{' (graph)' if r['graph_used'] else ''} | {r.get('warmup_s', nan):.1f} | "
+                         f"{t.get('depth_map_s', nan):.2f} | {r['wall_s']:.2f} | {t['setup_s']:.2f} | {t['train_s']:.2f} | "
                          f"{r['it_per_s']:.1f} | {t['marching_cubes_s']:.1f} | {t['depth_s']:.1f} | {m.get('mae', nan):.3f} | "
                          f"{m.get('median', nan):.3f} | {100 * m.get('over_5mm', nan):.2f}% | {100 * m.get('completeness', nan):.1f}% | "
                          f"{r.get('peak_gpu_mem_GB', nan):.2f} |")
+        for r in doc["end_to_end"]:
+            tl = r.get("timeline") or []
+            if tl:
+                lines += ["", f"Time per step along the `{r['backend']}` run (wall clock between logged iterations; "
+                          "the first segment holds the plain steps before the capture):", "",
+                          "| iterations | ms/it | levels | phase | inv_s 1/mm |", "|---|---:|---:|---|---:|"]
+                lines += [f"| {x['from']}-{x['to']} | {x['ms_per_it']:.2f} | {x['levels'] if x['levels'] is not None else '-'} | "
+                          f"{'warm-up' if x['warmup'] else 'main'} | {x.get('inv_s', float('nan')):.3g} |" for x in tl]
+            t = r["timings"]
+            stages = {k: v for k, v in t.items() if k.endswith("_s") and isinstance(v, float)
+                      and k not in ("total_s", "train_wall_s_total", "depth_map_s")}
+            lines += ["", f"Stages of the `{r['backend']}` run (s): " + ", ".join(f"{k[:-2]} {v:.3f}" for k, v in stages.items())]
         e = {r["backend"]: r for r in doc["end_to_end"]}
         if "warp" in e and "torch" in e:
             lines.append(f"\ntraining torch / warp: {e['torch']['timings']['train_s'] / e['warp']['timings']['train_s']:.2f}x; "
@@ -313,6 +346,10 @@ def main(argv=None):
                    help="the backends of --end-to-end")
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                    help="options applied to the preset (flat names of slwarp.neural.config, e.g. field=hashgrid)")
+    p.add_argument("--init", default="preset", choices=["preset", "sphere"],
+                   help="the timed steps' start: the preset's own (default; with a depth-search map, the terms that "
+                        "use it are in the step) or NeuS's sphere (no map: how figures before 2026-11-25 were timed)")
+    p.add_argument("--stem", default=None, help="output name (default train-speed-<device>[-<preset>])")
     p.add_argument("--out", default=str(REPO / "bench" / "results"))
     args = p.parse_args(argv)
     from slwarp.neural.config import OPTIONS, ConfigError
@@ -341,7 +378,7 @@ def main(argv=None):
            "warmup": args.warmup, "iters": args.iters, "rows": [], "end_to_end": []}
     for spec in configs:
         torch.manual_seed(0)
-        row = time_config(scan, spec, preset_name, args.warmup, args.iters, dev, options)
+        row = time_config(scan, spec, preset_name, args.warmup, args.iters, dev, options, init=args.init)
         doc["rows"].append(row)
         print(json.dumps(row), flush=True)
     if args.end_to_end:
@@ -352,7 +389,8 @@ def main(argv=None):
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     tag = ("cuda" if dev == "cuda" else "cpu") + ("" if args.preset is None else f"-{preset_name}")
-    old = out / f"train-speed-{tag}.json"
+    stem = args.stem or f"train-speed-{tag}"
+    old = out / f"{stem}.json"
     if old.is_file():  # a run of only the per-config rows or only --end-to-end keeps the other part
         prev = json.loads(old.read_text())
         if prev.get("device") == name and prev.get("preset") == preset_name and prev.get("options", []) == args.set:
@@ -361,8 +399,8 @@ def main(argv=None):
                     doc[part] = prev[part]
     md = markdown(doc)
     print(md)
-    (out / f"train-speed-{tag}.json").write_text(json.dumps(doc, indent=1, default=float))
-    (out / f"train-speed-{tag}.md").write_text(md + "\n")
+    (out / f"{stem}.json").write_text(json.dumps(doc, indent=1, default=float))
+    (out / f"{stem}.md").write_text(md + "\n")
 
 
 if __name__ == "__main__":

@@ -28,6 +28,10 @@ def test_train_speed_smoke_hashgrid_on_cpu(tmp_path):
     assert all(r["field"] == "hashgrid" and math.isfinite(r["ms_per_it"]) for r in doc["rows"])
     (e2e,) = doc["end_to_end"]
     assert e2e["field"] == "hashgrid" and e2e["timings"]["iterations"] == 5 and e2e["warmup_s"] > 0
+    # the timed steps carry the preset's own start (the depth-search map and the terms that use it)
+    assert all(r["init"] == "search" for r in doc["rows"])
+    # time per step along the run, from the logged iterations (the last is logged in any case)
+    assert e2e["timeline"][-1]["to"] == 5 and all(x["ms_per_it"] > 0 and x["inv_s"] > 0 for x in e2e["timeline"])
     md = (tmp_path / "train-speed-cpu-tiny.md").read_text()
     assert "warp:eager:fp32:twin / warp:eager:fp32" in md and "with field=hashgrid" in md
 

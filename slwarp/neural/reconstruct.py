@@ -191,8 +191,9 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
         t3 = time.perf_counter()
     check, misfit, refined_applied = None, None, False
     if ex.refine_range > 0:
-        refine_inputs = (cam, trainer.scan.projector, trainer.scan.images[: trainer.n_frames],
-                         trainer.scan.patterns[: trainer.n_frames], ex.refine_range)
+        # the images as the pattern model's inputs hold them (on a GPU the renderer's tensors: no upload per use)
+        refine_inputs = (cam, trainer.scan.projector, model_inputs[0] if not ex.refine_check else
+                         trainer.scan.images[: trainer.n_frames], trainer.scan.patterns[: trainer.n_frames], ex.refine_range)
         # with refine_max_misfit: not where the model misses part of the optics (a camera response, real lenses),
         # whose errors the refinement would fit instead of the surface
         refined, misfit = refine_where_model_fits(depth, *refine_inputs, ex.refine_max_misfit, device=trainer.device)
@@ -273,11 +274,12 @@ def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log
         valid &= scan.mask
     depth, confidence, mesh, ext_t, fate = extract_depth(trainer, valid, progress=progress,
                                                          region=scan.mask if use_mask and scan.mask is not None else None)
+    t3 = time.perf_counter()  # the depth map is done: what follows is outputs and, with ground truth, its metrics
     points = depth_to_points(depth, scan.camera)
     metrics = None
     if scan.gt_depth is not None:
         metrics = depth_metrics(depth, scan.gt_depth, scan.mask)
-    timings = {"setup_s": t1 - t0, "train_s": t2 - t1, "train_wall_s_total": trainer.elapsed,
+    timings = {"setup_s": t1 - t0, "train_s": t2 - t1, "depth_map_s": t3 - t0, "train_wall_s_total": trainer.elapsed,
                "iterations": trainer.iteration, **ext_t, "pixels": fate_counts(fate), "total_s": time.perf_counter() - t0}
     if staging is not None:
         out = staging

@@ -351,10 +351,11 @@ def component_sizes(depth: np.ndarray, tol_mm: float) -> np.ndarray:
     grid[1::2, ::2] = down
     n_labels, labels = cv2.connectedComponents(grid, connectivity=4, ltype=cv2.CV_32S)
     label = labels[::2, ::2]  # [H, W], 0 where NaN
-    # the diagonal links between different labels, each pair once
-    pairs = np.concatenate([np.stack([label[:-1, :-1][diag], label[1:, 1:][diag]], 1),
-                            np.stack([label[:-1, 1:][anti], label[1:, :-1][anti]], 1)])
-    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    # the diagonal links between different labels, each pair once (selected before they are gathered: nearly all
+    # diagonal links join pixels of one label already)
+    la, lb, lc, ld = label[:-1, :-1], label[1:, 1:], label[:-1, 1:], label[1:, :-1]
+    cross, cross_anti = diag & (la != lb), anti & (lc != ld)
+    pairs = np.concatenate([np.stack([la[cross], lb[cross]], 1), np.stack([lc[cross_anti], ld[cross_anti]], 1)])
     parent = np.arange(n_labels)
     if len(pairs):
         a, b = np.unique(np.sort(pairs, 1), axis=0).T
