@@ -379,8 +379,10 @@ def main(argv=None):
     tag += "" if args.layout == "sample-major" else "-raymajor"
     tag += "-sampling" if args.sampling_only else ""
     (out / f"kernels-{tag}.json").write_text(json.dumps(meta, indent=1))
-    (out / f"kernels-{tag}.md").write_text(f"# Fused render + losses, {name}, {meta['date']}\n\n"
-                                           f"Copy bandwidth {bw / 1e9:.0f} GB/s (read + write). Inputs {args.layout}. Times: median ms.\n\n" + table + "\n\n"
+    title = "Sampling ops" if args.sampling_only else "Fused render + losses"
+    render_part = "" if args.sampling_only else table + "\n\n"
+    (out / f"kernels-{tag}.md").write_text(f"# {title}, {name}, {meta['date']}\n\n"
+                                           f"Copy bandwidth {bw / 1e9:.0f} GB/s (read + write). Inputs {args.layout}. Times: median ms.\n\n" + render_part +
                                            "## Sampling ops (one up-sampling step, S -> n new samples; the merge S + n)\n\n"
                                            "warp+graph: per call, replayed from a CUDA graph of 20 calls. Times: median ms.\n\n"
                                            + sampling_table + "\n")
