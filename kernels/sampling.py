@@ -191,27 +191,14 @@ def upsample_place(
 
 
 @wp.func
-def count_less(z: wp.array2d(dtype=float), r: int, v: float) -> int:
-    """Number of entries of the sorted row z[r] below v (binary search)."""
+def count_below(z: wp.array2d(dtype=float), r: int, v: float, or_equal: bool) -> int:
+    """Number of entries of the sorted row z[r] below v (at or below v when or_equal), by binary search."""
     lo = int(0)
     hi = z.shape[1]
     while lo < hi:
         mid = (lo + hi) // 2
-        if z[r, mid] < v:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo
-
-
-@wp.func
-def count_not_above(z: wp.array2d(dtype=float), r: int, v: float) -> int:
-    """Number of entries of the sorted row z[r] at or below v (binary search)."""
-    lo = int(0)
-    hi = z.shape[1]
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if z[r, mid] <= v:
+        x = z[r, mid]
+        if x < v or (or_equal and x == v):
             lo = mid + 1
         else:
             hi = mid
@@ -234,12 +221,12 @@ def merge_sorted(
     na = z_a.shape[1]
     if k < na:
         v = z_a[r, k]
-        dst = k + count_less(z_b, r, v)
+        dst = k + count_below(z_b, r, v, False)
         z_out[r, dst] = v
         f_out[r, dst] = f_a[r, k]
     else:
         j = k - na
         v = z_b[r, j]
-        dst = j + count_not_above(z_a, r, v)
+        dst = j + count_below(z_a, r, v, True)
         z_out[r, dst] = v
         f_out[r, dst] = f_b[r, j]
