@@ -52,6 +52,11 @@ def _init_worker(devices, threads: int, keep: str | None = None) -> None:
     _DEVICE = devices.get()
     _KEEP = keep
     torch.set_num_threads(threads)
+    # a worker runs several presets, whose ray counts give the compiled field other shapes: at dynamo's default
+    # limit of 8 compiled versions a worker ran its later fields uncompiled (slower, the same results)
+    import torch._dynamo
+
+    torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
     if _DEVICE.startswith("cuda"):
         torch.cuda.set_device(torch.device(_DEVICE))
 

@@ -364,7 +364,8 @@ def main(argv=None):
         rows.append(row)
         print(json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()}), flush=True)
     table = format_table(rows, backends)
-    print(table)
+    if rows:
+        print(table)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     tag = "cuda" if device.type == "cuda" else "cpu"
