@@ -164,20 +164,29 @@ def _sparse_residual(depth: np.ndarray, camera, projector, images: np.ndarray, p
     return out
 
 
+def _cached(store: dict, key, build, keep: int = 4):
+    """store[key], built by build() the first time; the store keeps the last `keep` rigs' entries (read-only use)."""
+    value = store.get(key)
+    if value is None:
+        if len(store) >= keep:
+            store.clear()
+        value = store[key] = build()
+    return value
+
+
+def _camera_key(camera) -> tuple:
+    return (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes())
+
+
 # each camera's unit rays [H*W, 3] float64 on a device (the last few), for _residual_on_device
 _DEVICE_RAYS: dict = {}
 
 
 def _rays_on(camera, device) -> torch.Tensor:
     """camera_rays(camera) as a [H*W, 3] float64 tensor on `device`, uploaded once per camera and device."""
-    key = (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes(), str(device))
-    rays = _DEVICE_RAYS.get(key)
-    if rays is None:
-        if len(_DEVICE_RAYS) >= 4:
-            _DEVICE_RAYS.clear()
-        # a copy: camera_rays' cached grid is read-only
-        rays = _DEVICE_RAYS[key] = torch.from_numpy(np.array(camera_rays(camera).reshape(-1, 3), np.float64)).to(device)
-    return rays
+    # a copy: camera_rays' cached grid is read-only
+    return _cached(_DEVICE_RAYS, _camera_key(camera) + (str(device),),
+                   lambda: torch.from_numpy(np.array(camera_rays(camera).reshape(-1, 3), np.float64)).to(device))
 
 
 def _residual_on_device(depth: np.ndarray, camera, projector, images, patterns: torch.Tensor) -> np.ndarray:
@@ -415,14 +424,8 @@ _PROJECTOR_RAYS: dict = {}
 
 def _rays_in_projector(camera, projector, device) -> _Rays:
     """_Rays(camera, projector, device), built once per rig and device."""
-    key = (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes(), np.asarray(projector.R).tobytes(),
-           np.asarray(projector.T).tobytes(), str(device))
-    rays = _PROJECTOR_RAYS.get(key)
-    if rays is None:
-        if len(_PROJECTOR_RAYS) >= 4:
-            _PROJECTOR_RAYS.clear()
-        rays = _PROJECTOR_RAYS[key] = _Rays(camera, projector, device)
-    return rays
+    key = _camera_key(camera) + (np.asarray(projector.R).tobytes(), np.asarray(projector.T).tobytes(), str(device))
+    return _cached(_PROJECTOR_RAYS, key, lambda: _Rays(camera, projector, device))
 
 
 def _projector_uv(points: torch.Tensor, projector) -> torch.Tensor:
@@ -685,7 +688,7 @@ def _refine(m: _FittedModel | None, depth: np.ndarray, half_range_mm: float, rad
     return out.cpu().numpy()
 
 
-def refinement_generalises(depth: np.ndarray, camera, projector, images: np.ndarray, patterns: np.ndarray,
+def refinement_generalises(depth: np.ndarray, camera, projector, images, patterns: np.ndarray,
                            half_range_mm: float, device=None, refine=None) -> dict:
     """Whether the photometric refinement of depth [H, W] (mm, NaN: none) explains frames it did not see.
 
@@ -702,7 +705,7 @@ def refinement_generalises(depth: np.ndarray, camera, projector, images: np.ndar
     (0.0270 -> 0.0265). But on full-resolution simulated scans (GPU, `tuned`, default rig) it also refused
     refinements that helped, on 4 of 8 scenes (mean MAE 0.134 -> 0.171 mm), so it is opt-in (`refine_check`), for
     real captures. Cost: N more refinements."""
-    images = np.asarray(images, np.float32)
+    images = images.cpu().numpy() if isinstance(images, torch.Tensor) else np.asarray(images, np.float32)
     patterns = np.asarray(patterns, np.float32)
     depth = np.asarray(depth, np.float32)
     n = len(images)

@@ -192,8 +192,8 @@ def extract_depth(trainer: Trainer, valid: np.ndarray | None = None, progress: b
     check, misfit, refined_applied = None, None, False
     if ex.refine_range > 0:
         # the images as the pattern model's inputs hold them (on a GPU the renderer's tensors: no upload per use)
-        refine_inputs = (cam, trainer.scan.projector, model_inputs[0] if not ex.refine_check else
-                         trainer.scan.images[: trainer.n_frames], trainer.scan.patterns[: trainer.n_frames], ex.refine_range)
+        refine_inputs = (cam, trainer.scan.projector, model_inputs[0], trainer.scan.patterns[: trainer.n_frames],
+                         ex.refine_range)
         # with refine_max_misfit: not where the model misses part of the optics (a camera response, real lenses),
         # whose errors the refinement would fit instead of the surface
         refined, misfit = refine_where_model_fits(depth, *refine_inputs, ex.refine_max_misfit, device=trainer.device)

@@ -389,6 +389,7 @@ class Trainer:
         self.optimizer = torch.optim.Adam(self._parameter_groups(), lr=config.schedule.lr)
         self._configure_optimizer()
         self._graph = None  # the captured step (see _graph_step)
+        self._map_terms_compiled = None  # _map_terms, compiled on first use (see _map_terms_fn)
         self._eager_since_change = 0  # plain steps since the frames changed (capture needs warm kernels)
         self._stream = torch.cuda.Stream(self.device) if self.use_graph else None
         self.init_depth = None
@@ -396,12 +397,12 @@ class Trainer:
         self.blur_fit = None
         if init_depth is None and config.init.method == "search" and config.init.iters > 0 and not resume:
             search_blur = 1.0 if config.sampling.pattern_blur == "auto" else float(config.sampling.pattern_blur)
+            # on a GPU the search reads the frames where they are: the renderer's images, the patterns blurred there
             search_patterns = blur_patterns(torch.as_tensor(scan.patterns[: self.n_frames], device=self.device), search_blur)
-            # on a GPU the search reads the frames where they are (the renderer's images, the patterns blurred there)
-            search_images, search_patterns = pattern_model_inputs(self)[0], search_patterns if (
-                self.device.type == "cuda") else search_patterns.cpu().numpy()
+            if self.device.type != "cuda":
+                search_patterns = search_patterns.numpy()
             init_depth, self.search_info = search_depth(
-                scan.camera, scan.projector, search_images, search_patterns, self.depth_range,
+                scan.camera, scan.projector, pattern_model_inputs(self)[0], search_patterns, self.depth_range,
                 valid=lit, step_mm=config.init.search_step_mm, stride=config.init.search_stride, device=self.device)
         if config.sampling.pattern_blur == "auto" and not resume:
             sigma, fit = 1.0, None
@@ -652,7 +653,7 @@ class Trainer:
             if self._stream is not None:
                 self._stream.wait_stream(torch.cuda.current_stream(self.device))
             if self.renderer.compile_field:  # as the captured step passes them: one compiled graph of the map terms
-                weights = {k: torch.tensor(v, device=self.device) for k, v in weights.items()}
+                weights = {k: torch.full((), v, device=self.device) for k, v in weights.items()}  # a fill: no host copy
             with stream:
                 vals = self._step_body(pick.to(self.device), jitter.to(self.device), weights, self.cos_anneal(it))
             if self._stream is not None:
@@ -719,11 +720,12 @@ class Trainer:
 
     def _map_terms_fn(self):
         """`_map_terms`, torch.compile'd where the renderer compiles its field (CUDA with runtime.compile): the terms
-        are some 90 small element-wise kernels and one more field evaluation, which compiling fuses (the terms cost
-        `fast` 0.32 ms of its 1.93 ms step on an H100: bench/results/train-speed-cuda-fast-17a.md). Compiled, the
+        are some 90 small element-wise kernels and one more field evaluation, which compiling fuses (on an H100 `fast`'s
+        step took 1.93 ms with them, bench/results/train-speed-cuda-fast-17a.md, and 1.61 ms timed without them,
+        -fast-e2e-16c.md; compiled, with the sampling kernels parallel over samples, 1.63 ms: -fast-17b.md). Compiled, the
         weights come as 0-d tensors in every step (`step`), so that one compiled graph serves the plain steps before
         the capture and the captured one."""
-        fn = getattr(self, "_map_terms_compiled", None)
+        fn = self._map_terms_compiled
         if fn is None:
             fn = torch.compile(self._map_terms, dynamic=False) if self.renderer.compile_field else self._map_terms
             self._map_terms_compiled = fn
