@@ -15,8 +15,8 @@ A configuration GxK[:launcher] runs the batch on G GPUs with K scans per GPU at 
 The scans: --scans simulated scans (default rig, 6 random patterns, scenes in turn, a noise seed each), made once
 in the work folder and reused. Before the configurations, a short warm-up run fills the Warp kernel cache that
 every configuration shares (a station's cache is warm); torch.compile's caches start empty in each configuration
-(TORCHINDUCTOR_CACHE_DIR, TRITON_CACHE_DIR per configuration), as they are for new scans: each scan's field is
-compiled anew, since its working volume is a constant of the compiled graph.
+(TORCHINDUCTOR_CACHE_DIR, TRITON_CACHE_DIR per configuration): each process compiles the training graphs for its
+first scan and reuses them for the next scans of the same sizes (slwarp.batch).
 
 Each configuration is one command with its own time limit (--time-limit; the process group is stopped after it):
 its throughput is the scans completed over the command's wall time (process start-up included), per hour, so a

@@ -345,16 +345,33 @@ def _one_line(error: BaseException) -> str:
 
 
 def _release_memory() -> None:
-    """Free what a finished scan left behind before the next one starts in this process: the CUDA cache, and
-    torch.compile's caches, since a compiled field guards on its working volume (a Python float), so every scan
-    recompiles and after torch._dynamo's recompile limit (8) the field would silently run uncompiled."""
+    """Free what a finished scan left behind before the next one starts in this process (the CUDA cache)."""
     import torch
 
     gc.collect()
-    if "torch._dynamo" in sys.modules:
-        torch._dynamo.reset()
     if torch.cuda.is_available() and torch.cuda.is_initialized():
         torch.cuda.empty_cache()
+
+
+# the sizes of the scan whose training graphs torch.compile holds in this process (see _fit_compiled)
+_compiled_for: tuple | None = None
+
+
+def _fit_compiled(scan) -> None:
+    """Keep torch.compile's graphs for a scan of the sizes they were compiled for, else drop them.
+
+    The compiled graphs depend on the preset and the scan's image size and frame count only (the working volume
+    reaches them as tensors: field.register_volume_buffers), so the scans of one rig after the first compile
+    nothing (H100, `fast`: about 20 s a scan saved, bench/results/batch-throughput-cuda.md). Each other size adds
+    compiled versions, and past torch._dynamo's recompile limit (8) the field would run uncompiled: a new size
+    starts from empty caches."""
+    global _compiled_for
+    import torch
+
+    key = (scan.camera.height, scan.camera.width, len(scan))
+    if _compiled_for is not None and key != _compiled_for and "torch._dynamo" in sys.modules:
+        torch._dynamo.reset()
+    _compiled_for = key
 
 
 def run_scan(job: ScanJob, config, options: BatchOptions = BatchOptions(), worker: str = "main",
@@ -374,6 +391,7 @@ def run_scan(job: ScanJob, config, options: BatchOptions = BatchOptions(), worke
     try:
         scan = load_scan(job.source, frames=options.frames)
         row.frames, row.pixels = len(scan), scan.camera.width * scan.camera.height
+        _fit_compiled(scan)
         resume = options.resume and (Path(job.out_dir) / CHECKPOINT).is_file()
         say(f"[{worker} {device}] {job.name}: {'resuming' if resume else 'starting'} ({len(scan)} frames) -> {job.out_dir}")
         res = reconstruct(scan, config, out_dir=job.out_dir, resume=resume, depth_range=options.depth_range,

@@ -199,3 +199,29 @@ def test_batch_under_torchrun_with_a_broken_scan_then_resumed(tmp_path):
         assert rows2[name].mae == pytest.approx(rows[name]["mae"]) and rows2[name].valid_share == pytest.approx(
             rows[name]["valid_share"])
     assert json.loads((out / "summary.json").read_text())["totals"]["skipped"] == 2
+
+
+def test_compiled_graphs_are_kept_for_scans_of_the_same_sizes(monkeypatch):
+    """A batch keeps torch.compile's graphs from scan to scan while the image size and frame count stay (the
+    working volume reaches them as tensors) and drops them at a scan of other sizes (dynamo's recompile limit)."""
+    import types
+
+    import torch._dynamo
+
+    from slwarp import batch
+
+    resets = []
+    monkeypatch.setattr(torch._dynamo, "reset", lambda: resets.append(1))
+    monkeypatch.setattr(batch, "_compiled_for", None)
+
+    class Scan:
+        def __init__(self, h, w, n):
+            self.camera, self.n = types.SimpleNamespace(height=h, width=w), n
+
+        def __len__(self):
+            return self.n
+
+    for s, expected in ((Scan(1024, 1280, 6), 0), (Scan(1024, 1280, 6), 0), (Scan(1024, 1280, 9), 1),
+                        (Scan(800, 1280, 9), 2), (Scan(800, 1280, 9), 2)):
+        batch._fit_compiled(s)
+        assert len(resets) == expected

@@ -451,8 +451,12 @@ def test_draw_ahead_gives_the_step_by_step_draws_and_generator_state():
 
 def test_map_terms_compile_as_one_graph_with_the_same_values(small_scan):
     """On CUDA the trainer compiles its map terms (warm-up pull, surface and free-space terms, with the surface
-    term's field evaluation of a hash grid) as one graph: fullgraph compilation (aot_eager, so that the CPU needs no
-    compiler) must not break, and gives the eager values and gradients for warm 1 (warm-up) and warm 0 (after)."""
+    term's field evaluation of a hash grid) as one graph: compiled as the trainer does (aot_eager, so that the CPU
+    needs no compiler; not fullgraph, which traces further than a plain compile), they are one frame with no graph
+    break (the volume's scale computed through numpy broke them into six), and give the eager values and gradients
+    for warm 1 (warm-up) and warm 0 (after)."""
+    from torch._dynamo.testing import CompileCounterWithBackend
+
     from slwarp.neural import ops
 
     scan = small_scan.select("0:6")
@@ -462,7 +466,9 @@ def test_map_terms_compile_as_one_graph_with_the_same_values(small_scan):
     assert tr.surface_depth is not None
     batch = tr.renderer.sample_pixels(64, torch.Generator().manual_seed(1))
     _, d, _, _ = ops.camera_rays(batch.uv, scan.camera, tr.depth_range, backend="torch")
-    compiled = torch.compile(tr._map_terms, fullgraph=True, backend="aot_eager", dynamic=False)
+    counter = CompileCounterWithBackend("aot_eager")
+    torch._dynamo.reset()
+    compiled = torch.compile(tr._map_terms, backend=counter, dynamic=False)
     params = [p for p in tr.field.parameters() if p.requires_grad]
     for warm in (1.0, 0.0):
         out, z, sdf = tr.renderer.render(batch, jitter=torch.zeros(64))
@@ -480,6 +486,39 @@ def test_map_terms_compile_as_one_graph_with_the_same_values(small_scan):
                 torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-7)
         # the float weights of plain CPU steps give the same terms
         torch.testing.assert_close(tr._map_terms(*args[:-1], warm), eager, rtol=1e-6, atol=1e-7)
+    assert counter.frame_count == 1  # one graph, compiled once for both weights
+    torch._dynamo.reset()
+
+
+def test_compiled_graphs_serve_the_next_scan(small_scan, monkeypatch):
+    """The compiled field and map terms read the working volume as tensors (field.register_volume_buffers,
+    Trainer._scale_mm), not as constants: a trainer on a scan with another volume runs on the graphs compiled for the
+    one before, compiling nothing (slwarp.batch keeps them between the scans of a batch). Counted with torch.compile
+    replaced by an eager counting backend, as the trainer compiles only on CUDA."""
+    from torch._dynamo.testing import CompileCounterWithBackend
+
+    counter = CompileCounterWithBackend("eager")
+    real = torch.compile
+    monkeypatch.setattr(torch, "compile", lambda fn, **kw: real(fn, **{**kw, "backend": counter}))
+    torch._dynamo.reset()
+    scan = small_scan.select("0:6")
+    gt = np.where(np.isfinite(scan.gt_depth), scan.gt_depth, np.nan).astype(np.float32)
+    cfg = tiny_hashgrid(iters=3, init_iters=2, surface_weight=1.0, surface_after=1.0, free_space=1.0)
+
+    def train(depth_range):
+        tr = Trainer(scan, cfg, init_depth=gt + 8.0, depth_range=depth_range, progress=False)
+        tr.renderer.compile_field = True  # as on CUDA
+        tr.train()
+        return tr
+
+    first = train(None)
+    compiled = counter.frame_count
+    assert compiled >= 3  # the field's SDF (coarse and fine sample counts), SDF + gradient, the map terms
+    near, far = first.depth_range
+    second = train((near - 30.0, far + 30.0))
+    assert second.volume != first.volume and second.field.scale != first.field.scale
+    assert counter.frame_count == compiled
+    torch._dynamo.reset()
 
 
 @pytest.mark.parametrize("field", ["mlp", "hashgrid"])

@@ -31,8 +31,10 @@ class Volume:
 
     @property
     def scale(self) -> float:
-        """Half the largest side (mm): the box fits in [-1, 1]^3 after (x - center) / scale."""
-        return float(np.max(np.asarray(self.hi) - np.asarray(self.lo)) / 2)
+        """Half the largest side (mm): the box fits in [-1, 1]^3 after (x - center) / scale.
+        Plain Python arithmetic: torch.compile traces through it without a graph break (through numpy it broke
+        the trainer's compiled map terms into six graphs)."""
+        return max(float(h) - float(l) for l, h in zip(self.lo, self.hi)) / 2
 
     def as_bounds(self) -> list[list[float]]:
         return [list(map(float, self.lo)), list(map(float, self.hi))]
@@ -50,6 +52,18 @@ class Volume:
         lo, hi = corners.min(0), corners.max(0)
         pad = (hi - lo).max() * margin
         return cls(tuple((lo - pad).tolist()), tuple((hi + pad).tolist()))
+
+
+def register_volume_buffers(module: nn.Module, volume: Volume, far: float | None) -> None:
+    """Give an SDF module the per-scan numbers its forward reads: `center` [3] (float32, saved with the weights),
+    and, not saved, `scale_mm` (the volume's scale) and `prior_mm` (the camera prior's radius `far`, when given) as
+    0-d float32 buffers (float32 as a Python float meets a float32 tensor). As tensors they are inputs of
+    torch.compile's graphs, not constants: the graphs compiled for one scan serve the next scan of the same
+    sizes (as floats, every working volume recompiled them)."""
+    module.register_buffer("center", torch.tensor(volume.center, dtype=torch.float32))
+    module.register_buffer("scale_mm", torch.tensor(float(volume.scale), dtype=torch.float32), persistent=False)
+    if far is not None:
+        module.register_buffer("prior_mm", torch.tensor(float(far), dtype=torch.float32), persistent=False)
 
 
 class PositionalEncoding(nn.Module):
@@ -112,7 +126,7 @@ class NeuSField(nn.Module):
             if far is None:
                 raise ValueError("init='camera' needs the far depth (mm)")
             self.prior_radius = float(far)
-        self.register_buffer("center", torch.tensor(volume.center, dtype=torch.float32))
+        register_volume_buffers(self, volume, self.prior_radius)
         self.encoding = PositionalEncoding(n_freqs) if n_freqs > 0 else None
         d_in = self.encoding.out_dim if self.encoding is not None else 3
         self.skip = skip if skip is not None and 0 < skip < layers else None
@@ -152,7 +166,7 @@ class NeuSField(nn.Module):
         backward, and torch.compile can fuse the whole thing. Equal to autograd's gradient (tested).
         """
         lead = x.shape[:-1]
-        xn = ((x - self.center) / self.scale).reshape(-1, 3)
+        xn = ((x - self.center) / self.scale_mm).reshape(-1, 3)
         if self.encoding is not None:
             freqs = self.encoding.freqs
             xf = xn[:, None, :] * freqs[:, None]  # [P, F, 3]
@@ -188,20 +202,20 @@ class NeuSField(nn.Module):
         if self.encoding is not None:
             gs = g_inp[:, 3:].reshape(-1, freqs.shape[0], 2, 3)
             grad = grad + ((gs[:, :, 0] * cos - gs[:, :, 1] * sin) * freqs[:, None]).sum(1)
-        f = f * self.scale  # f_mm(x) = scale f_n((x - c) / scale): the gradient is unchanged
+        f = f * self.scale_mm  # f_mm(x) = scale f_n((x - c) / scale): the gradient is unchanged
         grad = grad.reshape(*lead, 3)
         f = f.reshape(lead)
         if self.prior_radius is not None:
             r = torch.linalg.norm(x, dim=-1, keepdim=True)
-            f = f + (self.prior_radius - r[..., 0])
+            f = f + (self.prior_mm - r[..., 0])
             grad = grad - x / r.clamp(min=1e-9)
         return f, grad
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x [..., 3] camera frame (mm) -> signed distance [...] (mm), positive outside."""
-        f = self.normalized_sdf((x - self.center) / self.scale) * self.scale
+        f = self.normalized_sdf((x - self.center) / self.scale_mm) * self.scale_mm
         if self.prior_radius is not None:
-            f = f + (self.prior_radius - torch.linalg.norm(x, dim=-1))
+            f = f + (self.prior_mm - torch.linalg.norm(x, dim=-1))
         return f
 
 

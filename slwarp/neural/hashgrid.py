@@ -46,7 +46,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .field import Volume, geometric_init
+from .field import Volume, geometric_init, register_volume_buffers
 from . import ops
 from slwarp.kernels import runtime
 
@@ -410,7 +410,7 @@ class HashGridSDF(nn.Module):
                            base_resolution=base_resolution, finest_resolution=finest_resolution, hidden=hidden,
                            layers=layers, activation=activation, beta=beta, init=init, init_radius=init_radius,
                            table_init=table_init, gradient=gradient)
-        self.register_buffer("center", torch.tensor(volume.center, dtype=torch.float32))
+        register_volume_buffers(self, volume, self.prior_radius)
         self.register_buffer("meta", self.layout.meta(), persistent=False)
         # finest active level's cell (mm): the finite-difference step, read on the device
         cells = [2.0 * self.scale / r for r in self.layout.resolutions]
@@ -462,7 +462,7 @@ class HashGridSDF(nn.Module):
     # --- evaluation ---------------------------------------------------------------------------
     def _unit(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(x_n [P, 3] in [-1, 1]^3, x in the grid's unit cube [P, 3]) of camera-frame points [..., 3]."""
-        xn = ((x - self.center) / self.scale).reshape(-1, 3)
+        xn = ((x - self.center) / self.scale_mm).reshape(-1, 3)
         return xn, xn * 0.5 + 0.5
 
     def _act(self, z: torch.Tensor) -> torch.Tensor:
@@ -487,9 +487,9 @@ class HashGridSDF(nn.Module):
             h = lin(h)
             if i < last:
                 h = self._act(h)
-        f = (h[:, 0] * self.scale).reshape(x.shape[:-1])
+        f = (h[:, 0] * self.scale_mm).reshape(x.shape[:-1])
         if self.prior_radius is not None:
-            f = f + (self.prior_radius - torch.linalg.norm(x, dim=-1))
+            f = f + (self.prior_mm - torch.linalg.norm(x, dim=-1))
         return f
 
     def value_and_gradient(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -508,7 +508,7 @@ class HashGridSDF(nn.Module):
             if i < last:
                 pre.append(z)
                 h = self._act(z)
-        f = z[:, 0] * self.scale
+        f = z[:, 0] * self.scale_mm
         g = self.linears[last].weight[0].expand(xn.shape[0], -1)  # d f_n / d h_last
         for i in range(last - 1, -1, -1):
             g = (g * self._act_derivative(pre[i])) @ self.linears[i].weight
@@ -519,7 +519,7 @@ class HashGridSDF(nn.Module):
         f, grad = f.reshape(lead), grad.reshape(*lead, 3)
         if self.prior_radius is not None:
             r = torch.linalg.norm(x, dim=-1, keepdim=True)
-            f = f + (self.prior_radius - r[..., 0])
+            f = f + (self.prior_mm - r[..., 0])
             grad = grad - x / r.clamp(min=1e-9)
         return f, grad
 

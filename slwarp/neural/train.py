@@ -390,6 +390,9 @@ class Trainer:
         self._configure_optimizer()
         self._graph = None  # the captured step (see _graph_step)
         self._map_terms_compiled = None  # _map_terms, compiled on first use (see _map_terms_fn)
+        # the map terms' unit (mm), a device tensor: an input of their compiled graph, which so serves every scan
+        # of the same sizes (field.register_volume_buffers)
+        self._scale_mm = torch.tensor(self.volume.scale, dtype=torch.float32, device=self.device)
         self._eager_since_change = 0  # plain steps since the frames changed (capture needs warm kernels)
         self._stream = torch.cuda.Stream(self.device) if self.use_graph else None
         self.init_depth = None
@@ -749,7 +752,7 @@ class Trainer:
             # warm-up: pull the rendered depth (and full opacity) onto the initial depth map
             depth_err = ((depth - torch.nan_to_num(target)).abs() * ok).sum() / n
             opacity = ((1.0 - weight_sum).abs() * ok).sum() / n
-            loss = loss + warm * (depth_err / self.volume.scale + opacity)
+            loss = loss + warm * (depth_err / self._scale_mm + opacity)
         if self.surface_depth is not None:
             surface = self.surface_depth[index]
             t = torch.nan_to_num(surface) / d[:, 2]  # distance along the unit ray to camera depth surface
@@ -771,7 +774,7 @@ class Trainer:
         along = torch.stack([t - band, t, t + band])  # [3, R]
         f = self.field(along[..., None] * d[None])  # [3, R] mm
         term = f[1].abs() + torch.relu(-f[0]) + torch.relu(f[2])
-        return (term * weight).sum() / n / self.volume.scale
+        return (term * weight).sum() / n / self._scale_mm
 
     def _free_space_term(self, t: torch.Tensor, weight: torch.Tensor, z_vals: torch.Tensor, sdf: torch.Tensor,
                          n: torch.Tensor) -> torch.Tensor:
@@ -783,7 +786,7 @@ class Trainer:
         surface is, at no extra field evaluation."""
         before = (z_vals < (t - MISSED_MM)[:, None]).to(sdf.dtype)
         per_ray = (torch.relu(-sdf) * before).sum(1)
-        return (per_ray * weight).sum() / n / self.volume.scale
+        return (per_ray * weight).sum() / n / self._scale_mm
 
     def _graph_step(self, pick: torch.Tensor, jitter: torch.Tensor, weights: dict) -> dict | None:
         """Replay the captured step on this iteration's draws and weights (capturing it first when needed);
