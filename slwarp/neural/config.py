@@ -646,11 +646,15 @@ _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 1000 iteratio
 # -free-space-2.md): mean MAE 0.188 / 0.153 -> 0.151 / 0.153 and 0.152 / 0.153 mm in two runs (0.151 / 0.153 at
 # 0.5): default-rig steps 0.439 -> 0.141 (the field had bridged the gaps between the steps: 847 pixels of the wall
 # 250 mm in front), bunny 0.131 -> 0.120; no scan more than 0.005 mm worse
+# NeuS's variance at 4x the learning rate (variance_lr_factor; one H100, bench/results/accuracy-cuda-variance-lr.md
+# and -variance-lr-c.md against accuracy-cuda-speed.md): default / vertical-rig mean MAE 0.098 / 0.100 -> 0.093 /
+# 0.0975 mm (tuned: 0.094 / 0.096), better or equal on 15 of the 16 scans (default-rig rods 0.142 -> 0.116; vertical
+# torus 0.086 -> 0.087). At 1x inv_s was still rising at the end: Adam moves the variance's v by about lr per step
 _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations of the paper's batch, levels "
-        "coarse to fine, with tuned's surface term and extraction and a free-space term: several times faster than "
-        "tuned, less accurate (GPU)",
+        "coarse to fine, NeuS's variance at 4x the rate, with tuned's surface term and extraction and a free-space "
+        "term: several times faster than tuned, as accurate on the default rig (GPU)",
         matmul="tf32", iters=2000, grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2,
-        grid_level_every=100, surface_weight=1.0, surface_after=1.0, free_space=1.0, uniform_fill=True,
+        grid_level_every=100, variance_lr_factor=4.0, surface_weight=1.0, surface_after=1.0, free_space=1.0, uniform_fill=True,
         **_DEFAULT_EXTRACTION, **_GPU_DENOISE, **_HASHGRID)
 # CPU: the cpu preset's step on a small hash grid (8 levels of 2^15 entries; finer tables are cache-bound on
 # one thread): small rig, bunny/vase/boxes mean MAE 0.575 mm against 0.749 for cpu at about its time per step
