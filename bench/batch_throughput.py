@@ -14,9 +14,11 @@ A configuration GxK[:launcher] runs the batch on G GPUs with K scans per GPU at 
 
 The scans: --scans simulated scans (default rig, 6 random patterns, scenes in turn, a noise seed each), made once
 in the work folder and reused. Before the configurations, a short warm-up run fills the Warp kernel cache that
-every configuration shares (a station's cache is warm); torch.compile's caches start empty in each configuration
-(TORCHINDUCTOR_CACHE_DIR, TRITON_CACHE_DIR per configuration): each process compiles the training graphs for its
-first scan and reuses them for the next scans of the same sizes (slwarp.batch).
+every configuration shares (a station's cache is warm). torch.compile's caches (TORCHINDUCTOR_CACHE_DIR,
+TRITON_CACHE_DIR): with --compile-cache warm (default) the warm-up fills them too and every configuration shares
+them, as a station's persist between runs; with cold each configuration starts them empty. Either way each process
+compiles (or loads) the training graphs for its first scan and reuses them for the next scans of the same sizes
+(slwarp.batch).
 
 Each configuration is one command with its own time limit (--time-limit; the process group is stopped after it):
 its throughput is the scans completed over the command's wall time (process start-up included), per hour, so a
@@ -125,16 +127,22 @@ def visible_gpus() -> list[str]:
         return []
 
 
+def compile_cache_env(folder: Path) -> dict:
+    """The environment that puts torch.compile's caches (inductor's and Triton's) in `folder`."""
+    return {"TORCHINDUCTOR_CACHE_DIR": str(folder / "cache-inductor"), "TRITON_CACHE_DIR": str(folder / "cache-triton")}
+
+
 def run_config(cfg: dict, scans_dir: Path, work: Path, reconstruct_args: list[str], gpu_ids: list[str], cpu: bool,
-               time_limit: float, kernel_cache: Path) -> dict:
-    """Run one configuration as its own command (process group), at most `time_limit` s; its numbers."""
+               time_limit: float, kernel_cache: Path, compile_cache: str = "warm") -> dict:
+    """Run one configuration as its own command (process group), at most `time_limit` s; its numbers.
+    compile_cache "warm": torch.compile's caches of the work folder (the warm-up's); "cold": fresh ones."""
     from slwarp.batch import outputs_complete
 
     out = work / cfg["name"]
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "SLWARP_KERNEL_CACHE": str(kernel_cache),
-           "TORCHINDUCTOR_CACHE_DIR": str(out / "cache-inductor"), "TRITON_CACHE_DIR": str(out / "cache-triton")}
+           **compile_cache_env(work if compile_cache == "warm" else out)}
     if not cpu:
         env["CUDA_VISIBLE_DEVICES"] = ",".join(gpu_ids[: cfg["gpus"]])
     cmd = command(cfg, scans_dir, out / "outputs", reconstruct_args)
@@ -202,7 +210,9 @@ def markdown(doc: dict) -> str:
              f"`{s['preset']}`" + (f" with {', '.join(s['set'])}" if s["set"] else "") + f"; {doc['gpus']} {unit}(s) "
              "visible. Throughput: scans completed over the command's wall time (start-up included). "
              f"Efficiency: throughput over {unit.lower()}s x that of one {unit.lower()} at the same scans per "
-             f"{unit.lower()} (target >= {TARGET_EFFICIENCY}).", "",
+             f"{unit.lower()} (target >= {TARGET_EFFICIENCY}). torch.compile's caches: "
+             + ("filled by the warm-up and shared (as a station's)" if s.get("compile_cache", "cold") == "warm"
+                else "empty at the start of each configuration") + ".", "",
              f"| configuration | {unit}s | scans per {unit} | launcher | done / failed | wall s | scans/h | vs 1x1 | "
              "efficiency | mean s per scan | mean MAE mm |",
              "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
@@ -251,6 +261,9 @@ def main(argv=None) -> int:
     p.add_argument("--work", default="/tmp/slwarp-batch-bench", help="scans, outputs, logs and caches (default %(default)s)")
     p.add_argument("--out", default=str(REPO / "bench" / "results"), help="results folder (default bench/results)")
     p.add_argument("--no-warmup", action="store_true", help="skip the warm-up run that fills the Warp kernel cache")
+    p.add_argument("--compile-cache", choices=["warm", "cold"], default="warm",
+                   help="torch.compile's caches: warm (filled by the warm-up, shared, as a station's) or cold (empty "
+                        "in each configuration); default %(default)s")
     p.add_argument("--smoke", action="store_true", help="CPU smoke test: " + ", ".join(f"{k} {v}" for k, v in SMOKE.items()))
     p.add_argument("--cpu", action="store_true", help="run on the CPU even when CUDA is present")
     p.add_argument("--_prepare", help=argparse.SUPPRESS)
@@ -306,16 +319,19 @@ def main(argv=None) -> int:
         shutil.rmtree(work / "warmup", ignore_errors=True)
         t0 = time.perf_counter()
         w = subprocess.run(warm, cwd=REPO, env={**os.environ, "SLWARP_KERNEL_CACHE": str(kernel_cache),
+                                                 **(compile_cache_env(work) if args.compile_cache == "warm" else {}),
                                                  **({} if cpu else {"CUDA_VISIBLE_DEVICES": gpu_ids[0]})},
                            capture_output=True, text=True)
         print(f"warm-up: {time.perf_counter() - t0:.1f} s" + (f" (failed: {w.stderr.strip()[-500:]})" if w.returncode else ""),
               flush=True)
     setup = {"cpu": cpu, "device": info["device"], "scans": args.scans, "scenes": scenes, "rig": args.rig,
-             "patterns": args.patterns, "preset": preset, "set": args.set, "smoke": args.smoke}
+             "patterns": args.patterns, "preset": preset, "set": args.set, "smoke": args.smoke,
+             "compile_cache": args.compile_cache}
     rows = []
     for c in configs:
         try:
-            rows.append(run_config(c, scans_dir, work, reconstruct_args, gpu_ids, cpu, args.time_limit, kernel_cache))
+            rows.append(run_config(c, scans_dir, work, reconstruct_args, gpu_ids, cpu, args.time_limit, kernel_cache,
+                                   args.compile_cache))
         except Exception as e:  # a configuration that cannot even start: recorded, the others go on
             rows.append({**c, "command": "", "returncode": None, "timed_out": False, "wall_s": 0.0, "completed": 0,
                          "scans_per_hour": 0.0, "errors": [f"{type(e).__name__}: {e}"]})
