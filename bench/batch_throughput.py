@@ -174,12 +174,34 @@ def run_config(cfg: dict, scans_dir: Path, work: Path, reconstruct_args: list[st
         done = [s for s in doc["scans"] if s["status"] == "done"]
         row.update(done=t["done"], failed=t["failed"], batch_wall_s=t["wall_s"], mean_mae=t["mean_mae"],
                    mean_scan_s=sum(s["seconds"] for s in done) / len(done) if done else None,
-                   errors=sorted({s["error"] for s in doc["scans"] if s["error"]}))
+                   errors=sorted({s["error"] for s in doc["scans"] if s["error"]}), stages=stage_means(done))
     if timed_out or summary.is_file() is False or rc not in (0, 1):
         row["log_tail"] = log_path.read_text()[-2000:]
     print(f"[{cfg['name']}] {completed} scans in {wall:.1f} s: {row['scans_per_hour']:.1f} scans/h"
           + (" (time limit)" if timed_out else "") + (f"; exit status {rc}" if rc else ""), flush=True)
     return row
+
+
+STAGES = ("setup", "train", "extract", "other")  # the columns of stage_means
+
+
+def stage_means(done: list[dict]) -> dict | None:
+    """Where the done scans' time went, mean s per scan, from each scan's timings.json: setup (search, blur fit,
+    field), train, extract (the rest up to the depth map), other (loading the scan, writing the outputs, the
+    metrics: the scan's wall time less reconstruct's); a process's first scan compiles (or loads) the training
+    graphs in its first steps (train). Why: when scans on several GPUs take longer each than one after another,
+    this says which part grew."""
+    rows = []
+    for s in done:
+        path = Path(s["out_dir"]) / "timings.json"
+        if not path.is_file():
+            continue
+        t = json.loads(path.read_text())
+        if not all(k in t for k in ("setup_s", "train_s", "depth_map_s", "total_s")):
+            continue
+        rows.append(dict(setup=t["setup_s"], train=t["train_s"], extract=t["depth_map_s"] - t["setup_s"] - t["train_s"],
+                         other=s["seconds"] - t["total_s"]))
+    return {k: sum(r[k] for r in rows) / len(rows) for k in STAGES} if rows else None
 
 
 # ----------------------------------------------------------------------------------------------
@@ -226,6 +248,13 @@ def markdown(doc: dict) -> str:
                      f"{r['scans_per_hour']:.1f} | {f(r.get('vs_1x1'), '{:.2f}x')} | {f(r.get('efficiency'), '{:.2f}')} | "
                      f"{f(r.get('mean_scan_s'), '{:.1f}')} | {f(r.get('mean_mae'), '{:.3f}')} |")
     lines.append("")
+    staged = [r for r in doc["configs"] if r.get("stages")]
+    if staged:
+        lines += ["Where a scan's time went (mean s per scan; `other`: loading, outputs, metrics):", "",
+                  "| configuration | " + " | ".join(STAGES) + " |", "|---|" + "---:|" * len(STAGES)]
+        for r in staged:
+            lines.append(f"| {r['name']} | " + " | ".join(f(r["stages"].get(k), "{:.2f}") for k in STAGES) + " |")
+        lines.append("")
     one_k = [r for r in doc["configs"] if r["gpus"] == 1 and r["scans_per_hour"] > 0]
     if one_k:
         best = max(one_k, key=lambda r: r["scans_per_hour"])

@@ -1,0 +1,35 @@
+"""bench/batch_throughput.py without running anything: the per-stage means of a configuration's scans and their
+table."""
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+import batch_throughput  # noqa: E402
+
+
+def _scan(folder: Path, name: str, seconds: float, setup: float, train: float, depth_map: float, total: float) -> dict:
+    out = folder / name
+    out.mkdir(parents=True)
+    (out / "timings.json").write_text(json.dumps({"setup_s": setup, "train_s": train, "depth_map_s": depth_map,
+                                                  "total_s": total, "iterations": 10}))
+    return {"name": name, "out_dir": str(out), "status": "done", "seconds": seconds, "worker": "rank 0"}
+
+
+def test_stage_means_split_each_scan_into_setup_train_extract_and_other(tmp_path):
+    done = [_scan(tmp_path, "a", 10.0, 1.0, 4.0, 7.0, 7.5), _scan(tmp_path, "b", 6.0, 0.5, 2.0, 4.5, 5.0)]
+    done.append({"name": "c", "out_dir": str(tmp_path / "missing"), "status": "done", "seconds": 99.0})  # no timings
+    means = batch_throughput.stage_means(done)
+    assert means == pytest.approx({"setup": 0.75, "train": 3.0, "extract": 2.0, "other": 1.75})
+    assert batch_throughput.stage_means(done[2:]) is None
+    doc = {"device": "CPU", "date": "2026-11-25", "gpus": 0, "bench_command": "x",
+           "setup": {"cpu": True, "scans": 2, "rig": "small", "patterns": "random6", "scenes": ["spheres"],
+                     "preset": "tiny", "set": [], "smoke": False, "compile_cache": "warm"},
+           "configs": [{"name": "1cpu", "gpus": 1, "per_gpu": 1, "launcher": "sequential", "completed": 2, "done": 2,
+                        "failed": 0, "timed_out": False, "returncode": 0, "wall_s": 20.0, "scans_per_hour": 360.0,
+                        "stages": means, "command": "slwarp reconstruct ..."}]}
+    md = batch_throughput.markdown(doc)
+    assert "| 1cpu | 0.75 | 3.00 | 2.00 | 1.75 |" in md
+    assert "filled by the warm-up and shared" in md
