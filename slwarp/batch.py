@@ -362,7 +362,8 @@ def _fit_compiled(scan) -> None:
 
     The compiled graphs depend on the preset and the scan's image size and frame count only (the working volume
     reaches them as tensors: field.register_volume_buffers), so the scans of one rig after the first compile
-    nothing (H100, `fast`: about 20 s a scan saved, bench/results/batch-throughput-cuda.md). Each other size adds
+    nothing (one H100, 8 `fast` scans one after another: 22.9 -> 8.0 s a scan, bench/results/
+    batch-throughput-cuda-h100x2-before.md and -cold.md). Each other size adds
     compiled versions, and past torch._dynamo's recompile limit (8) the field would run uncompiled: a new size
     starts from empty caches."""
     global _compiled_for
