@@ -156,7 +156,10 @@ def time_config(scan, spec: str, preset_name: str, warmup: int, iters: int, dev:
     parsed = parse_spec(spec)
     # init "preset": the preset's own start (its depth search, so the step carries the terms that need the map: the
     # surface and free-space terms); "sphere": NeuS's sphere, no map and none of those terms (the figures before
-    # 2026-11-25 were timed so, and read 0.6 ms per step faster than `fast` trains)
+    # 2026-11-25 were timed so, and read 0.6 ms per step faster than `fast` trains); "trained": the preset's start,
+    # then its whole schedule before the timed steps (fast, H100: the run's own steps with every level on took 1.84-1.92
+    # ms against 1.57 ms timed from the start, train-speed-cuda-fast-e2e-18.md; a trained field puts NeuS's samples
+    # near its surface, which may make more of the encoding's backward atomics hit the same table rows)
     cfg = preset(preset_name, **{**(options or {}), **parsed["options"], **({"init": "sphere"} if init == "sphere" else {})})
     if dev == "cuda":
         torch.cuda.reset_peak_memory_stats()
@@ -165,6 +168,10 @@ def time_config(scan, spec: str, preset_name: str, warmup: int, iters: int, dev:
         if not hasattr(tr.field, "backend"):
             raise SystemExit(f"config {spec!r}: 'twin' needs a hash-grid field (--set field=hashgrid or a hash-grid preset)")
         tr.field.backend = "torch"  # the encoding's gathers in torch; the renderer's kernels as the config says
+    trained = 0  # the iterations trained before the timed steps
+    if init == "trained":
+        tr.train()
+        trained = tr.iteration
     # time main-phase steps at the end of the schedule, where every hash-grid level is on (the depth-search
     # warm-up's steps run with the coarsest levels only: timed there, a hash grid looks faster than it trains)
     tr.iteration = tr.warmup_iters + cfg.schedule.iters
@@ -179,7 +186,8 @@ def time_config(scan, spec: str, preset_name: str, warmup: int, iters: int, dev:
         tr.step()
     sync()
     ms = (time.perf_counter() - t0) / iters * 1e3
-    row = {"config": spec, "preset": preset_name, "init": cfg.init.method, "field": cfg.field.kind, "ms_per_it": ms, "it_per_s": 1e3 / ms, "warmup_s": t_warm,
+    row = {"config": spec, "preset": preset_name, "init": cfg.init.method + (", trained" if init == "trained" else ""),
+           "trained_iters": trained, "field": cfg.field.kind, "ms_per_it": ms, "it_per_s": 1e3 / ms, "warmup_s": t_warm,
            "projected_s": cfg.schedule.iters * ms / 1e3, "iters_of_preset": cfg.schedule.iters, "graph_used": tr.graph_captured}
     if dev == "cuda":
         b = breakdown(tr)
@@ -346,9 +354,10 @@ def main(argv=None):
                    help="the backends of --end-to-end")
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                    help="options applied to the preset (flat names of slwarp.neural.config, e.g. field=hashgrid)")
-    p.add_argument("--init", default="preset", choices=["preset", "sphere"],
+    p.add_argument("--init", default="preset", choices=["preset", "sphere", "trained"],
                    help="the timed steps' start: the preset's own (default; with a depth-search map, the terms that "
-                        "use it are in the step) or NeuS's sphere (no map: how figures before 2026-11-25 were timed)")
+                        "use it are in the step), NeuS's sphere (no map: how figures before 2026-11-25 were timed), or "
+                        "trained (the preset's start and its whole schedule first: the state at the end of training)")
     p.add_argument("--stem", default=None, help="output name (default train-speed-<device>[-<preset>])")
     p.add_argument("--out", default=str(REPO / "bench" / "results"))
     args = p.parse_args(argv)

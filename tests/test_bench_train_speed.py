@@ -36,6 +36,17 @@ def test_train_speed_smoke_hashgrid_on_cpu(tmp_path):
     assert "warp:eager:fp32:twin / warp:eager:fp32" in md and "with field=hashgrid" in md
 
 
+def test_train_speed_times_a_trained_field(tmp_path):
+    """--init trained runs the preset's whole schedule before the timed steps (the state the run's own steps see)."""
+    bench = load_bench()
+    bench.main(["--preset", "tiny", "--scene", "spheres", "--rig", "small", "--warmup", "1", "--iters", "2",
+                "--configs", "warp:eager:fp32", "--init", "trained", "--set", "field=hashgrid", "grid_levels=4",
+                "grid_log2_table=10", "iters=3", "init_iters=2", "--out", str(tmp_path)])
+    (row,) = json.loads((tmp_path / "train-speed-cpu-tiny.json").read_text())["rows"]
+    assert row["init"] == "search, trained" and row["trained_iters"] == 5  # 3 + the 2 of the warm-up
+    assert math.isfinite(row["ms_per_it"]) and row["warmup_s"] > 0
+
+
 def test_train_speed_rejects_bad_specs():
     bench = load_bench()
     with pytest.raises(SystemExit, match="BACKEND:MODE:MATMUL"):
