@@ -353,14 +353,14 @@ def _release_memory() -> None:
         torch.cuda.empty_cache()
 
 
-# the sizes of the scan whose training graphs torch.compile holds in this process (see _fit_compiled)
+# the sizes and settings of the scan whose training graphs torch.compile holds in this process (see _fit_compiled)
 _compiled_for: tuple | None = None
 
 
-def _fit_compiled(scan) -> None:
-    """Keep torch.compile's graphs for a scan of the sizes they were compiled for, else drop them.
+def _fit_compiled(scan, config) -> None:
+    """Keep torch.compile's graphs for a scan of the sizes and settings they were compiled for, else drop them.
 
-    The compiled graphs depend on the preset and the scan's image size and frame count only (the working volume
+    The compiled graphs depend on the settings and the scan's image size and frame count only (the working volume
     reaches them as tensors: field.register_volume_buffers), so the scans of one rig after the first compile
     nothing (one H100, 8 `fast` scans one after another: 22.9 -> 8.0 s a scan, bench/results/
     batch-throughput-cuda-h100x2-before.md and -cold.md). Each other size adds
@@ -369,7 +369,7 @@ def _fit_compiled(scan) -> None:
     global _compiled_for
     import torch
 
-    key = (scan.camera.height, scan.camera.width, len(scan))
+    key = (scan.camera.height, scan.camera.width, len(scan), json.dumps(config.to_dict(), sort_keys=True, default=str))
     if _compiled_for is not None and key != _compiled_for and "torch._dynamo" in sys.modules:
         torch._dynamo.reset()
     _compiled_for = key
@@ -392,7 +392,7 @@ def run_scan(job: ScanJob, config, options: BatchOptions = BatchOptions(), worke
     try:
         scan = load_scan(job.source, frames=options.frames)
         row.frames, row.pixels = len(scan), scan.camera.width * scan.camera.height
-        _fit_compiled(scan)
+        _fit_compiled(scan, config)
         resume = options.resume and (Path(job.out_dir) / CHECKPOINT).is_file()
         say(f"[{worker} {device}] {job.name}: {'resuming' if resume else 'starting'} ({len(scan)} frames) -> {job.out_dir}")
         res = reconstruct(scan, config, out_dir=job.out_dir, resume=resume, depth_range=options.depth_range,

@@ -202,8 +202,9 @@ def test_batch_under_torchrun_with_a_broken_scan_then_resumed(tmp_path):
 
 
 def test_compiled_graphs_are_kept_for_scans_of_the_same_sizes(monkeypatch):
-    """A batch keeps torch.compile's graphs from scan to scan while the image size and frame count stay (the
-    working volume reaches them as tensors) and drops them at a scan of other sizes (dynamo's recompile limit)."""
+    """A batch keeps torch.compile's graphs from scan to scan while the image size, frame count and settings stay
+    (the working volume reaches them as tensors) and drops them at a scan of other sizes or settings (dynamo's
+    recompile limit)."""
     import types
 
     import torch._dynamo
@@ -221,7 +222,11 @@ def test_compiled_graphs_are_kept_for_scans_of_the_same_sizes(monkeypatch):
         def __len__(self):
             return self.n
 
-    for s, expected in ((Scan(1024, 1280, 6), 0), (Scan(1024, 1280, 6), 0), (Scan(1024, 1280, 9), 1),
-                        (Scan(800, 1280, 9), 2), (Scan(800, 1280, 9), 2)):
-        batch._fit_compiled(s)
+    from slwarp.neural.config import preset
+
+    fast, other = preset("fast"), preset("fast", rays=512)
+    for s, cfg, expected in ((Scan(1024, 1280, 6), fast, 0), (Scan(1024, 1280, 6), fast, 0),
+                             (Scan(1024, 1280, 9), fast, 1), (Scan(800, 1280, 9), fast, 2),
+                             (Scan(800, 1280, 9), fast, 2), (Scan(800, 1280, 9), other, 3)):
+        batch._fit_compiled(s, cfg)
         assert len(resets) == expected
