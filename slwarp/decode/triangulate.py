@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..scans.scanner import Camera, Projector
+from ..scans.scanner import Camera, Projector, bounded_cache
 
 __all__ = ["baseline_alignment", "choose_plane_axis", "choose_triangulation", "camera_rays", "triangulate_plane",
            "triangulate_rays", "triangulate_midpoint", "triangulate"]
@@ -79,14 +79,12 @@ def camera_rays(camera: Camera, uv: np.ndarray | None = None) -> np.ndarray:
     last few cameras' grids are cached, read-only: undistorting every pixel costs more than a triangulation)."""
     if uv is not None:
         return camera.pixel_to_ray(np.asarray(uv, np.float64))
-    key = (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes())
-    rays = _RAYS_CACHE.get(key)
-    if rays is None:
-        if len(_RAYS_CACHE) >= 4:
-            _RAYS_CACHE.clear()
-        rays = _RAYS_CACHE[key] = camera.pixel_to_ray(camera.pixel_grid())
-        rays.flags.writeable = False
-    return rays
+    return bounded_cache(_RAYS_CACHE, camera.cache_key, lambda: _read_only(camera.pixel_to_ray(camera.pixel_grid())))
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False
+    return a
 
 
 def _plane_intersection(d: np.ndarray, projector: Projector, n_coord: np.ndarray, axis: str) -> np.ndarray:

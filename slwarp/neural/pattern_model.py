@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from ..decode.triangulate import camera_rays
+from ..scans.scanner import bounded_cache
 from .twin import bilinear_patterns
 
 __all__ = [
@@ -164,20 +165,6 @@ def _sparse_residual(depth: np.ndarray, camera, projector, images: np.ndarray, p
     return out
 
 
-def _cached(store: dict, key, build, keep: int = 4):
-    """store[key], built by build() the first time; the store keeps the last `keep` rigs' entries (read-only use)."""
-    value = store.get(key)
-    if value is None:
-        if len(store) >= keep:
-            store.clear()
-        value = store[key] = build()
-    return value
-
-
-def _camera_key(camera) -> tuple:
-    return (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes())
-
-
 # each camera's unit rays [H*W, 3] float64 on a device (the last few), for _residual_on_device
 _DEVICE_RAYS: dict = {}
 
@@ -185,7 +172,7 @@ _DEVICE_RAYS: dict = {}
 def _rays_on(camera, device) -> torch.Tensor:
     """camera_rays(camera) as a [H*W, 3] float64 tensor on `device`, uploaded once per camera and device."""
     # a copy: camera_rays' cached grid is read-only
-    return _cached(_DEVICE_RAYS, _camera_key(camera) + (str(device),),
+    return bounded_cache(_DEVICE_RAYS, camera.cache_key + (str(device),),
                    lambda: torch.from_numpy(np.array(camera_rays(camera).reshape(-1, 3), np.float64)).to(device))
 
 
@@ -424,8 +411,8 @@ _PROJECTOR_RAYS: dict = {}
 
 def _rays_in_projector(camera, projector, device) -> _Rays:
     """_Rays(camera, projector, device), built once per rig and device."""
-    key = _camera_key(camera) + (np.asarray(projector.R).tobytes(), np.asarray(projector.T).tobytes(), str(device))
-    return _cached(_PROJECTOR_RAYS, key, lambda: _Rays(camera, projector, device))
+    key = camera.cache_key + (np.asarray(projector.R).tobytes(), np.asarray(projector.T).tobytes(), str(device))
+    return bounded_cache(_PROJECTOR_RAYS, key, lambda: _Rays(camera, projector, device))
 
 
 def _projector_uv(points: torch.Tensor, projector) -> torch.Tensor:

@@ -31,6 +31,17 @@ def _is_torch(x) -> bool:
     return torch is not None and isinstance(x, torch.Tensor)
 
 
+def bounded_cache(store: dict, key, build, keep: int = 4):
+    """store[key], built by build() the first time; a store that holds `keep` entries is emptied first. For the
+    caches of the last few rigs (ray grids, device copies) and of small constants, whose values are used read-only."""
+    value = store.get(key)
+    if value is None:
+        if len(store) >= keep:
+            store.clear()
+        value = store[key] = build()
+    return value
+
+
 _SMALL_CONSTANTS: dict = {}
 
 
@@ -45,12 +56,8 @@ def const_like(value, like):
     if arr.size > 16:
         return torch.as_tensor(arr, dtype=like.dtype, device=like.device)
     key = (arr.shape, arr.astype(np.float64).tobytes(), like.dtype, like.device)
-    t = _SMALL_CONSTANTS.get(key)
-    if t is None:
-        if len(_SMALL_CONSTANTS) > 256:
-            _SMALL_CONSTANTS.clear()
-        t = _SMALL_CONSTANTS[key] = torch.as_tensor(arr, dtype=like.dtype, device=like.device)
-    return t
+    return bounded_cache(_SMALL_CONSTANTS, key, lambda: torch.as_tensor(arr, dtype=like.dtype, device=like.device),
+                         keep=257)
 
 
 def _rotate(x, M):
@@ -165,6 +172,11 @@ class Camera:
             self.K = self.K.reshape(3, 3)
         self.dist = _as_dist(self.dist)
         _check_intrinsics(self.K, self.dist, self.width, self.height, type(self).__name__)
+
+    @property
+    def cache_key(self) -> tuple:
+        """What a cache of per-camera values (ray grids) is keyed on: the image size and the intrinsics."""
+        return (self.width, self.height, self.K.tobytes(), self.dist.tobytes())
 
     # --- intrinsics -------------------------------------------------------------------------
     @property
