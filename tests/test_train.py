@@ -449,6 +449,22 @@ def test_draw_ahead_gives_the_step_by_step_draws_and_generator_state():
     assert torch.equal(ahead.generator.get_state(), plain.get_state())
 
 
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch's own, when its compiler is first imported
+def test_compile_in_process_turns_inductors_worker_pool_off_unless_the_environment_says(monkeypatch):
+    import torch._inductor.config as inductor_config
+
+    from slwarp.neural.render import compile_in_process
+
+    monkeypatch.setattr(inductor_config, "compile_threads", 8)
+    monkeypatch.delenv("TORCHINDUCTOR_COMPILE_THREADS", raising=False)
+    compile_in_process(lambda x: x + 1)
+    assert inductor_config.compile_threads == 1
+    monkeypatch.setattr(inductor_config, "compile_threads", 8)
+    monkeypatch.setenv("TORCHINDUCTOR_COMPILE_THREADS", "8")
+    compile_in_process(lambda x: x + 1)
+    assert inductor_config.compile_threads == 8  # the user's choice stands
+
+
 def test_map_terms_compile_as_one_graph_with_the_same_values(small_scan):
     """On CUDA the trainer compiles its map terms (warm-up pull, surface and free-space terms, with the surface
     term's field evaluation of a hash grid) as one graph: compiled as the trainer does (aot_eager, so that the CPU

@@ -30,6 +30,26 @@ from .field import LearnedVariance, Volume, sdf_and_gradient
 from .pattern_model import CONTRAST_THRESHOLD, blur_patterns, lit_with_contrast, offset_and_modulation
 
 
+def compile_in_process(fn):
+    """torch.compile(fn, dynamic=False) with Inductor compiling in this process (its `compile_threads` set to 1 for
+    the process, unless the environment sets TORCHINDUCTOR_COMPILE_THREADS).
+
+    Why: Inductor's default is a pool of compile workers (on a 16-core host 16 Python processes) started by the
+    first compile. When every graph comes from Inductor's on-disk cache, as in any run after the first on a machine,
+    nothing waits for the pool, and its start-up ran during training and slowed the host's launches enough to
+    starve the GPU: `fast` on one H100 (bench/train_speed.py --end-to-end) trained at 555 and 564 it/s with a warm
+    cache against 637-645 it/s with the workers off or the cache cold, 2.97-2.99 s to the depth map against 2.62-2.69 s;
+    compiling in this process warmed up no slower (1.48-1.55 s against 1.45-2.1 s with the pool)."""
+    import os
+
+    compiled = torch.compile(fn, dynamic=False)  # first: it imports Inductor as torch expects (no warnings)
+    if "TORCHINDUCTOR_COMPILE_THREADS" not in os.environ:
+        import torch._inductor.config as inductor_config
+
+        inductor_config.compile_threads = 1  # read at the first call, which compiles
+    return compiled
+
+
 class RenderLosses(NamedTuple):
     """color (L_rc), surface (L_sc), eikonal (L_reg): scalar tensors; output: the RenderOutput;
     z_vals [R, S]: the sample distances used; valid [R]: pixels the colour losses counted; sdf [R, S]: the
@@ -197,7 +217,7 @@ class StructuredLightRenderer(nn.Module):
         fn = self._compiled.get(kind)
         if fn is None:
             base = self.sdf if kind == "sdf" else (lambda x: sdf_and_gradient(self.sdf, x))
-            fn = torch.compile(base, dynamic=False) if self.compile_field else base
+            fn = compile_in_process(base) if self.compile_field else base
             self._compiled[kind] = fn
         return fn
 

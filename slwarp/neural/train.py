@@ -55,7 +55,7 @@ from .confidence import pattern_model_inputs, photometric_confidence
 from .pattern_model import blur_patterns, estimate_pattern_blur, lit_with_contrast, offset_and_modulation
 from .progress import Progress
 from . import ops
-from .render import StructuredLightRenderer
+from .render import StructuredLightRenderer, compile_in_process
 from .search import AGREE_MM, component_sizes, search_depth
 
 MISSED_MM = 5.0  # after the warm-up, the surface term acts where the field's depth is this far behind the map's
@@ -730,7 +730,7 @@ class Trainer:
         the capture and the captured one."""
         fn = self._map_terms_compiled
         if fn is None:
-            fn = torch.compile(self._map_terms, dynamic=False) if self.renderer.compile_field else self._map_terms
+            fn = compile_in_process(self._map_terms) if self.renderer.compile_field else self._map_terms
             self._map_terms_compiled = fn
         return fn
 
