@@ -619,13 +619,20 @@ _HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, gr
 # one); steady state 1.79 -> 1.61 ms per step, 4.4 -> 4.0 s from a loaded scan (default-rig bunny, python
 # bench/train_speed.py --preset fast --end-to-end: bench/results/train-speed-cuda-fast-e2e-16b.md, -16c.md). Fewer iterations or samples
 # cost far more (bench/results/fast-speed-variants.md: 600 + 120 iterations 0.234 / 0.196 mm)
+# NeuS's variance at 2x the learning rate and the free-space term at 0.5 (one H100, 8 scenes x default / vertical rig,
+# three sweeps: simulator seeds 0 and 1, bench/results/accuracy-cuda-fast-tuning-s0.md, -s1.md, and -fast-free-space-c.md):
+# mean MAE 0.133 / 0.115, 0.126 / 0.111 mm -> 0.126 / 0.106, 0.122 / 0.105 (0.120 / 0.107 in the third); steps
+# 0.312 -> 0.253 and 0.241 -> 0.220 on the default rig, spheres 0.099 -> 0.136 and 0.096 -> 0.107. The variance
+# alone at 2x: 0.129 / 0.106 and 0.127 / 0.106; at 4x 0.119 and 0.141 on the default rig (accuracy-cuda-variance-lr.md,
+# -fast-variance-lr-2.md); levels every 30 iterations or the tables at 20x lr: no better
 _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 1000 iterations of 1024 rays, levels switched on "
-        "quickly, two up-sampling steps, with tuned's surface term and extraction and a free-space term: a depth map as "
-        "soon as possible (GPU)",
+        "quickly, two up-sampling steps, NeuS's variance at 2x the rate, with tuned's surface term and extraction and "
+        "a free-space term: a depth map as soon as possible (GPU)",
         matmul="tf32", iters=1000, init_iters=200, rays=1024, up_sample_steps=2, grid_levels=8,
         grid_gradient="finite_difference_4",
         grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, surface_weight=1.0,
-        surface_after=1.0, free_space=0.2, uniform_fill=True, **_DEFAULT_EXTRACTION, **_GPU_DENOISE, **_HASHGRID)
+        surface_after=1.0, free_space=0.5, variance_lr_factor=2.0, uniform_fill=True, **_DEFAULT_EXTRACTION,
+        **_GPU_DENOISE, **_HASHGRID)
 # the accurate hash-grid recipe: 8 levels (growth 2), the 4-tap gradient, and tuned's surface term and extraction.
 # Default and vertical rigs, 8 scenes each, H200 (bench/results/accuracy-cuda-hashgrid.md): 8 levels gave a mean
 # MAE of 0.378 / 0.282 mm against 0.351 / 0.268 with 16 and 0.369 / 0.295 with 12; the 4-tap gradient (f from the
