@@ -35,14 +35,15 @@ def compile_in_process(fn):
     the process, unless the environment sets TORCHINDUCTOR_COMPILE_THREADS).
 
     Why: Inductor's default is a pool of compile workers (on a 16-core host 16 Python processes) started by the
-    first compile. When every graph comes from Inductor's on-disk cache, as in any run after the first on a machine,
-    nothing waits for the pool, and its start-up ran during training and slowed the host's launches enough to
-    starve the GPU: `fast` on one H100 (bench/train_speed.py --end-to-end) trained at 555 and 564 it/s with a warm
-    cache against 637-645 it/s with the workers off or the cache cold, 2.97-2.99 s to the depth map against 2.62-2.69 s;
-    compiling in this process warmed up no slower (1.48-1.55 s against 1.45-2.1 s with the pool)."""
+    first compile. With a warm on-disk cache, as in any run after the first on a machine, `fast` on one H100 trained
+    at 555 and 564 it/s against 634-645 it/s with the pool off, started by fork, or the cache cold (2.97-2.99 s
+    against 2.62-2.69 s to the depth map; its steps in the bench's microbenchmark, same process, unchanged:
+    bench/results/train-speed-cuda-fast-compile-workers.md). The likely reading, not measured directly: with every
+    graph from the cache nothing waits for the pool, and its start-up runs during training, on the CPU that
+    launches the steps. Compiling in this process warmed up no slower there (1.48-1.55 s against 1.45-2.1 s)."""
     import os
 
-    compiled = torch.compile(fn, dynamic=False)  # first: it imports Inductor as torch expects (no warnings)
+    compiled = torch.compile(fn, dynamic=False)
     if "TORCHINDUCTOR_COMPILE_THREADS" not in os.environ:
         import torch._inductor.config as inductor_config
 
