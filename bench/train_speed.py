@@ -157,9 +157,9 @@ def time_config(scan, spec: str, preset_name: str, warmup: int, iters: int, dev:
     # init "preset": the preset's own start (its depth search, so the step carries the terms that need the map: the
     # surface and free-space terms); "sphere": NeuS's sphere, no map and none of those terms (the figures before
     # 2026-11-25 were timed so, and read 0.6 ms per step faster than `fast` trains); "trained": the preset's start,
-    # then its whole schedule before the timed steps (fast, H100: the run's own steps with every level on took 1.84-1.92
-    # ms against 1.57 ms timed from the start, train-speed-cuda-fast-e2e-18.md; a trained field puts NeuS's samples
-    # near its surface, which may make more of the encoding's backward atomics hit the same table rows)
+    # then its whole schedule before the timed steps (a trained field puts NeuS's samples near its surface; `fast` on
+    # an H100 steps at 1.57 ms from there as from the start, train-speed-cuda-fast-trained.md: the slower steps of some
+    # end-to-end runs came from Inductor's compile workers, train-speed-cuda-fast-compile-workers.md)
     cfg = preset(preset_name, **{**(options or {}), **parsed["options"], **({"init": "sphere"} if init == "sphere" else {})})
     if dev == "cuda":
         torch.cuda.reset_peak_memory_stats()
