@@ -330,6 +330,30 @@ def test_surface_term_by_hand(small_scan):
     assert float(tr.field.z0.grad) > 0  # a surface 300 mm in front: the plane is pulled toward the camera
 
 
+def test_surface_term_in_front_pulls_back_a_surface_the_field_carried_over_the_map(small_scan):
+    """After the warm-up, a field whose surface lies 20 mm in front of the map's confirmed depth (a step's edge
+    carried over the lower step): the surface term leaves it to the photometric loss by default, and with
+    surface_in_front pulls the plane back toward the map."""
+    from slwarp.neural import ops
+
+    scan = small_scan.select("0:6")
+    H, W = scan.gt_depth.shape
+    grads = {}
+    for in_front in (False, True):
+        tr = Trainer(scan, tiny(surface_weight=1.0, surface_after=1.0, surface_in_front=in_front),
+                     sdf=PlaneSDF(700.0), init_depth=np.full((H, W), 720.0, np.float32), progress=False)
+        tr.surface_depth = torch.full((H * W,), 720.0)  # every pixel's map depth confirmed at 720 mm
+        batch = tr.renderer.sample_pixels(16, torch.Generator().manual_seed(0))
+        _, d, _, _ = ops.camera_rays(batch.uv, scan.camera, tr.depth_range, backend="torch")
+        z_vals = torch.linspace(650.0, 750.0, 8).expand(16, 8)
+        loss = tr._map_terms(d, batch.index, torch.full((16,), 700.0), torch.ones(16), z_vals, torch.zeros(16, 8), 0.0)
+        tr.field.zero_grad()
+        loss.backward()
+        grads[in_front] = float(tr.field.z0.grad) if tr.field.z0.grad is not None else 0.0
+    assert grads[False] == 0.0
+    assert grads[True] < 0  # descent moves the plane from 700 toward the map's 720 mm
+
+
 def test_surface_term_weights_warm_up_and_after():
     from slwarp.neural.train import MISSED_MM, surface_term_weights
 
@@ -342,6 +366,11 @@ def test_surface_term_weights_warm_up_and_after():
     # as a captured step computes it (warm a 0-d tensor)
     got = surface_term_weights(target, rendered, torch.tensor(0.0), 2.0, 0.5)
     assert got.tolist() == [0.0, 0.5, 0.0, 0.0]
+    # in_front: also where the field's surface lies more than MISSED_MM in front of the map's (590 against 600)
+    assert surface_term_weights(target, rendered, 0.0, 2.0, 0.5, in_front=True).tolist() == [0.0, 0.5, 0.5, 0.0]
+    assert surface_term_weights(target, rendered, 1.0, 2.0, 0.5, in_front=True).tolist() == [2.0, 2.0, 2.0, 0.0]
+    near = torch.tensor([600.0 - MISSED_MM + 0.5])  # within MISSED_MM in front: the photometric loss decides
+    assert surface_term_weights(target[:1], near, 0.0, 2.0, 0.5, in_front=True).tolist() == [0.0]
 
 
 def test_free_space_weights_only_where_the_field_lies_in_front():

@@ -172,6 +172,9 @@ class InitConfig:
     surface_after: float = option(0.0, "after the warm-up: weight of the same SDF term, only at pixels where the "
                                   "field's rendered depth is more than 5 mm behind the initial map's (a thin part in "
                                   "front that training lost; 0: off)", min=0.0)
+    surface_in_front: bool = option(False, "after the warm-up the surface term (at surface_after) also acts where the "
+                                    "field's rendered depth is more than 5 mm in front of the initial map's confirmed "
+                                    "depth, not only behind it (a step's edge the field carried over the lower step)")
     free_space: float = option(0.0, "after the warm-up: weight of a free-space term at pixels where the field's "
                                "rendered depth is more than 5 mm in front of the initial map's confirmed depth (a gap "
                                "or background the field bridged): relu(-SDF) summed over the ray's samples more than "

@@ -66,14 +66,18 @@ SURFACE_MIN_GROUP = 50  # ... inside a connected group of at least this many suc
 DRAW_AHEAD = 50
 
 
-def surface_term_weights(target: torch.Tensor, rendered: torch.Tensor, warm, during: float, after: float) -> torch.Tensor:
+def surface_term_weights(target: torch.Tensor, rendered: torch.Tensor, warm, during: float, after: float,
+                         in_front: bool = False) -> torch.Tensor:
     """Per-pixel weights [R] of the surface term (Trainer._surface_term): `during` on every pixel with a target
     in the warm-up (warm 1), and after it (warm 0) `after` only where the rendered depth [R] (mm) lies more than
-    MISSED_MM behind the target [R] (mm, NaN: none): a thin part in front that the field lost. Where the field
-    agrees with the map, or lies in front of it, the photometric loss alone decides. warm: a float or a 0-d
-    tensor in [0, 1]."""
+    MISSED_MM behind the target [R] (mm, NaN: none): a thin part in front that the field lost; with `in_front` also
+    where it lies more than MISSED_MM in front of the target (the field carried a surface over the pixel's own, e.g.
+    a step's edge over the lower step). Elsewhere the photometric loss alone decides. warm: a float or a 0-d tensor
+    in [0, 1]."""
     ok = torch.isfinite(target)
     missed = ok & (torch.nan_to_num(target) < rendered - MISSED_MM)
+    if in_front:
+        missed = missed | (ok & (torch.nan_to_num(target) > rendered + MISSED_MM))
     return ok.to(rendered.dtype) * (warm * during) + missed.to(rendered.dtype) * ((1.0 - warm) * after)
 
 
@@ -756,7 +760,8 @@ class Trainer:
         if self.surface_depth is not None:
             surface = self.surface_depth[index]
             t = torch.nan_to_num(surface) / d[:, 2]  # distance along the unit ray to camera depth surface
-            per_pixel = surface_term_weights(surface, depth.detach(), warm, init.surface_weight, init.surface_after)
+            per_pixel = surface_term_weights(surface, depth.detach(), warm, init.surface_weight, init.surface_after,
+                                             init.surface_in_front)
             loss = loss + self._surface_term(d, t, per_pixel, n)
             if init.free_space > 0:
                 bridged = free_space_weights(surface, depth.detach(), warm, init.free_space)
