@@ -66,6 +66,14 @@ SURFACE_MIN_GROUP = 50  # ... inside a connected group of at least this many suc
 DRAW_AHEAD = 50
 
 
+def _off_the_map(target: torch.Tensor, rendered: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(has target, field behind, field in front) [R] bool: where the rendered depth [R] (mm) lies more than MISSED_MM
+    behind or in front of the map's confirmed depth target [R] (mm, NaN: none)."""
+    ok = torch.isfinite(target)
+    target = torch.nan_to_num(target)
+    return ok, ok & (target < rendered - MISSED_MM), ok & (target > rendered + MISSED_MM)
+
+
 def surface_term_weights(target: torch.Tensor, rendered: torch.Tensor, warm, during: float, after: float,
                          in_front: bool = False) -> torch.Tensor:
     """Per-pixel weights [R] of the surface term (Trainer._surface_term): `during` on every pixel with a target
@@ -74,10 +82,8 @@ def surface_term_weights(target: torch.Tensor, rendered: torch.Tensor, warm, dur
     where it lies more than MISSED_MM in front of the target (the field carried a surface over the pixel's own, e.g.
     a step's edge over the lower step). Elsewhere the photometric loss alone decides. warm: a float or a 0-d tensor
     in [0, 1]."""
-    ok = torch.isfinite(target)
-    missed = ok & (torch.nan_to_num(target) < rendered - MISSED_MM)
-    if in_front:
-        missed = missed | (ok & (torch.nan_to_num(target) > rendered + MISSED_MM))
+    ok, behind, ahead = _off_the_map(target, rendered)
+    missed = behind | ahead if in_front else behind
     return ok.to(rendered.dtype) * (warm * during) + missed.to(rendered.dtype) * ((1.0 - warm) * after)
 
 
@@ -86,7 +92,7 @@ def free_space_weights(target: torch.Tensor, rendered: torch.Tensor, warm, after
     where the rendered depth [R] (mm) lies more than MISSED_MM in front of the map's confirmed depth target [R]
     (mm, NaN: none), else 0. The pixel's own codes put its surface at the target, so the field's surface in front of
     it is one the field bridged across a gap or grew over the background (steps, boxes: notes/accuracy.md)."""
-    bridged = torch.isfinite(target) & (torch.nan_to_num(target) > rendered + MISSED_MM)
+    _, _, bridged = _off_the_map(target, rendered)
     return bridged.to(rendered.dtype) * ((1.0 - warm) * after)
 
 
