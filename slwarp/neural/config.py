@@ -628,13 +628,20 @@ _HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, gr
 # 0.312 -> 0.253 and 0.241 -> 0.220 on the default rig, spheres 0.099 -> 0.136 and 0.096 -> 0.107. The variance
 # alone at 2x: 0.129 / 0.106 and 0.127 / 0.106; at 4x 0.119 and 0.141 on the default rig (accuracy-cuda-variance-lr.md,
 # -fast-variance-lr-2.md); levels every 30 iterations or the tables at 20x lr: no better
+# The surface term also where the field lies in front of the map (surface_in_front; one H100, 8 scenes x default /
+# vertical rig, seeds 0 and 1, bench/results/accuracy-cuda-fast-surface-in-front-s0.md, -s1.md): mean MAE 0.123 /
+# 0.107, 0.118 / 0.107 mm -> 0.104 / 0.105, 0.105 / 0.107 (tuned: 0.094 / 0.096); default-rig steps 0.226 -> 0.109
+# and spheres 0.141 -> 0.097 in the first (the field had carried the upper step over the lower one), rods 0.178 ->
+# 0.188. Oblique / rolled rigs (-oblique-rolled.md) 0.083 / 0.149 -> 0.082 / 0.138. accurate did not gain
+# (accuracy-cuda-accurate-surface-in-front-s0.md: 0.093 / 0.096 -> 0.096 / 0.097), so it keeps the option off
 _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 1000 iterations of 1024 rays, levels switched on "
-        "quickly, two up-sampling steps, NeuS's variance at 2x the rate, with tuned's surface term and extraction and "
-        "a free-space term: a depth map as soon as possible (GPU)",
+        "quickly, two up-sampling steps, NeuS's variance at 2x the rate, with tuned's surface term (on both sides of "
+        "the map) and extraction and a free-space term: a depth map as soon as possible (GPU)",
         matmul="tf32", iters=1000, init_iters=200, rays=1024, up_sample_steps=2, grid_levels=8,
         grid_gradient="finite_difference_4",
         grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, surface_weight=1.0,
-        surface_after=1.0, free_space=0.5, variance_lr_factor=2.0, uniform_fill=True, **_DEFAULT_EXTRACTION,
+        surface_after=1.0, surface_in_front=True, free_space=0.5, variance_lr_factor=2.0, uniform_fill=True,
+        **_DEFAULT_EXTRACTION,
         **_GPU_DENOISE, **_HASHGRID)
 # the accurate hash-grid recipe: 8 levels (growth 2), the 4-tap gradient, and tuned's surface term and extraction.
 # Default and vertical rigs, 8 scenes each, H200 (bench/results/accuracy-cuda-hashgrid.md): 8 levels gave a mean
