@@ -38,7 +38,7 @@ FLAT_PRESETS = {
     "tiny": dict(iters=300, rays=256, n_samples=16, n_importance=8, up_sample_steps=1, lr=5e-4, lr_decay="cosine",
                  sc_start=100, hidden=48, layers=3, skip=None, n_freqs=4, init_iters=100, search_step_mm=2.0,
                  search_stride=3, mc_resolution=128, checkpoint_every=100, log_every=25),
-    "fast": dict(matmul="tf32", iters=1000, init_iters=200, rays=1024, up_sample_steps=2, grid_levels=8,
+    "fast": dict(matmul="tf32", iters=800, init_iters=200, rays=1024, up_sample_steps=2, grid_levels=8,
                  grid_gradient="finite_difference_4",
                  grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, refine_range=3.0,
                  refine_max_misfit=0.024, search_doubt=True, search_repair=True, repair_min_component=100, repair_grow=True,

@@ -633,11 +633,16 @@ _HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, gr
 # 0.107, 0.118 / 0.107 mm -> 0.104 / 0.105, 0.105 / 0.107 (tuned: 0.094 / 0.096); default-rig steps 0.226 -> 0.109
 # and spheres 0.141 -> 0.097 in the first (the field had carried the upper step over the lower one), rods 0.178 ->
 # 0.188. Oblique / rolled rigs (-oblique-rolled.md) 0.083 / 0.149 -> 0.082 / 0.138. accurate did not gain
-# (accuracy-cuda-accurate-surface-in-front-s0.md: 0.093 / 0.096 -> 0.096 / 0.097), so it keeps the option off
-_preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 1000 iterations of 1024 rays, levels switched on "
+# (accuracy-cuda-accurate-surface-in-front-s0.md: 0.093 / 0.096 -> 0.096 / 0.097), so it keeps the option off.
+# Then 800 iterations instead of 1000 (the same rigs and seeds, bench/results/accuracy-cuda-fast-iters-s0.md, -s1.md,
+# -oblique-rolled.md): mean MAE 0.104 / 0.105, 0.106 / 0.107 mm -> 0.107 / 0.107, 0.107 / 0.107 (900: 0.106 / 0.107),
+# oblique / rolled 0.081 / 0.140 -> 0.084 / 0.142, for 2.65 -> 2.31 s from a loaded scan to the depth map (default-rig
+# bunny, bench/results/train-speed-cuda-fast-e2e-20c.md, -fast-800-e2e-20.md): the 3 s target with room for a
+# slower host (the same preset took 2.82-3.01 s on a machine just after a sweep). Levels every 40: no better
+_preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 800 iterations of 1024 rays, levels switched on "
         "quickly, two up-sampling steps, NeuS's variance at 2x the rate, with tuned's surface term (on both sides of "
         "the map) and extraction and a free-space term: a depth map as soon as possible (GPU)",
-        matmul="tf32", iters=1000, init_iters=200, rays=1024, up_sample_steps=2, grid_levels=8,
+        matmul="tf32", iters=800, init_iters=200, rays=1024, up_sample_steps=2, grid_levels=8,
         grid_gradient="finite_difference_4",
         grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, surface_weight=1.0,
         surface_after=1.0, surface_in_front=True, free_space=0.5, variance_lr_factor=2.0, uniform_fill=True,
