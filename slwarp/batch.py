@@ -508,15 +508,33 @@ def worker_devices(device: str) -> list[str]:
     return [str(dev)]
 
 
-def _enter_worker(device: str, local_workers: int) -> None:
-    """Set up a worker process for its device: the current CUDA device, and on the CPU a fair share of the
-    cores (torchrun sets OMP_NUM_THREADS=1 itself; a value the user set is kept)."""
+def worker_cores(index: int, count: int, allowed) -> list[int]:
+    """The CPU cores of host-local worker `index` of `count`: a contiguous share of `allowed` (the cores this
+    process may use), disjoint from the other workers' shares, sizes differing by at most one; all of `allowed`
+    for a single worker or when there are fewer cores than workers."""
+    cores = sorted(allowed)
+    if count <= 1 or len(cores) < count:
+        return cores
+    index %= count
+    return cores[index * len(cores) // count:(index + 1) * len(cores) // count]
+
+
+def _enter_worker(device: str, index: int, count: int) -> None:
+    """Set up host-local worker `index` of `count` for its device: pinned to its share of the cores
+    (`worker_cores`; within any affinity the launcher gave), torch's CPU threads to that share unless
+    OMP_NUM_THREADS is set (torchrun sets it to 1 itself), and the current CUDA device.
+    Why pin: two single-scan processes on two GPUs of one host, free to share all 32 cores, trained 19% slower
+    each (1.55 -> 1.84 s a scan, steady state); pinned to half the cores each, as fast as one alone (1.48-1.56 s).
+    A step's launches come from the host, which then has to keep up with the GPU (notes/hashgrid.md)."""
     import torch
 
+    if count > 1 and hasattr(os, "sched_setaffinity"):  # before CUDA starts its threads, which inherit it
+        share = worker_cores(index, count, os.sched_getaffinity(0))
+        os.sched_setaffinity(0, share)
+        if "OMP_NUM_THREADS" not in os.environ:
+            torch.set_num_threads(len(share))
     if device.startswith("cuda"):
         torch.cuda.set_device(torch.device(device))
-    elif local_workers > 1 and "OMP_NUM_THREADS" not in os.environ:
-        torch.set_num_threads(max(1, (os.cpu_count() or 1) // local_workers))
 
 
 def _plan(scans: Sequence[ScanEntry], out: Path, single: bool, resume: bool) -> tuple[list[ScanJob], list[ScanResult]]:
@@ -598,7 +616,7 @@ def _run_torchrun(scans, config, out: Path, options: BatchOptions, single: bool,
         jobs, skipped = box[0]
         devices = worker_devices(config.runtime.device)
         device = devices[local_rank % len(devices)]
-        _enter_worker(device, local_world)
+        _enter_worker(device, local_rank, local_world)
         cfg = config.with_options(device=device)
         mine = shard([j.cost for j in jobs], world)[rank]
         rows = [run_scan(jobs[i], cfg, options, worker=f"rank {rank}", log=log).to_dict() for i in mine]
@@ -633,7 +651,7 @@ def _run_spawned(jobs: list[ScanJob], config, options: BatchOptions, devices: li
     for _ in range(n):
         todo.put(None)  # one stop sign per worker
     procs = [ctx.Process(target=_queue_worker, name=f"slwarp-worker-{w}",
-                         args=(w, devices[w % len(devices)], per_device, jobs, config, options, todo, events))
+                         args=(w, devices[w % len(devices)], n, jobs, config, options, todo, events))
              for w in range(n)]
     for p in procs:
         p.start()
@@ -680,10 +698,11 @@ def _run_spawned(jobs: list[ScanJob], config, options: BatchOptions, devices: li
     return [results[i] for i in range(len(jobs))]
 
 
-def _queue_worker(w: int, device: str, local_workers: int, jobs, config, options, todo, events) -> None:
-    """A worker process of `_run_spawned`: scans from `todo` until a stop sign, each reported to `events`."""
+def _queue_worker(w: int, device: str, workers: int, jobs, config, options, todo, events) -> None:
+    """Worker w of the `workers` processes of `_run_spawned`: scans from `todo` until a stop sign, each reported
+    to `events`."""
     try:
-        _enter_worker(device, local_workers)
+        _enter_worker(device, w, workers)
         cfg = config.with_options(device=device)
         while (i := todo.get()) is not None:
             events.put(("start", w, i))

@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from slwarp.batch import (BatchSummary, ScanResult, find_scans, largest_first, scan_cost, shard, unique_names)
+from slwarp.batch import (BatchSummary, ScanResult, find_scans, largest_first, scan_cost, shard, unique_names,
+                          worker_cores)
 from slwarp.cli import main as cli_main
 from slwarp.scans.scan import ScanError
 
@@ -93,6 +94,28 @@ def test_sharding_is_longest_first_to_the_least_loaded_worker():
     assert shard([None, None, None], 2) == [[0, 2], [1]]
     with pytest.raises(ValueError, match="n_workers"):
         shard([1.0], 0)
+
+
+def test_worker_cores_are_disjoint_contiguous_shares_of_the_allowed_cores():
+    allowed = {0, 1, 2, 3, 4, 5, 6, 8, 9, 10}  # a launcher's affinity need not be 0..N-1
+    shares = [worker_cores(i, 3, allowed) for i in range(3)]
+    assert shares == [[0, 1, 2], [3, 4, 5], [6, 8, 9, 10]]
+    assert worker_cores(4, 3, allowed) == shares[1]  # index taken modulo the count
+    assert worker_cores(0, 1, allowed) == sorted(allowed)
+    assert worker_cores(1, 4, {0, 1}) == [0, 1]  # fewer cores than workers: no pinning
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="no CPU affinity on this OS")
+def test_a_worker_process_is_pinned_to_its_share_of_the_cores():
+    """In a process of its own (pinning would bind the test runner): worker 1 of 2 keeps the second share."""
+    allowed = sorted(os.sched_getaffinity(0))
+    code = ("import os, torch; from slwarp.batch import _enter_worker; _enter_worker('cpu', 1, 2); "
+            "print(sorted(os.sched_getaffinity(0)), torch.get_num_threads())")
+    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True).stdout
+    share = worker_cores(1, 2, allowed)
+    assert out.split("]")[0] + "]" == str(share)
+    assert int(out.split("]")[1]) == len(share)
 
 
 def test_scan_cost_is_pixels_times_frames_from_scan_yaml(tmp_path):
