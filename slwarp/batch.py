@@ -519,16 +519,17 @@ def worker_cores(index: int, count: int, allowed) -> list[int]:
     return cores[index * len(cores) // count:(index + 1) * len(cores) // count]
 
 
-def _enter_worker(device: str, index: int, count: int) -> None:
-    """Set up host-local worker `index` of `count` for its device: pinned to its share of the cores
-    (`worker_cores`; within any affinity the launcher gave), torch's CPU threads to that share unless
-    OMP_NUM_THREADS is set (torchrun sets it to 1 itself), and the current CUDA device.
-    Why pin: two single-scan processes on two GPUs of one host, free to share all 32 cores, trained 19% slower
-    each (1.55 -> 1.84 s a scan, steady state); pinned to half the cores each, as fast as one alone (1.48-1.56 s).
-    A step's launches come from the host, which then has to keep up with the GPU (notes/hashgrid.md)."""
+def _enter_worker(device: str, index: int, count: int, pin: bool) -> None:
+    """Set up host-local worker `index` of `count` for its device: with `pin`, bound to its share of the cores
+    (`worker_cores`, within any affinity the launcher gave) and torch's CPU threads to that share unless
+    OMP_NUM_THREADS is set; then the current CUDA device.
+    Why pin the workers slwarp starts itself (`per_device`): two plain processes on two GPUs of one host, each with
+    torch's default of a thread per core, trained a scan in 1.84 s each against 1.55 s alone; bound to half of the
+    32 cores each, in 1.48-1.56 s (H200 x2, notes/hashgrid.md). torchrun's ranks are left where torchrun put them:
+    it sets OMP_NUM_THREADS=1, and their scans after the first already trained at 1.50-1.55 s unbound."""
     import torch
 
-    if count > 1 and hasattr(os, "sched_setaffinity"):  # before CUDA starts its threads, which inherit it
+    if pin and count > 1 and hasattr(os, "sched_setaffinity"):  # before CUDA starts its threads, which inherit it
         share = worker_cores(index, count, os.sched_getaffinity(0))
         os.sched_setaffinity(0, share)
         if "OMP_NUM_THREADS" not in os.environ:
@@ -616,7 +617,7 @@ def _run_torchrun(scans, config, out: Path, options: BatchOptions, single: bool,
         jobs, skipped = box[0]
         devices = worker_devices(config.runtime.device)
         device = devices[local_rank % len(devices)]
-        _enter_worker(device, local_rank, local_world)
+        _enter_worker(device, local_rank, local_world, pin=False)
         cfg = config.with_options(device=device)
         mine = shard([j.cost for j in jobs], world)[rank]
         rows = [run_scan(jobs[i], cfg, options, worker=f"rank {rank}", log=log).to_dict() for i in mine]
@@ -702,7 +703,7 @@ def _queue_worker(w: int, device: str, workers: int, jobs, config, options, todo
     """Worker w of the `workers` processes of `_run_spawned`: scans from `todo` until a stop sign, each reported
     to `events`."""
     try:
-        _enter_worker(device, w, workers)
+        _enter_worker(device, w, workers, pin=True)
         cfg = config.with_options(device=device)
         while (i := todo.get()) is not None:
             events.put(("start", w, i))
