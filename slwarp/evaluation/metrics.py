@@ -99,13 +99,14 @@ def sparsification_curve(errors: np.ndarray, confidence: np.ndarray, fractions=S
         return np.full(f.shape, np.nan)
     if not ((f > 0) & (f <= 1)).all():
         raise ValueError(f"fractions must lie in (0, 1], got {f}")
-    order = np.argsort(-c, kind="stable")
+    order = np.argsort(-c)  # any order within a tie group: the groups' means below make it irrelevant
     cs, es = c[order], e[order]
-    # each tie group's pixels all carry the group's mean error
+    # each tie group's pixels all carry the group's mean error (nothing to do when no two confidences are equal)
     starts = np.flatnonzero(np.r_[True, cs[1:] != cs[:-1]])
-    sums = np.add.reduceat(es, starts)
-    counts = np.diff(np.r_[starts, es.size])
-    es = np.repeat(sums / counts, counts)
+    if starts.size < es.size:
+        sums = np.add.reduceat(es, starts)
+        counts = np.diff(np.r_[starts, es.size])
+        es = np.repeat(sums / counts, counts)
     cum = np.r_[0.0, np.cumsum(es)]
     k = f * es.size
     whole = np.minimum(np.floor(k).astype(np.int64), es.size)
@@ -138,7 +139,9 @@ def confidence_metrics(pred: np.ndarray, confidence: np.ndarray, gt: np.ndarray,
     err = np.abs(pred[both] - gt[both])
     c = np.where(np.isfinite(conf[both]), conf[both], -np.inf)
     f = np.asarray(fractions, np.float64)
-    curve = sparsification_curve(err, c, f)
+    # one sort for the curve and the shares' MAEs together (a sort of every compared pixel is most of the time)
+    with_shares = sparsification_curve(err, c, np.r_[f, CONFIDENCE_SHARES])
+    curve, at_shares = with_shares[:f.size], with_shares[f.size:]
     oracle = sparsification_curve(err, -err, f)
     width = float(f.max() - f.min())
 
@@ -147,7 +150,7 @@ def confidence_metrics(pred: np.ndarray, confidence: np.ndarray, gt: np.ndarray,
         x, y = f[o], y[o]
         return float(((y[1:] + y[:-1]) * np.diff(x)).sum() / (2.0 * width)) if width > 0 else float(y[0])
 
-    out = {f"mae_top{round(s * 100)}": float(sparsification_curve(err, c, [s])[0]) for s in CONFIDENCE_SHARES}
+    out = {f"mae_top{round(s * 100)}": float(m) for s, m in zip(CONFIDENCE_SHARES, at_shares)}
     mae = float(err.mean()) if err.size else math.nan
     out.update(ause=area(curve - oracle), ause_random=area(mae - oracle),
                sparsification={"fractions": f.tolist(), "curve": curve.tolist(), "oracle": oracle.tolist()})
