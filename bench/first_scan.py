@@ -1,0 +1,195 @@
+"""A fresh process's first depth map: what `slwarp reconstruct SCAN` pays once per process on top of the
+reconstruction itself (imports, the device's start-up, kernel loads, compiling or loading the training graphs,
+CUDA-graph capture), against a second reconstruction of the same scan in the same process.
+
+    python bench/first_scan.py --preset fast                     # CUDA: bunny, default rig, 3 fresh processes
+    python bench/first_scan.py --preset fast --runs 2 --fresh    # the first process with empty caches
+    python bench/first_scan.py --smoke                           # CPU: small rig, tiny settings (a smoke test)
+
+One simulated scan (made once, in a process of its own, on the device). Then --runs fresh processes, one after
+another, each: the imports, the device's first tensor, the scan loaded, `reconstruct()` twice. The compile and
+kernel caches (Warp's kernel cache, Inductor's and Triton's) live in <work>/caches, shared by the runs as a
+station's are between commands: with --fresh the first run finds them empty, the next ones warm. `bench/train_speed.py`
+times its warm-up inside a process that has already run its microbenchmark; this is the cost a user sees per command.
+Writes <out>/<stem>.json and .md (stem default first-scan-<cuda|cpu>[-<preset>]) and prints the table.
+"""
+from __future__ import annotations
+
+import time
+
+T_START = time.perf_counter()  # the child's clock starts before its imports
+
+import argparse  # noqa: E402
+import datetime  # noqa: E402
+import json  # noqa: E402
+import os  # noqa: E402
+import shutil  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+SMOKE_SET = ["iters=3", "init_iters=2", "mc_resolution=32", "rays=64"]
+STAGES = ("setup_s", "train_s", "depth_map_s")
+
+
+def child(args) -> None:
+    """One fresh process (see the module docstring); prints one JSON line."""
+    import torch
+
+    from slwarp.neural.config import preset
+    from slwarp.neural.reconstruct import reconstruct
+    from slwarp.scans.scan import load_scan
+
+    imports = time.perf_counter() - T_START
+    cfg = preset(args.preset, **parse_set(args.set)).with_options(device=args.device)
+    if args.make:
+        from slwarp.sim.simulate import SimOptions, simulate_scene
+
+        simulate_scene(args.scene, "random6", rig=args.rig, options=SimOptions(seed=0), device=args.device).save(args.scan)
+        return
+    t = time.perf_counter()
+    torch.zeros(1, device=args.device)
+    if args.device.startswith("cuda"):
+        torch.cuda.synchronize()
+    device_start = time.perf_counter() - t
+    t = time.perf_counter()
+    scan = load_scan(args.scan)
+    load = time.perf_counter() - t
+    scans, first = [], None
+    for _ in range(2):
+        t = time.perf_counter()
+        r = reconstruct(scan, cfg, progress=False)
+        first = first or time.perf_counter() - T_START
+        scans.append({"wall_s": time.perf_counter() - t, **{k: r.timings[k] for k in STAGES},
+                      "extract_s": r.timings["depth_map_s"] - r.timings["setup_s"] - r.timings["train_s"],
+                      "mae": None if r.metrics is None else r.metrics["mae"]})
+    print(json.dumps({"imports_s": imports, "device_start_s": device_start, "load_s": load,
+                      "to_first_depth_map_s": first, "scans": scans}))
+
+
+def parse_set(items: list[str]) -> dict:
+    from slwarp.neural.config import OPTIONS, ConfigError
+
+    options = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or key not in OPTIONS:
+            raise SystemExit(f"--set {item!r}: expected KEY=VALUE with KEY an option of slwarp.neural.config")
+        try:
+            options[key] = OPTIONS[key].parse(value)
+        except ConfigError as e:
+            raise SystemExit(f"--set: {e}") from None
+    return options
+
+
+def run_child(args, extra: list[str], env: dict) -> tuple[dict | None, float, str]:
+    """(the child's JSON or None, its wall time from spawn to exit in s, its output's last lines)."""
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--preset", args.preset, "--scene", args.scene,
+           "--rig", args.rig, "--device", args.device, "--scan", str(args.scan), "--set", *args.set, *extra]
+    t = time.perf_counter()
+    p = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - t
+    tail = "\n".join((p.stdout + p.stderr).strip().splitlines()[-5:])
+    if p.returncode != 0:
+        return None, wall, tail
+    lines = [ln for ln in p.stdout.splitlines() if ln.startswith("{")]
+    return (json.loads(lines[-1]) if lines else {}), wall, tail
+
+
+def markdown(doc: dict) -> str:
+    s = doc["setup"]
+    lines = [f"# A fresh process's first depth map, preset `{s['preset']}`, {s['scene']} ({s['rig']} rig), "
+             f"{doc['device']}, {doc['date']}", "", f"`{doc['bench_command']}`", "",
+             "Each run is a fresh process: imports, the device's first tensor, the scan loaded, then `reconstruct()` "
+             "twice. 'process to first depth map': from the process's start (after the interpreter's own) to the "
+             "first depth map. 'once per process': the first scan's time to the depth map minus the second's. "
+             f"Caches ({'Inductor, Triton; Warp kernels in the usual cache' if s['smoke'] else 'Warp kernels, Inductor, Triton'})"
+             f" in the work folder{', emptied before run 1' if s['fresh'] else ''}; 'caches' says whether run i found them empty.",
+             "", "| run | caches | process wall s | imports s | device start s | process to first depth map s | "
+             "first scan: setup / train / extract s | second scan: setup / train / extract s | first / second to "
+             "depth map s | once per process s |", "|---|---|---:|---:|---:|---:|---|---|---|---:|"]
+    for i, r in enumerate(doc["runs"], 1):
+        if r.get("error"):
+            lines.append(f"| {i} | {r['caches']} | {r['process_wall_s']:.1f} | failed: {r['error'][-200:]} |||||||")
+            continue
+        a, b = r["scans"]
+        lines.append(f"| {i} | {r['caches']} | {r['process_wall_s']:.1f} | {r['imports_s']:.2f} | "
+                     f"{r['device_start_s']:.2f} | {r['to_first_depth_map_s']:.2f} | "
+                     f"{a['setup_s']:.2f} / {a['train_s']:.2f} / {a['extract_s']:.2f} | "
+                     f"{b['setup_s']:.2f} / {b['train_s']:.2f} / {b['extract_s']:.2f} | "
+                     f"{a['depth_map_s']:.2f} / {b['depth_map_s']:.2f} | {a['depth_map_s'] - b['depth_map_s']:.2f} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--preset", default=None, help="default: the device's default preset (tiny with --smoke)")
+    p.add_argument("--scene", default="bunny")
+    p.add_argument("--rig", default=None, help="default: default on CUDA, small on the CPU")
+    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="options applied to the preset")
+    p.add_argument("--runs", type=int, default=3, help="fresh processes, one after another")
+    p.add_argument("--fresh", action="store_true", help="empty the work folder's caches before the first run")
+    p.add_argument("--work", default="/tmp/slwarp-first-scan", help="the scan and the caches")
+    p.add_argument("--smoke", action="store_true", help="CPU, small rig, tiny preset and a few iterations")
+    p.add_argument("--stem", default=None)
+    p.add_argument("--out", default=str(REPO / "bench" / "results"))
+    p.add_argument("--device", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--make", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--scan", default=None, help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.child:
+        return child(args)
+    if args.runs < 1:
+        raise SystemExit("--runs must be >= 1")
+    import torch
+
+    cuda = torch.cuda.is_available() and not args.smoke
+    args.device = "cuda" if cuda else "cpu"
+    if args.smoke:
+        args.preset, args.rig, args.scene = args.preset or "tiny", args.rig or "small", "spheres"
+        args.set = SMOKE_SET + args.set
+    from slwarp.neural.config import default_preset_name
+
+    args.preset = args.preset or default_preset_name(args.device)
+    args.rig = args.rig or ("default" if cuda else "small")
+    work = Path(args.work)
+    caches = work / "caches"
+    if args.fresh:
+        shutil.rmtree(caches, ignore_errors=True)
+    caches.mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "TORCHINDUCTOR_CACHE_DIR": str(caches / "inductor"),
+           "TRITON_CACHE_DIR": str(caches / "triton")}
+    if not args.smoke:  # the CPU's Warp kernels compile for minutes: the smoke test keeps the user's kernel cache
+        env["SLWARP_KERNEL_CACHE"] = str(caches / "warp")
+    args.scan = work / f"scan-{args.scene}-{args.rig}"
+    if not (args.scan / "scan.yaml").is_file():
+        made, _, tail = run_child(args, ["--make"], env)
+        if made is None:
+            raise SystemExit(f"could not simulate the scan into {args.scan}:\n{tail}")
+    runs = []
+    for i in range(args.runs):
+        warm = any(caches.rglob("*"))
+        res, wall, tail = run_child(args, [], env)
+        row = {"caches": "warm" if warm else "empty", "process_wall_s": wall}
+        row.update(res if res is not None else {"error": tail})
+        runs.append(row)
+        print(f"run {i + 1}: " + (f"{res['to_first_depth_map_s']:.2f} s to the first depth map, the second scan "
+                                  f"{res['scans'][1]['depth_map_s']:.2f} s" if res else f"failed:\n{tail}"), flush=True)
+    name = torch.cuda.get_device_name(0) if cuda else "CPU"
+    doc = {"device": name, "date": str(datetime.date.today()),
+           "bench_command": "python bench/first_scan.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+           "setup": {"preset": args.preset, "scene": args.scene, "rig": args.rig, "set": args.set,
+                     "fresh": args.fresh, "smoke": args.smoke}, "runs": runs}
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    stem = args.stem or f"first-scan-{'cuda' if cuda else 'cpu'}-{args.preset}"
+    md = markdown(doc)
+    print(md)
+    (out / f"{stem}.json").write_text(json.dumps(doc, indent=1))
+    (out / f"{stem}.md").write_text(md + "\n")
+
+
+if __name__ == "__main__":
+    main()
