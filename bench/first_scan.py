@@ -69,18 +69,12 @@ def child(args) -> None:
 
 
 def parse_set(items: list[str]) -> dict:
-    from slwarp.neural.config import OPTIONS, ConfigError
+    from slwarp.neural.config import ConfigError, parse_assignments
 
-    options = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or key not in OPTIONS:
-            raise SystemExit(f"--set {item!r}: expected KEY=VALUE with KEY an option of slwarp.neural.config")
-        try:
-            options[key] = OPTIONS[key].parse(value)
-        except ConfigError as e:
-            raise SystemExit(f"--set: {e}") from None
-    return options
+    try:
+        return parse_assignments(items)
+    except ConfigError as e:
+        raise SystemExit(f"--set {e}") from None
 
 
 def run_child(args, extra: list[str], env: dict) -> tuple[dict | None, float, str]:
@@ -153,6 +147,7 @@ def main(argv=None) -> None:
     from slwarp.neural.config import default_preset_name
 
     args.preset = args.preset or default_preset_name(args.device)
+    parse_set(args.set)  # a bad option stops here, not in each child
     args.rig = args.rig or ("default" if cuda else "small")
     work = Path(args.work)
     caches = work / "caches"

@@ -361,17 +361,12 @@ def main(argv=None):
     p.add_argument("--stem", default=None, help="output name (default train-speed-<device>[-<preset>])")
     p.add_argument("--out", default=str(REPO / "bench" / "results"))
     args = p.parse_args(argv)
-    from slwarp.neural.config import OPTIONS, ConfigError
+    from slwarp.neural.config import ConfigError, parse_assignments
 
-    options = {}
-    for item in args.set:
-        key, sep, value = item.partition("=")
-        if not sep or key not in OPTIONS:
-            raise SystemExit(f"--set {item!r}: expected KEY=VALUE with KEY an option of slwarp.neural.config")
-        try:
-            options[key] = OPTIONS[key].parse(value)
-        except ConfigError as e:
-            raise SystemExit(f"--set: {e}") from None
+    try:
+        options = parse_assignments(args.set)
+    except ConfigError as e:
+        raise SystemExit(f"--set {e}") from None
     dev = "cuda" if torch.cuda.is_available() else "cpu"
     from slwarp.neural.config import default_preset_name
 

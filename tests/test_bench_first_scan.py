@@ -1,21 +1,15 @@
 """bench/first_scan.py: a fresh process on the CPU with tiny settings (a smoke test; timings are never asserted),
 and its table with a failed run."""
-import importlib.util
 import json
+import sys
 from pathlib import Path
 
-BENCH = Path(__file__).resolve().parents[1] / "bench" / "first_scan.py"
-
-
-def load_bench():
-    spec = importlib.util.spec_from_file_location("first_scan", BENCH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+import first_scan  # noqa: E402
 
 
 def test_first_scan_smoke_on_cpu(tmp_path):
-    load_bench().main(["--smoke", "--runs", "1", "--fresh", "--work", str(tmp_path / "work"), "--out", str(tmp_path)])
+    first_scan.main(["--smoke", "--runs", "1", "--fresh", "--work", str(tmp_path / "work"), "--out", str(tmp_path)])
     doc = json.loads((tmp_path / "first-scan-cpu-tiny.json").read_text())
     (run,) = doc["runs"]
     assert "error" not in run and run["caches"] == "empty"
@@ -28,14 +22,13 @@ def test_first_scan_smoke_on_cpu(tmp_path):
 
 
 def test_first_scan_table_reports_a_failed_run():
-    bench = load_bench()
     scan = {"setup_s": 1.0, "train_s": 2.0, "extract_s": 0.5, "depth_map_s": 3.5}
     doc = {"device": "CPU", "date": "2026-11-26", "bench_command": "python bench/first_scan.py",
            "setup": {"preset": "tiny", "scene": "spheres", "rig": "small", "set": [], "fresh": True, "smoke": False},
            "runs": [{"caches": "empty", "process_wall_s": 9.0, "imports_s": 2.0, "device_start_s": 0.5, "load_s": 0.1,
                      "to_first_depth_map_s": 6.0, "scans": [scan, {**scan, "depth_map_s": 1.5}]},
                     {"caches": "warm", "process_wall_s": 1.0, "error": "RuntimeError: out of memory"}]}
-    md = bench.markdown(doc)
+    md = first_scan.markdown(doc)
     assert "| 1 | empty | 9.0 | 2.00 | 0.50 | 6.00 | 1.00 / 2.00 / 0.50 | 1.00 / 2.00 / 0.50 | 3.50 / 1.50 | 2.00 |" in md
     assert "| 2 | warm | 1.0 | failed: RuntimeError: out of memory |" in md
     assert "emptied before run 1" in md

@@ -8,7 +8,7 @@ import pytest
 
 from slwarp import cli
 from slwarp.neural.config import (OPTIONS, PRESET_SUMMARIES, PRESETS, SECTIONS, ConfigError, TrainConfig, load_config,
-                                  preset, save_config)
+                                  parse_assignments, preset, save_config)
 
 # The presets as flat fields, written out by hand from the flat TrainConfig they replace: the sections must
 # hold exactly these values (a change here is a change of behaviour).
@@ -75,6 +75,14 @@ def test_preset_copies_and_flat_overrides():
         preset("tiny", iterations=5)
     with pytest.raises(ConfigError, match="unknown preset 'quick'; presets: paper, tuned, cpu, tiny, fast, accurate"):
         preset("quick")
+
+
+def test_parse_assignments_as_on_the_command_line():
+    assert parse_assignments(["iters=300", "field=hashgrid", "surface_in_front=true", "lr=1e-3"]) == {
+        "iters": 300, "field": "hashgrid", "surface_in_front": True, "lr": 1e-3}
+    for bad, says in (["iters"], "expected KEY=VALUE"), (["no_such=1"], "'no_such=1'"), (["iters=-3"], "iters"):
+        with pytest.raises(ConfigError, match=says):
+            parse_assignments(bad)
 
 
 @pytest.mark.parametrize("option,value,allowed", [

@@ -50,6 +50,7 @@ __all__ = [
     "PRESETS",
     "PRESET_SUMMARIES",
     "preset",
+    "parse_assignments",
     "default_preset_name",
     "DEFAULT_PRESET",
     "load_config",
@@ -713,6 +714,18 @@ def preset(name: str, **options) -> TrainConfig:
     if name not in PRESETS:
         raise ConfigError(f"unknown preset {name!r}; presets: {', '.join(PRESETS)}")
     return PRESETS[name].with_options(**options)
+
+
+def parse_assignments(items) -> dict:
+    """['iters=300', 'field=hashgrid'] -> {flat option name: value}, each value parsed and checked as on the
+    command line; ConfigError naming the item when it is not KEY=VALUE with KEY an option (see OPTIONS)."""
+    options = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or key not in OPTIONS:
+            raise ConfigError(f"{item!r}: expected KEY=VALUE with KEY an option of slwarp.neural.config")
+        options[key] = OPTIONS[key].parse(value)
+    return options
 
 
 def default_preset_name(device) -> str:
