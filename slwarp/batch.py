@@ -524,9 +524,10 @@ def _enter_worker(device: str, index: int, count: int, pin: bool) -> None:
     (`worker_cores`, within any affinity the launcher gave) and torch's CPU threads to that share unless
     OMP_NUM_THREADS is set; then the current CUDA device.
     Why pin the workers slwarp starts itself (`per_device`): two plain processes on two GPUs of one host, each with
-    torch's default of a thread per core, trained a scan in 1.84 s each against 1.55 s alone; bound to half of the
-    32 cores each, in 1.48-1.56 s (H200 x2, notes/hashgrid.md). torchrun's ranks are left where torchrun put them:
-    it sets OMP_NUM_THREADS=1, and their scans after the first already trained at 1.50-1.55 s unbound."""
+    torch's default of a thread per core, trained a scan in 1.82-1.83 s each against 1.56 s alone; bound to half of
+    the 32 cores each, in 1.53 s (two H200s, bench/results/batch-concurrency-cuda-h200x2-20.md). torchrun's ranks are
+    left where torchrun put them: it sets OMP_NUM_THREADS=1, and their scans after the first already trained in
+    1.53 s unbound."""
     import torch
 
     if pin and count > 1 and hasattr(os, "sched_setaffinity"):  # before CUDA starts its threads, which inherit it
