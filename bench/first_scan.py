@@ -47,6 +47,7 @@ def child(args) -> None:
         from slwarp.sim.simulate import SimOptions, simulate_scene
 
         simulate_scene(args.scene, "random6", rig=args.rig, options=SimOptions(seed=0), device=args.device).save(args.scan)
+        print(json.dumps({"made": str(args.scan)}))
         return
     t = time.perf_counter()
     torch.zeros(1, device=args.device)
@@ -78,7 +79,8 @@ def parse_set(items: list[str]) -> dict:
 
 
 def run_child(args, extra: list[str], env: dict) -> tuple[dict | None, float, str]:
-    """(the child's JSON or None, its wall time from spawn to exit in s, its output's last lines)."""
+    """(the child's JSON line, None when it failed or printed none; its wall time from spawn to exit in s; its
+    output's last lines)."""
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--preset", args.preset, "--scene", args.scene,
            "--rig", args.rig, "--device", args.device, "--scan", str(args.scan), "--set", *args.set, *extra]
     t = time.perf_counter()
@@ -88,7 +90,7 @@ def run_child(args, extra: list[str], env: dict) -> tuple[dict | None, float, st
     if p.returncode != 0:
         return None, wall, tail
     lines = [ln for ln in p.stdout.splitlines() if ln.startswith("{")]
-    return (json.loads(lines[-1]) if lines else {}), wall, tail
+    return (json.loads(lines[-1]) if lines else None), wall, tail
 
 
 def markdown(doc: dict) -> str:
@@ -105,7 +107,8 @@ def markdown(doc: dict) -> str:
              "depth map s | once per process s |", "|---|---|---:|---:|---:|---:|---|---|---|---:|"]
     for i, r in enumerate(doc["runs"], 1):
         if r.get("error"):
-            lines.append(f"| {i} | {r['caches']} | {r['process_wall_s']:.1f} | failed: {r['error'][-200:]} |||||||")
+            why = r["error"][-200:].replace("\n", " / ").replace("|", "\\|")  # one table cell
+            lines.append(f"| {i} | {r['caches']} | {r['process_wall_s']:.1f} | failed: {why} |||||||")
             continue
         a, b = r["scans"]
         lines.append(f"| {i} | {r['caches']} | {r['process_wall_s']:.1f} | {r['imports_s']:.2f} | "

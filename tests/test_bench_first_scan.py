@@ -27,8 +27,8 @@ def test_first_scan_table_reports_a_failed_run():
            "setup": {"preset": "tiny", "scene": "spheres", "rig": "small", "set": [], "fresh": True, "smoke": False},
            "runs": [{"caches": "empty", "process_wall_s": 9.0, "imports_s": 2.0, "device_start_s": 0.5, "load_s": 0.1,
                      "to_first_depth_map_s": 6.0, "scans": [scan, {**scan, "depth_map_s": 1.5}]},
-                    {"caches": "warm", "process_wall_s": 1.0, "error": "RuntimeError: out of memory"}]}
+                    {"caches": "warm", "process_wall_s": 1.0, "error": "Traceback ...\nRuntimeError: out of memory"}]}
     md = first_scan.markdown(doc)
     assert "| 1 | empty | 9.0 | 2.00 | 0.50 | 6.00 | 1.00 / 2.00 / 0.50 | 1.00 / 2.00 / 0.50 | 3.50 / 1.50 | 2.00 |" in md
-    assert "| 2 | warm | 1.0 | failed: RuntimeError: out of memory |" in md
+    assert "| 2 | warm | 1.0 | failed: Traceback ... / RuntimeError: out of memory |" in md
     assert "emptied before run 1" in md
