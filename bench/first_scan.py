@@ -29,6 +29,9 @@ import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "bench"))
+from batch_throughput import compile_cache_env  # noqa: E402  (where a station keeps torch.compile's caches)
+
 SMOKE_SET = ["iters=3", "init_iters=2", "mc_resolution=32", "rays=64"]
 STAGES = ("setup_s", "train_s", "depth_map_s")
 
@@ -65,7 +68,8 @@ def child(args) -> None:
         scans.append({"wall_s": time.perf_counter() - t, **{k: r.timings[k] for k in STAGES},
                       "extract_s": r.timings["depth_map_s"] - r.timings["setup_s"] - r.timings["train_s"],
                       "mae": None if r.metrics is None else r.metrics["mae"]})
-    print(json.dumps({"imports_s": imports, "device_start_s": device_start, "load_s": load,
+    name = torch.cuda.get_device_name() if args.device.startswith("cuda") else "CPU"
+    print(json.dumps({"device": name, "imports_s": imports, "device_start_s": device_start, "load_s": load,
                       "to_first_depth_map_s": first, "scans": scans}))
 
 
@@ -157,8 +161,7 @@ def main(argv=None) -> None:
     if args.fresh:
         shutil.rmtree(caches, ignore_errors=True)
     caches.mkdir(parents=True, exist_ok=True)
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", "TORCHINDUCTOR_CACHE_DIR": str(caches / "inductor"),
-           "TRITON_CACHE_DIR": str(caches / "triton")}
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", **compile_cache_env(caches)}
     if not args.smoke:  # the CPU's Warp kernels compile for minutes: the smoke test keeps the user's kernel cache
         env["SLWARP_KERNEL_CACHE"] = str(caches / "warp")
     args.scan = work / f"scan-{args.scene}-{args.rig}"
@@ -175,7 +178,8 @@ def main(argv=None) -> None:
         runs.append(row)
         print(f"run {i + 1}: " + (f"{res['to_first_depth_map_s']:.2f} s to the first depth map, the second scan "
                                   f"{res['scans'][1]['depth_map_s']:.2f} s" if res else f"failed:\n{tail}"), flush=True)
-    name = torch.cuda.get_device_name(0) if cuda else "CPU"
+    # the device as a child named it (this process never starts CUDA, so it holds no GPU memory meanwhile)
+    name = next((r["device"] for r in runs if r.get("device")), "CUDA" if cuda else "CPU")
     doc = {"device": name, "date": str(datetime.date.today()),
            "bench_command": "python bench/first_scan.py " + " ".join(argv if argv is not None else sys.argv[1:]),
            "setup": {"preset": args.preset, "scene": args.scene, "rig": args.rig, "set": args.set,

@@ -519,18 +519,18 @@ def worker_cores(index: int, count: int, allowed) -> list[int]:
     return cores[index * len(cores) // count:(index + 1) * len(cores) // count]
 
 
-def _enter_worker(device: str, index: int, count: int, pin: bool) -> None:
-    """Set up host-local worker `index` of `count` for its device: with `pin`, bound to its share of the cores
-    (`worker_cores`, within any affinity the launcher gave) and torch's CPU threads to that share unless
+def _enter_worker(device: str, index: int = 0, count: int = 1) -> None:
+    """Set up host-local worker `index` of `count` for its device: with more than one worker, bound to its share of
+    the cores (`worker_cores`, within any affinity the launcher gave) and torch's CPU threads to that share unless
     OMP_NUM_THREADS is set; then the current CUDA device.
-    Why pin the workers slwarp starts itself (`per_device`): two plain processes on two GPUs of one host, each with
+    Why bind the workers slwarp starts itself (`per_device`): two plain processes on two GPUs of one host, each with
     torch's default of a thread per core, trained a scan in 1.82-1.83 s each against 1.56 s alone; bound to half of
-    the 32 cores each, in 1.53 s (two H200s, bench/results/batch-concurrency-cuda-h200x2-20.md). torchrun's ranks are
-    left where torchrun put them: it sets OMP_NUM_THREADS=1, and their scans after the first already trained in
-    1.53 s unbound."""
+    the 32 cores each, in 1.53 s (two H200s, bench/results/batch-concurrency-cuda-h200x2-20.md). torchrun's ranks
+    enter as one worker each (no binding): torchrun sets OMP_NUM_THREADS=1, and their scans after the first already
+    trained in 1.53 s unbound."""
     import torch
 
-    if pin and count > 1 and hasattr(os, "sched_setaffinity"):  # before CUDA starts its threads, which inherit it
+    if count > 1 and hasattr(os, "sched_setaffinity"):  # before CUDA starts its threads, which inherit it
         share = worker_cores(index, count, os.sched_getaffinity(0))
         os.sched_setaffinity(0, share)
         if "OMP_NUM_THREADS" not in os.environ:
@@ -618,7 +618,7 @@ def _run_torchrun(scans, config, out: Path, options: BatchOptions, single: bool,
         jobs, skipped = box[0]
         devices = worker_devices(config.runtime.device)
         device = devices[local_rank % len(devices)]
-        _enter_worker(device, local_rank, local_world, pin=False)
+        _enter_worker(device)
         cfg = config.with_options(device=device)
         mine = shard([j.cost for j in jobs], world)[rank]
         rows = [run_scan(jobs[i], cfg, options, worker=f"rank {rank}", log=log).to_dict() for i in mine]
@@ -704,7 +704,7 @@ def _queue_worker(w: int, device: str, workers: int, jobs, config, options, todo
     """Worker w of the `workers` processes of `_run_spawned`: scans from `todo` until a stop sign, each reported
     to `events`."""
     try:
-        _enter_worker(device, w, workers, pin=True)
+        _enter_worker(device, w, workers)
         cfg = config.with_options(device=device)
         while (i := todo.get()) is not None:
             events.put(("start", w, i))
