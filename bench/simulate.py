@@ -1,6 +1,6 @@
 """Virtual scanner speed: one scan of every built-in scene (default rig, 13 frames: random6 + gray7).
 
-    python bench/bench_simulate.py [--device cpu|cuda:0] [--rig default] [--patterns random6+gray7]
+    python -m bench.simulate [--device cpu|cuda:0] [--rig default] [--patterns random6+gray7]
 Prints a table and writes bench/results/simulate-<device>.json (first call includes kernel compilation,
 reported separately).
 """

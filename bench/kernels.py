@@ -11,9 +11,9 @@ device's measured copy bandwidth, and the fraction of it the Warp path achieves.
 The sampling ops of a training step (`bench_sampling`: one NeuS up-sampling step and the merge of the new
 samples, at the training step's ray counts) are timed the same way, with the GPU time of each of their kernels.
 
-    python bench/bench_kernels.py                  # CUDA if present, else CPU (a reduced grid)
-    python bench/bench_kernels.py --device cpu --sizes 2048x64x6
-    python bench/bench_kernels.py --sampling-only  # only the up-sampling and merge ops
+    python -m bench.kernels                  # CUDA if present, else CPU (a reduced grid)
+    python -m bench.kernels --device cpu --sizes 2048x64x6
+    python -m bench.kernels --sampling-only  # only the up-sampling and merge ops
 Writes bench/results/kernels-<device>.json and prints a markdown table.
 """
 from __future__ import annotations

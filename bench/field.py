@@ -2,9 +2,9 @@
 a CUDA graph, with peak memory; the hash grid's Warp encoding against its torch twin, and the accuracy of
 the analytic and finite-difference gradients against a float64 reference.
 
-    python bench/bench_field.py                          # CUDA if present (P = 131072 points), else CPU (P = 4096)
-    python bench/bench_field.py --device cpu --points 1024 --repeats 3          # smoke run
-    python bench/bench_field.py --fields hashgrid-warp hashgrid-torch --compile  # + torch.compile'd rows
+    python -m bench.field                          # CUDA if present (P = 131072 points), else CPU (P = 4096)
+    python -m bench.field --device cpu --points 1024 --repeats 3          # smoke run
+    python -m bench.field --fields hashgrid-warp hashgrid-torch --compile  # + torch.compile'd rows
 
 Order: (1) correctness: the Warp hash-grid field against the same field with the torch-twin encoding (value,
 gradient, every parameter gradient of an Eikonal + value loss), and NeuS's explicit gradient against
@@ -38,10 +38,9 @@ from pathlib import Path
 
 import torch
 
-from bench_kernels import graphed, timeit  # the bench folder is on sys.path when run as a script
+from bench.kernels import graphed, timeit
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 from slwarp.neural.field import NeuSField, Volume  # noqa: E402
 from slwarp.neural.hashgrid import HashGridSDF  # noqa: E402
@@ -310,7 +309,7 @@ def main(argv=None):
     ratio = {f"{grad} {m}": by[(f"hashgrid-torch-{grad}", m)]["fwd_bwd_ms"] / by[(f"hashgrid-warp-{grad}", m)]["fwd_bwd_ms"]
              for grad in ("analytic", "fd") for m in modes
              if (f"hashgrid-torch-{grad}", m) in by and (f"hashgrid-warp-{grad}", m) in by}
-    doc = {"command": "python bench/bench_field.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+    doc = {"command": "python -m bench.field " + " ".join(argv if argv is not None else sys.argv[1:]),
            "date": datetime.date.today().isoformat(), "device": device.type, "device_name": name, "points": P,
            "repeats": reps, "torch": torch.__version__, "warp": warp.__version__, "checks": checks,
            "accuracy": accuracy, "rows": rows, "warp_over_twin": ratio}
