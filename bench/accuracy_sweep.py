@@ -12,12 +12,12 @@ share above 5 mm, completeness; means over scenes per rig, as papers report, and
 Runs are spread over every GPU, K processes per GPU (`--workers-per-gpu`), or K processes on the CPU. Each
 finished run is kept in --state (one JSON per run), so an interrupted sweep continues where it stopped.
 
-    python bench/accuracy_sweep.py --presets accurate,tuned               # GPU: every rig and scene
-    python bench/accuracy_sweep.py --small --presets tiny --scenes bunny,steps --rigs default,rolled \\
+    python -m bench.accuracy_sweep --presets accurate,tuned               # GPU: every rig and scene
+    python -m bench.accuracy_sweep --small --presets tiny --scenes bunny,steps --rigs default,rolled \\
         --workers 2 --out /tmp/sweep                                      # CPU smoke run
-    python bench/accuracy_sweep.py --presets tuned --also-extract refine_range=0,search_doubt=true
+    python -m bench.accuracy_sweep --presets tuned --also-extract refine_range=0,search_doubt=true
                                           # extraction variants on the same trained fields (one training each)
-    python bench/accuracy_sweep.py --report --device-name "NVIDIA H200" --presets tuned --state merged/ \\
+    python -m bench.accuracy_sweep --report --device-name "NVIDIA H200" --presets tuned --state merged/ \\
         --stem accuracy-cuda-merged                                       # tables from runs made elsewhere
 
 Writes <out>/accuracy-<cpu|cuda>.json and .md (the tables) and prints the markdown.
@@ -414,7 +414,7 @@ def main(argv=None) -> int:
                     break
     errors = [{"key": job_key(r["job"]), "error": r["error"]} for r in results if "error" in r]
     all_labels = labels + [f"{lab}+{v}" for lab in labels for v in also]
-    command = " ".join(["python bench/accuracy_sweep.py"] + _without_note(list(sys.argv[1:] if argv is None else argv)))
+    command = " ".join(["python -m bench.accuracy_sweep"] + _without_note(list(sys.argv[1:] if argv is None else argv)))
     doc = {"date": datetime.date.today().isoformat(), "device": "cuda" if cuda else "cpu", "device_name": name,
            "gpus": n_gpu, "workers": len(devices), "command": command, "seed": args.seed, "rigs": rigs,
            "scenes": scenes, "labels": all_labels, "overrides": overrides, "wall_s": time.perf_counter() - t0,

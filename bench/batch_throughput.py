@@ -1,9 +1,9 @@
 """Batch throughput: scans per hour of `slwarp reconstruct SCANS --out DIR` on one GPU, on G GPUs (torchrun) and
 with K scans per GPU at a time; the issue's target is >= 0.9 x G scaling over G GPUs.
 
-    python bench/batch_throughput.py                          # every visible GPU: 8 scans, paper preset
-    python bench/batch_throughput.py --configs 1x1,4x1 --time-limit 540 --set iters=1000
-    python bench/batch_throughput.py --smoke                  # CPU: 3 small scans, tiny settings (a smoke test)
+    python -m bench.batch_throughput                          # every visible GPU: 8 scans, paper preset
+    python -m bench.batch_throughput --configs 1x1,4x1 --time-limit 540 --set iters=1000
+    python -m bench.batch_throughput --smoke                  # CPU: 3 small scans, tiny settings (a smoke test)
 
 A configuration GxK[:launcher] runs the batch on G GPUs with K scans per GPU at a time:
 - 1x1: one process, one scan after another (`slwarp reconstruct DIR`);
@@ -377,7 +377,7 @@ def main(argv=None) -> int:
     add_scaling(rows)
     doc = {"device": info["device"], "gpus": gpus if not cpu else 1, "date": datetime.date.today().isoformat(),
            "setup": setup, "configs": rows,
-           "bench_command": " ".join(["python bench/batch_throughput.py", *(sys.argv[1:] if argv is None else argv)])}
+           "bench_command": " ".join(["python -m bench.batch_throughput", *(sys.argv[1:] if argv is None else argv)])}
     path.write_text(json.dumps(doc, indent=1) + "\n")
     text = markdown(doc)
     path.with_suffix(".md").write_text(text)

@@ -7,10 +7,10 @@ The rig's baseline is mostly vertical (the projector 273 mm below the camera), s
 the depth: the decoders triangulate with the row plane (`--triangulation auto`). One row shows the 7 column
 bits for contrast: their plane nearly contains the camera rays, so their depth is ill-conditioned.
 
-    python bench/chessboard.py --skip-neural                 # classical rows only (CPU, a minute)
-    python bench/chessboard.py --preset paper                # with the neural SDF: needs a GPU
-    python bench/chessboard.py --preset tiny --out /tmp/cb   # smoke check of the neural path on a CPU
-    python bench/chessboard.py --preset tuned --also-extract refine_range=0,search_repair=true
+    python -m bench.chessboard --skip-neural                 # classical rows only (CPU, a minute)
+    python -m bench.chessboard --preset paper                # with the neural SDF: needs a GPU
+    python -m bench.chessboard --preset tiny --out /tmp/cb   # smoke check of the neural path on a CPU
+    python -m bench.chessboard --preset tuned --also-extract refine_range=0,search_repair=true
                                                              # one field, extracted three ways
 Writes <out>/chessboard-<cpu|cuda>.json and .md.
 """
@@ -26,7 +26,6 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "bench"))
 DEFAULT_DATA = REPO.parent / "shared" / "data" / "procam_chessboard"
 DEPTH_RANGE = (1050.0, 1750.0)  # the full decode spans 1117 to 1649 mm (0.5 and 99.5 percentiles)
 SEVEN_ROWS = "gray:row:bit=0-6:noinv"  # the 7 most significant row bits, no inverses (role selector)
@@ -76,7 +75,7 @@ def main(argv=None):
         d, _, dec = reconstruct_depth(scan, method, frames=frames, depth_range=DEPTH_RANGE)
         record(name, d, time.perf_counter() - t, len(dec.frames), dec.extra["triangulation"])
     if not args.skip_neural:
-        from accuracy_sweep import parse_overrides
+        from bench.accuracy_sweep import parse_overrides
         from slwarp.neural.reconstruct import extract_depth
 
         seven = scan.select(SEVEN_ROWS)
@@ -100,7 +99,7 @@ def main(argv=None):
              "RMS distance (mm) of the reconstructed points inside the 9x7 inner-corner quadrilateral to their plane, and "
              "to their least-squares quadratic surface (the local error without the smooth bend that a calibration error "
              "gives every decoder alike). Vertical baseline: the row codes carry depth. "
-             f"`python bench/chessboard.py {' '.join(sys.argv[1:] if argv is None else argv)}`", "",
+             f"`python -m bench.chessboard {' '.join(sys.argv[1:] if argv is None else argv)}`", "",
              "| method | images | triangulation | plane RMS mm | quadric RMS mm | points | share of board | time s |",
              "|---|---|---|---|---|---|---|---|"]
     for k, r in rows.items():

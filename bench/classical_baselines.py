@@ -8,8 +8,8 @@ default (`--triangulation auto`: the plane of the depth-carrying axis, or both c
 when both codes are decoded), points outside the scan's depth range (450 to 1100 mm) invalid. Metrics over the
 scan's GT mask (hit and lit pixels): MAE, RMSE, median, share above 1 / 2 / 5 mm, completeness.
 
-    python bench/classical_baselines.py                          # every geometry, full resolution
-    python bench/classical_baselines.py --rigs default,rolled --scenes bunny,torus --small --out /tmp/c
+    python -m bench.classical_baselines                          # every geometry, full resolution
+    python -m bench.classical_baselines --rigs default,rolled --scenes bunny,torus --small --out /tmp/c
 
 Writes <out>.json (every number, per rig and scene) and <out>.md (the tables), and prints the markdown.
 """
@@ -124,7 +124,7 @@ def main(argv=None) -> int:
                          "per_scene": results, "timings": timings}
 
     machine = f"{cpu_name()}, {os.cpu_count()} logical CPUs"
-    command = " ".join(["python bench/classical_baselines.py"] + list(sys.argv[1:] if argv is None else argv))
+    command = " ".join(["python -m bench.classical_baselines"] + list(sys.argv[1:] if argv is None else argv))
     total_s = time.perf_counter() - t_start
     rigs = list(doc_rigs)
     labels = list(next(iter(doc_rigs.values()))["summary"])

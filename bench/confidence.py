@@ -10,8 +10,8 @@ sparsification curve (MAE of the most confident x% of the compared pixels, x = 1
 the MAE, >5 mm share and completeness left after each kind's filter at the share of pixels the photometric
 check (min_confidence 0.6 on photometric) keeps.
 
-    python bench/confidence.py --work /tmp/confw   # small rig, cpu preset: neural on bunny, boxes; classical on six scenes
-    python bench/confidence.py --scenes bunny,boxes --preset tiny --out /tmp/conf
+    python -m bench.confidence --work /tmp/confw   # small rig, cpu preset: neural on bunny, boxes; classical on six scenes
+    python -m bench.confidence --scenes bunny,boxes --preset tiny --out /tmp/conf
 
 Writes <out>.json (every number and curve), <out>.md (the tables) and <out>.png (the curves).
 """
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from classical_baselines import cpu_name  # the bench folder is on sys.path when run as a script
+from bench.classical_baselines import cpu_name
 
 REPO = Path(__file__).resolve().parents[1]
 DATE = "2026-11-22"
@@ -246,7 +246,7 @@ def main(argv=None) -> int:
         run_scene(scene, args, results)
     meta = {"date": DATE, "cpu": cpu_name(), "device": "cpu", "torch": torch.__version__, "preset": args.preset,
             "rig": args.rig, "threads": os.environ.get("OMP_NUM_THREADS"), "wall_s": time.perf_counter() - t0,
-            "command": "python bench/confidence.py " + " ".join(sys.argv[1:] if argv is None else argv)}
+            "command": "python -m bench.confidence " + " ".join(sys.argv[1:] if argv is None else argv)}
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".json").write_text(dump_json({"meta": meta, "results": results}))

@@ -2,9 +2,9 @@
 reconstruction itself (imports, the device's start-up, kernel loads, compiling or loading the training graphs,
 CUDA-graph capture), against a second reconstruction of the same scan in the same process.
 
-    python bench/first_scan.py --preset fast                     # CUDA: bunny, default rig, 3 fresh processes
-    python bench/first_scan.py --preset fast --runs 2 --fresh    # the first process with empty caches
-    python bench/first_scan.py --smoke                           # CPU: small rig, tiny settings (a smoke test)
+    python -m bench.first_scan --preset fast                     # CUDA: bunny, default rig, 3 fresh processes
+    python -m bench.first_scan --preset fast --runs 2 --fresh    # the first process with empty caches
+    python -m bench.first_scan --smoke                           # CPU: small rig, tiny settings (a smoke test)
 
 One simulated scan (made once, in a process of its own, on the device). Then --runs fresh processes, one after
 another, each: the imports, the device's first tensor, the scan loaded, `reconstruct()` twice. The compile and
@@ -29,8 +29,7 @@ import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "bench"))
-from batch_throughput import compile_cache_env  # noqa: E402  (where a station keeps torch.compile's caches)
+from bench.batch_throughput import compile_cache_env  # noqa: E402  (where a station keeps torch.compile's caches)
 
 SMOKE_SET = ["iters=3", "init_iters=2", "mc_resolution=32", "rays=64"]
 STAGES = ("setup_s", "train_s", "depth_map_s")
@@ -85,7 +84,7 @@ def parse_set(items: list[str]) -> dict:
 def run_child(args, extra: list[str], env: dict) -> tuple[dict | None, float, str]:
     """(the child's JSON line, None when it failed or printed none; its wall time from spawn to exit in s; its
     output's last lines)."""
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--preset", args.preset, "--scene", args.scene,
+    cmd = [sys.executable, "-m", "bench.first_scan", "--child", "--preset", args.preset, "--scene", args.scene,
            "--rig", args.rig, "--device", args.device, "--scan", str(args.scan), "--set", *args.set, *extra]
     t = time.perf_counter()
     p = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True)
@@ -181,7 +180,7 @@ def main(argv=None) -> None:
     # the device as a child named it (this process never starts CUDA, so it holds no GPU memory meanwhile)
     name = next((r["device"] for r in runs if r.get("device")), "CUDA" if cuda else "CPU")
     doc = {"device": name, "date": str(datetime.date.today()),
-           "bench_command": "python bench/first_scan.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+           "bench_command": "python -m bench.first_scan " + " ".join(argv if argv is not None else sys.argv[1:]),
            "setup": {"preset": args.preset, "scene": args.scene, "rig": args.rig, "set": args.set,
                      "fresh": args.fresh, "smoke": args.smoke}, "runs": runs}
     out = Path(args.out)

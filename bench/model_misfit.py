@@ -7,8 +7,8 @@ The refinement moves each pixel to the depth that best fits this model; where th
 (a camera response, a real lens) it fits those errors and the depth gets worse. The limit has to sit above every
 scan where the refinement helps and below those where it hurts.
 
-    python bench/model_misfit.py                                   # 8 scenes x 4 rigs linear, 3 cameras on default
-    python bench/model_misfit.py --rigs default --scenes bunny --cameras linear,gamma --no-real   # quick
+    python -m bench.model_misfit                                   # 8 scenes x 4 rigs linear, 3 cameras on default
+    python -m bench.model_misfit --rigs default --scenes bunny --cameras linear,gamma --no-real   # quick
 
 The linear-camera scans are the accuracy sweep's own (bench/accuracy_sweep.py: random6 + 7 Gray code bits, seed 0);
 the other camera models (slwarp.sim.simulate.CAMERA_MODELS) are the same scenes through that camera. CPU, about
@@ -24,9 +24,8 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "bench"))
 
-from study_common import DATE, markdown_table, write_study  # noqa: E402
+from bench import DATE, markdown_table, write_study
 
 SCENES = ("spheres", "torus", "boxes", "bunny", "vase", "steps", "checker", "rods")
 RIGS = ("default", "vertical", "oblique", "rolled")
@@ -34,7 +33,7 @@ RIGS = ("default", "vertical", "oblique", "rolled")
 
 def scan_misfit(rig: str, scene: str, camera: str) -> float:
     """model_misfit of the scan's 6 random-pattern frames at its true depth (inside its mask)."""
-    from accuracy_sweep import _scan
+    from bench.accuracy_sweep import _scan
     from slwarp.neural.pattern_model import model_misfit
 
     if camera == "linear":
@@ -58,7 +57,7 @@ def _camera_options(camera: str) -> dict:
 
 def real_misfit(data: Path) -> float:
     """model_misfit of the real capture's 7 most significant row-code images at its full gc-interp decode."""
-    from chessboard import DEPTH_RANGE, SEVEN_ROWS
+    from bench.chessboard import DEPTH_RANGE, SEVEN_ROWS
     from slwarp.decode import reconstruct_depth
     from slwarp.neural.pattern_model import model_misfit
     from slwarp.scans.scan import load_scan
@@ -116,7 +115,7 @@ def main(argv=None) -> int:
     for c in cameras:
         if c != "linear":
             _camera_options(c)
-    doc = {"date": DATE, "command": "python bench/model_misfit.py " + " ".join(sys.argv[1:] if argv is None else argv),
+    doc = {"date": DATE, "command": "python -m bench.model_misfit " + " ".join(sys.argv[1:] if argv is None else argv),
            "limit": REFINE_MAX_MISFIT, "rigs": rigs, "scenes": scenes, "camera_rigs": camera_rigs, "scans": {}}
     for camera in cameras:
         for rig in (rigs if camera == "linear" else camera_rigs):

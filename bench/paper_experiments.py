@@ -1,8 +1,8 @@
 """The paper's experiments on the virtual scanner: Table 1, the loss ablation (Table 2), Fig. 7 and Fig. 8.
 
-    python bench/paper_experiments.py all --out bench/results            # on a GPU machine
-    python bench/paper_experiments.py table1 --preset tuned --iters 4000
-    python bench/paper_experiments.py fig7 --ks 3,5,7,9 --iters 2000
+    python -m bench.paper_experiments all --out bench/results            # on a GPU machine
+    python -m bench.paper_experiments table1 --preset tuned --iters 4000
+    python -m bench.paper_experiments fig7 --ks 3,5,7,9 --iters 2000
 
 - table1: ours (6 random patterns) on the six built-in scenes, next to the classical rows of
   bench/results/classical-cpu.json (GC(6), GC(7) with interpolation, CGC(6), CGC(7), H-PMP(6), N-PMP(6);
@@ -27,7 +27,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from train_variants import run_variants  # a sibling script: bench/ is sys.path[0] when this one runs
+from bench.train_variants import run_variants
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -1,13 +1,13 @@
 """Training speed: milliseconds per iteration of a preset under several settings, where the time of an
 iteration goes, and the end-to-end time from a loaded scan to a depth map for the Warp and torch backends.
 
-    python bench/train_speed.py                                  # CUDA: the default preset, bunny, default rig
-    python bench/train_speed.py --configs warp:compile:tf32:graph torch:compile:tf32:graph
-    python bench/train_speed.py --end-to-end                     # + reconstruct() with backend warp and torch
-    python bench/train_speed.py --preset cpu --rig small         # CPU: the demo preset
-    python bench/train_speed.py --preset accurate --configs warp:compile:tf32:graph warp:compile:tf32:graph:twin
-    python bench/train_speed.py --preset fast --configs warp:compile:tf32:graph --end-to-end --backends warp
-    python bench/train_speed.py --preset tiny --set field=hashgrid iters=4 --iters 2 --warmup 1   # CPU smoke test
+    python -m bench.train_speed                                  # CUDA: the default preset, bunny, default rig
+    python -m bench.train_speed --configs warp:compile:tf32:graph torch:compile:tf32:graph
+    python -m bench.train_speed --end-to-end                     # + reconstruct() with backend warp and torch
+    python -m bench.train_speed --preset cpu --rig small         # CPU: the demo preset
+    python -m bench.train_speed --preset accurate --configs warp:compile:tf32:graph warp:compile:tf32:graph:twin
+    python -m bench.train_speed --preset fast --configs warp:compile:tf32:graph --end-to-end --backends warp
+    python -m bench.train_speed --preset tiny --set field=hashgrid iters=4 --iters 2 --warmup 1   # CPU smoke test
 
 Each config is BACKEND:MODE:MATMUL[:graph][:twin]: backend warp|torch (the renderer's kernels), mode
 eager|compile (torch.compile of the field), matmul fp32|tf32, graph = the whole step captured once as a CUDA

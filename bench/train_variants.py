@@ -4,7 +4,7 @@ Each variant is NAME:key=value,key=value with keys scene, rig, patterns, frames,
 TrainConfig option by its flat name (slwarp.neural.config.OPTIONS: iters, lr, init, matmul, depth_method, ...). Processes run `--parallel` at a time, which
 fills a large GPU better than one 2048-ray run. Each writes <out>/<NAME>.json (metrics, timings, config).
 
-    python bench/train_variants.py --out bench/results/variants A:scene=bunny B:scene=bunny,init=camera
+    python -m bench.train_variants --out bench/results/variants A:scene=bunny B:scene=bunny,init=camera
 """
 from __future__ import annotations
 

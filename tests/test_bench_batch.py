@@ -1,13 +1,11 @@
 """bench/batch_throughput.py without running anything: the per-stage means of a configuration's scans and their
 table."""
 import json
-import sys
 from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-import batch_throughput  # noqa: E402
+from bench import batch_throughput
 
 
 def _scan(folder: Path, name: str, seconds: float, setup: float, train: float, depth_map: float, total: float) -> dict:

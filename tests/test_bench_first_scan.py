@@ -1,11 +1,8 @@
 """bench/first_scan.py: a fresh process on the CPU with tiny settings (a smoke test; timings are never asserted),
 and its table with a failed run."""
 import json
-import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-import first_scan  # noqa: E402
+from bench import first_scan
 
 
 def test_first_scan_smoke_on_cpu(tmp_path):

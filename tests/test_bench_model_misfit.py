@@ -1,13 +1,10 @@
 """bench/model_misfit.py on one small-rig scene: the linear camera under the refinement limit, a gamma-2.2 camera
 over it, both written to the JSON and the table; an unknown camera model is refused by name."""
 import json
-import sys
-from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-import model_misfit  # noqa: E402
+from bench import model_misfit
 
 
 def test_model_misfit_bench_writes_the_survey(tmp_path):

@@ -2,13 +2,11 @@
 pixels went) from the finished runs in --state, --also-extract variants included; runs that do not match the
 command's jobs are not taken."""
 import json
-import sys
 from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-import accuracy_sweep  # noqa: E402
+from bench import accuracy_sweep
 
 SCENES = ("bunny", "rods")
 

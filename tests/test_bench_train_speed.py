@@ -1,20 +1,15 @@
 """bench/train_speed.py runs on the CPU with tiny sizes (a smoke test of the hash-grid configs, the twin
 encoding and the end-to-end rows; its figures are not checked: timings are never asserted)."""
-import importlib.util
 import json
 import math
-from pathlib import Path
 
 import pytest
 
-BENCH = Path(__file__).resolve().parents[1] / "bench" / "train_speed.py"
+from bench import train_speed
 
 
 def load_bench():
-    spec = importlib.util.spec_from_file_location("train_speed", BENCH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return train_speed
 
 
 def test_train_speed_smoke_hashgrid_on_cpu(tmp_path):

@@ -36,3 +36,11 @@ def test_readme_config_example_is_a_valid_config(tmp_path):
     (tmp_path / "c.yaml").write_text(block)
     cfg = load_config(tmp_path / "c.yaml", base=preset("cpu"))
     assert cfg.schedule.iters == 2000 and cfg.schedule.lr == 5e-4 and cfg.extraction.mc_resolution == 256
+
+
+def test_readme_is_short_and_its_results_links_exist():
+    """README stays a user's page (at most 300 lines) and every figure's link points at a results file that exists."""
+    text = README.read_text()
+    assert len(text.splitlines()) <= 300
+    links = re.findall(r"\]\((bench/results/[^)#]+)\)", text)
+    assert links and all((README.parent / link).is_file() for link in links), [l for l in links if not (README.parent / l).is_file()]
