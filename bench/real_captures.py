@@ -1,0 +1,273 @@
+"""Real captures: every preset on every capture of the procam-calibration rig, as a user runs it.
+
+Five real captures of one camera + projector rig (1280x1024 camera, 1024x768 projector, vertical baseline: the
+projector's rows carry depth) come with the MIT-licensed repository kamino410/procam-calibration
+(`sample_data/capture_0` ... `capture_4`; the calibration of its first commit matches these images, the later
+one does not). Captures 0-2 are for development; 3 and 4 are the acceptance set: prepare them only to check
+a finished change (`--acceptance`), never to tune.
+
+    python -m bench.real_captures prepare --repo PATH_TO_CLONE            # captures 0-2 into data/real/
+    python -m bench.real_captures run --presets fast,accurate,tuned       # every preset on every prepared capture
+    python -m bench.real_captures run --presets fast,fast:free_space=0 --captures 1,2 --stem real-fast-ablation
+
+`prepare` reads a clone of the repository (a work tree or a bare git directory; its commit ccf1cd8 is used) and
+writes, per capture, `data/real/capture_N/scan/` (a native scan of the 7 most significant row-code images, no
+inverses, depth range 800-2600 mm: what a user with a 7-pattern rig has) and `reference.npz`: the full 40-image
+Gray code decode with interpolation (every projector row and column), GC(7)-interp of the same 7 images, and the
+chessboard plate's region (9x7 inner corners found in the white image). Nothing of it is committed (data/ is
+ignored).
+
+`run` reconstructs each capture with each preset as a fresh process of the command a user types
+(`python -m slwarp reconstruct SCAN --config PRESET.yaml --out DIR --quiet`), spread over the visible GPUs, and
+reports per capture: the plate's RMS distance to its fitted plane (mm; the calibration alone bends the plate by
+about 0.4 mm RMS), the same about a quadric (local error), the plate's coverage, the agreement with the full decode
+over the whole image (median |difference| and the share above 2 mm where both have depth), and the command's wall
+time. The two classical references are reported the same way. Writes <out>/<stem>.json and .md.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tarfile
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_DEST = REPO / "data" / "real"
+DATA_COMMIT = "ccf1cd8"  # the repository's first commit with data: its calibration matches the captures
+DEV_CAPTURES = (0, 1, 2)
+ACCEPTANCE_CAPTURES = (3, 4)
+SEVEN_ROWS = "gray:row:bit=0-6:noinv"  # the 7 most significant row bits, no inverses (role selector)
+DEPTH_RANGE = (800.0, 2600.0)  # mm: wide around the plate and the wall (about 1.1-1.7 m), as a user would set it
+AGREE_MM = 2.0
+
+
+def _extract_repo(repo: Path, into: Path) -> Path:
+    """The repository's sample_data at DATA_COMMIT, extracted under `into`; returns the sample_data folder."""
+    git_dir = repo / ".git" if (repo / ".git").exists() else repo
+    if not (git_dir / "HEAD").is_file():
+        raise SystemExit(f"{repo}: not a git clone of kamino410/procam-calibration (no .git or HEAD)")
+    archive = into / "sample_data.tar"
+    with open(archive, "wb") as f:
+        p = subprocess.run(["git", f"--git-dir={git_dir}", "archive", DATA_COMMIT, "sample_data", "LICENSE"],
+                           stdout=f, stderr=subprocess.PIPE, text=False)
+    if p.returncode:
+        raise SystemExit(f"{repo}: git archive {DATA_COMMIT} failed: {p.stderr.decode().strip()}")
+    with tarfile.open(archive) as t:
+        t.extractall(into, filter="data")
+    return into / "sample_data"
+
+
+def prepare(args) -> None:
+    from slwarp.decode import reconstruct_depth
+    from slwarp.evaluation.metrics import chessboard_region
+    from slwarp.scans.scan import load_scan
+
+    captures = DEV_CAPTURES + (ACCEPTANCE_CAPTURES if args.acceptance else ())
+    dest = Path(args.dest)
+    dest.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        sample = _extract_repo(Path(args.repo), Path(tmp))
+        shutil.copy(Path(tmp) / "LICENSE", dest / "LICENSE")
+        for n in captures:
+            t = time.perf_counter()
+            full = load_scan(sample / f"capture_{n}")
+            white = full.images[full.frame_with("white")]
+            region = chessboard_region(white)
+            ref, _, _ = reconstruct_depth(full, "gc-interp", depth_range=DEPTH_RANGE)
+            seven = full.select(SEVEN_ROWS)
+            gc7, _, _ = reconstruct_depth(seven, "gc-interp", depth_range=DEPTH_RANGE)
+            seven.depth_range = DEPTH_RANGE
+            out = dest / f"capture_{n}"
+            shutil.rmtree(out, ignore_errors=True)
+            seven.save(out / "scan")
+            np.savez_compressed(out / "reference.npz", full_decode=ref.astype(np.float32), gc7=gc7.astype(np.float32),
+                                region=region)
+            print(f"capture_{n}: {len(seven)} frames -> {out / 'scan'}; full decode on "
+                  f"{np.isfinite(ref).mean():.1%} of the image, plate {int(region.sum())} px "
+                  f"({time.perf_counter() - t:.1f} s)", flush=True)
+
+
+def capture_metrics(depth: np.ndarray, ref: dict, camera) -> dict:
+    """Plate RMS (plane, quadric), plate coverage and agreement with the full decode of one depth map [H, W] mm."""
+    from slwarp.evaluation.metrics import plane_rms, quadric_rms
+    from slwarp.neural.extract import depth_to_points
+
+    region = ref["region"]
+    pts = depth_to_points(np.where(region, depth, np.nan), camera)
+    rms, n = plane_rms(pts)
+    both = np.isfinite(depth) & np.isfinite(ref["full_decode"])
+    diff = np.abs(depth[both] - ref["full_decode"][both])
+    return {"plane_rms_mm": rms, "quadric_rms_mm": quadric_rms(pts), "plate_coverage": n / max(int(region.sum()), 1),
+            "agree_median_mm": float(np.median(diff)) if diff.size else float("nan"),
+            "agree_over_2mm": float((diff > AGREE_MM).mean()) if diff.size else float("nan"),
+            "pixels_with_depth": float(np.isfinite(depth).mean())}
+
+
+def _gpus() -> list[str]:
+    """The visible GPUs' indices as strings (nvidia-smi; no CUDA context in this process); [] without one."""
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if visible is not None:
+        return [g for g in visible.split(",") if g.strip()]
+    try:
+        out = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, timeout=30).stdout
+    except (OSError, subprocess.TimeoutExpired):
+        return []
+    return [str(i) for i, line in enumerate(out.splitlines()) if line.startswith("GPU ")]
+
+
+def _run_one(job: dict, gpu: str | None) -> dict:
+    """One reconstruction as a fresh process of the CLI; the job with wall_s, rc and (on failure) the output's tail."""
+    env = dict(os.environ)
+    if gpu is not None:
+        env["CUDA_VISIBLE_DEVICES"] = gpu
+    cmd = [sys.executable, "-m", "slwarp", "reconstruct", str(job["scan"]), "--config", str(job["config"]),
+           "--out", str(job["out"]), "--quiet", "--overwrite"]
+    t = time.perf_counter()
+    p = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True)
+    job = dict(job, wall_s=time.perf_counter() - t, rc=p.returncode, gpu=gpu)
+    if p.returncode:
+        job["tail"] = (p.stdout + p.stderr).strip()[-1500:]
+    return job
+
+
+def run(args) -> None:
+    from slwarp.neural.config import parse_assignments, preset, save_config
+    from slwarp.scans.scan import load_scan
+
+    data, work = Path(args.data), Path(args.work)
+    captures = [int(c) for c in args.captures.split(",")] if args.captures else sorted(
+        int(p.name.split("_")[1]) for p in data.glob("capture_*") if (p / "reference.npz").is_file())
+    if not captures:
+        raise SystemExit(f"{data}: no prepared captures (run `python -m bench.real_captures prepare` first)")
+    acceptance = [c for c in captures if c in ACCEPTANCE_CAPTURES]
+    if acceptance:
+        print(f"note: captures {acceptance} are the acceptance set: report them, never tune on them", flush=True)
+    work.mkdir(parents=True, exist_ok=True)
+    labels = args.presets.split(",")
+    jobs = []
+    for label in labels:
+        name, *items = label.split(":")
+        cfg_path = work / f"config-{label.replace(':', '_').replace('=', '-')}.yaml"
+        save_config(cfg_path, preset(name, **parse_assignments(items)))
+        for c in captures:
+            jobs.append({"label": label, "capture": c, "scan": data / f"capture_{c}" / "scan", "config": cfg_path,
+                         "out": work / f"capture_{c}" / label.replace(":", "_").replace("=", "-")})
+    slots = [g for g in _gpus() for _ in range(args.workers_per_gpu)] or [None]
+    queue, done, lock = list(jobs), [], threading.Lock()
+
+    def worker(gpu):
+        while True:
+            with lock:
+                if not queue:
+                    return
+                job = queue.pop(0)
+            res = _run_one(job, gpu)
+            with lock:
+                done.append(res)
+                print(f"capture_{res['capture']} {res['label']}: {res['wall_s']:.1f} s"
+                      + ("" if res["rc"] == 0 else f" FAILED rc={res['rc']}\n{res['tail']}"), flush=True)
+
+    threads = [threading.Thread(target=worker, args=(g,)) for g in slots]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    rows = []
+    for c in captures:
+        ref = dict(np.load(data / f"capture_{c}" / "reference.npz"))
+        camera = load_scan(data / f"capture_{c}" / "scan").camera
+        rows.append({"capture": c, "method": "full 40-image gc-interp", **capture_metrics(ref["full_decode"], ref, camera)})
+        rows.append({"capture": c, "method": "GC(7)-interp, same 7 images", **capture_metrics(ref["gc7"], ref, camera)})
+        for res in sorted((r for r in done if r["capture"] == c), key=lambda r: labels.index(r["label"])):
+            row = {"capture": c, "method": res["label"], "wall_s": res["wall_s"], "rc": res["rc"]}
+            if res["rc"] == 0:
+                depth = np.load(res["out"] / "depth.npy")
+                timings = json.loads((res["out"] / "timings.json").read_text())
+                row.update(capture_metrics(depth, ref, camera), depth_map_s=timings.get("depth_map_s"))
+            else:
+                row["error"] = res.get("tail", "")[-300:]
+            rows.append(row)
+    doc = {"date": str(datetime.date.today()), "device": args.device_name or _device_name(),
+           "command": "python -m bench.real_captures " + " ".join(sys.argv[1:]), "depth_range_mm": DEPTH_RANGE,
+           "frames": SEVEN_ROWS, "rows": rows}
+    md = markdown(doc, captures, ["full 40-image gc-interp", "GC(7)-interp, same 7 images"] + labels)
+    print(md)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{args.stem}.json").write_text(json.dumps(doc, indent=1, default=str))
+    (out / f"{args.stem}.md").write_text(md + "\n")
+
+
+def _device_name() -> str:
+    try:
+        out = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
+                             text=True, timeout=30).stdout.strip().splitlines()
+        return f"{len(out)} x {out[0]}" if out else "CPU"
+    except (OSError, subprocess.TimeoutExpired):
+        return "CPU"
+
+
+def markdown(doc: dict, captures: list[int], methods: list[str]) -> str:
+    """Tables: plate RMS per capture and method with the mean; then every metric per capture."""
+    by = {(r["capture"], r["method"]): r for r in doc["rows"]}
+    head = " | ".join(f"capture {c}" for c in captures)
+    lines = [f"# Real captures: plate planarity and agreement with the full decode ({doc['device']}, {doc['date']})",
+             "", f"`{doc['command']}`", "",
+             f"Frames `{doc['frames']}` (7 row-code images), depth range {doc['depth_range_mm'][0]:.0f}-"
+             f"{doc['depth_range_mm'][1]:.0f} mm. Plate RMS: distance (mm) of the plate's points to their fitted plane; "
+             "the calibration bends the plate by about 0.4 mm, the floor of every method.", "",
+             "## Plate RMS (mm)", "", f"| method | {head} | mean |", "|---|" + "---:|" * (len(captures) + 1)]
+    for m in methods:
+        vals = [by.get((c, m), {}).get("plane_rms_mm", float("nan")) for c in captures]
+        lines.append(f"| {m} | " + " | ".join(f"{v:.3f}" for v in vals) + f" | {np.mean(vals):.3f} |")
+    lines += ["", "## Every metric", "", "| capture | method | plate RMS mm | quadric RMS mm | plate covered | "
+              "agreement median mm | agreement > 2 mm | pixels with depth | command wall s | in-run depth map s |",
+              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for c in captures:
+        for m in methods:
+            r = by.get((c, m))
+            if r is None:
+                continue
+            if r.get("error"):
+                lines.append(f"| {c} | {m} | failed: {r['error'][-120:]!r} ||||||||")
+                continue
+            wall = f"{r['wall_s']:.1f}" if "wall_s" in r else "-"
+            dm = f"{r['depth_map_s']:.1f}" if r.get("depth_map_s") is not None else "-"
+            lines.append(f"| {c} | {m} | {r['plane_rms_mm']:.3f} | {r['quadric_rms_mm']:.3f} | {r['plate_coverage']:.1%} | "
+                         f"{r['agree_median_mm']:.3f} | {r['agree_over_2mm']:.2%} | {r['pixels_with_depth']:.1%} | "
+                         f"{wall} | {dm} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="cmd", required=True)
+    pp = sub.add_parser("prepare", help="extract and prepare the captures from a clone of the repository")
+    pp.add_argument("--repo", required=True, help="a clone of kamino410/procam-calibration (work tree or bare)")
+    pp.add_argument("--dest", default=str(DEFAULT_DEST))
+    pp.add_argument("--acceptance", action="store_true", help="also captures 3 and 4 (the acceptance set)")
+    pr = sub.add_parser("run", help="reconstruct the prepared captures with each preset")
+    pr.add_argument("--presets", required=True, help="comma-separated, each PRESET or PRESET:key=value:key=value")
+    pr.add_argument("--captures", default=None, help="comma-separated capture numbers (default: every prepared one)")
+    pr.add_argument("--data", default=str(DEFAULT_DEST))
+    pr.add_argument("--work", default="/tmp/slwarp-real-captures", help="each run's output folder")
+    pr.add_argument("--workers-per-gpu", type=int, default=2)
+    pr.add_argument("--device-name", default=None)
+    pr.add_argument("--out", default=str(REPO / "bench" / "results"))
+    pr.add_argument("--stem", default="real-captures")
+    args = p.parse_args(argv)
+    (prepare if args.cmd == "prepare" else run)(args)
+
+
+if __name__ == "__main__":
+    main()
