@@ -378,9 +378,11 @@ def _fit_compiled(scan, config) -> None:
 def run_scan(job: ScanJob, config, options: BatchOptions = BatchOptions(), worker: str = "main",
              log: Callable[[str], None] = print) -> ScanResult:
     """Reconstruct one scan into job.out_dir with `config` (whose runtime.device it runs on) and return its
-    summary line; any error of the scan (loading, training, writing) is caught and reported in the line, only
-    KeyboardInterrupt and SystemExit pass."""
+    summary line; any error of the scan (loading, training, writing) is caught and reported in the line; a stop
+    asked for (KeyboardInterrupt, SystemExit, TrainingInterrupted: Ctrl-C or SIGTERM during training, after its
+    checkpoint) passes, so that the batch stops instead of going on with the next scan."""
     from .neural.reconstruct import reconstruct
+    from .neural.train import TrainingInterrupted
     from .scans.scan import load_scan
 
     import numpy as np
@@ -403,6 +405,8 @@ def run_scan(job: ScanJob, config, options: BatchOptions = BatchOptions(), worke
         if res.metrics is not None:
             row.mae, row.completeness = res.metrics.get("mae"), res.metrics.get("completeness")
         del res, scan
+    except TrainingInterrupted:
+        raise
     except Exception as e:  # one scan's failure, whatever it is, must not stop the others
         row.error, row.traceback = _one_line(e), traceback.format_exc()
     row.seconds = time.perf_counter() - t0
@@ -711,3 +715,7 @@ def _queue_worker(w: int, device: str, workers: int, jobs, config, options, todo
             events.put(("done", w, run_scan(jobs[i], cfg, options, worker=f"worker {w}").to_dict()))
     except KeyboardInterrupt:
         sys.exit(130)
+    except Exception as e:  # TrainingInterrupted (a signal during training, checkpoint saved): stop as asked
+        if hasattr(e, "exit_status"):
+            sys.exit(e.exit_status)
+        raise

@@ -588,6 +588,41 @@ def _add_reconstruct(sub, argv=None):
     p.set_defaults(func=cmd_reconstruct)
 
 
+def cmd_watch(args) -> int:
+    """A scanning station (slwarp.watch): each complete scan folder that appears in DIR, reconstructed into OUT/<name>/
+    by this one process; stops on Ctrl-C / SIGTERM (exit status 130 / 143) or as --max-scans / --until-idle say."""
+    from .batch import BatchOptions
+    from .watch import watch
+
+    _name, cfg, _dev = _config_from_args(args)
+    options = BatchOptions(frames=args.frames, depth_range=_parse_range(args.depth_range), use_mask=args.use_mask)
+    return watch(args.inbox, args.out, cfg, options, poll_s=args.poll, settle_s=args.settle, max_scans=args.max_scans,
+                 until_idle=args.until_idle, say=lambda text: print(text, flush=True))
+
+
+def _add_watch(sub, argv=None):
+    name = _chosen_preset(argv)
+    p = sub.add_parser("watch", help="a scanning station: reconstruct each scan folder that appears in a folder",
+                       description="Watch DIR and reconstruct each scan folder that appears in it, once complete (its "
+                       "scan.yaml and every file it names present, nothing still growing), into OUT/<name>/ as "
+                       "`reconstruct` does, in this one warm process: one line per scan. Scans done before are "
+                       "skipped, a scan with a checkpoint continues, a broken scan is reported and the station goes "
+                       "on; links leading out of DIR are ignored. Ctrl-C or SIGTERM stops it without losing a "
+                       f"finished scan. The defaults shown are preset {name}'s.")
+    p.add_argument("inbox", metavar="DIR", help="the folder scans arrive in (one sub-folder per scan)")
+    p.add_argument("--out", required=True, help="output folder: OUT/<scan folder name>/ per scan")
+    p.add_argument("--frames", help="use only these frames of each scan (names, globs, indices, slices)")
+    p.add_argument("--depth-range", help="NEAR,FAR camera depth in mm for scans that declare none")
+    p.add_argument("--use-mask", action="store_true", help="also restrict each depth map to its scan's mask")
+    p.add_argument("--poll", type=float, default=0.5, metavar="S", help="seconds between looks at DIR (default 0.5)")
+    p.add_argument("--settle", type=float, default=1.0, metavar="S",
+                   help="a scan folder is taken once no file in it changed for S seconds (default 1)")
+    p.add_argument("--max-scans", type=_positive_int, metavar="N", help="stop after N scans")
+    p.add_argument("--until-idle", action="store_true", help="stop once every scan in DIR is done or failed")
+    _add_config_options(p, name)
+    p.set_defaults(func=cmd_watch)
+
+
 def cmd_demo(args) -> int:
     from .demo import run_demo
 
@@ -630,8 +665,8 @@ def build_parser(argv=None) -> argparse.ArgumentParser:
     return parser
 
 
-_COMMANDS = [_add_demo, _add_info, _add_simulate, _add_decode, _add_evaluate, _add_reconstruct]
-_TRAINING_COMMANDS = (_add_demo, _add_reconstruct)  # their options come from TrainConfig (and the chosen preset)
+_COMMANDS = [_add_demo, _add_info, _add_simulate, _add_decode, _add_evaluate, _add_reconstruct, _add_watch]
+_TRAINING_COMMANDS = (_add_demo, _add_reconstruct, _add_watch)  # their options come from TrainConfig (and the chosen preset)
 
 
 def main(argv=None) -> int:
