@@ -6,8 +6,8 @@ decodes GC(6) and GC(7) with interpolation from the Gray code frames, and prints
 the paper's Table 1. Writes into the output folder: the scan, each method's depth map and error map, a
 side-by-side comparison figure, a point-cloud picture and results.json.
 
-With a GPU: the default rig (camera 1280x1024) and the paper preset (4000 iterations). Without: the
-small rig (camera 320x256) and the CPU preset, a few minutes on two cores.
+With a GPU: the default rig (camera 1280x1024) and the GPU's default preset (tuned). Without: the
+small rig (camera 320x256) and the CPU's (cpu-hashgrid), a few minutes on two cores.
 """
 from __future__ import annotations
 
@@ -65,6 +65,7 @@ def run_demo(out_dir="slwarp-demo", scene: str = DEMO_SCENE, config=None, preset
     from .evaluation.outputs import write_depth
     from .evaluation.viz import save_depth_color, save_error_map, save_point_cloud_render
     from .neural.config import default_preset_name, preset
+    from .neural.describe import describe
     from .neural.extract import depth_to_points
     from .neural.reconstruct import reconstruct
     from .sim.simulate import simulate_scene
@@ -81,7 +82,7 @@ def run_demo(out_dir="slwarp-demo", scene: str = DEMO_SCENE, config=None, preset
     preset_name = preset_name or "custom"
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    log(f"slwarp demo: scene '{scene}', {rig} rig, preset '{preset_name}' ({cfg.schedule.iters} iterations), device {dev}")
+    log(f"slwarp demo: scene '{scene}', {rig} rig, preset '{preset_name}' ({describe(cfg)}), device {dev}")
 
     log("1/4 simulating the scan (paper's 6 random patterns + 7-bit Gray code) ...")
     scan = simulate_scene(scene, "random6+gray7", rig=rig, device=warp_device(dev))
