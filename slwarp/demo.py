@@ -21,7 +21,7 @@ DEMO_SCENE = "bunny"
 
 
 def comparison_figure(path, gt, results: dict, max_err: float = 3.0) -> None:
-    """GT depth and, per method, its depth and error map (matplotlib PNG)."""
+    """GT depth and, per method, its depth and error map (matplotlib PNG), with a colour bar in mm for each row."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -32,7 +32,7 @@ def comparison_figure(path, gt, results: dict, max_err: float = 3.0) -> None:
     fig, axes = plt.subplots(2, len(names) + 1, figsize=(3.6 * (len(names) + 1), 6.2), dpi=100)
     cm_d = matplotlib.colormaps["turbo"].with_extremes(bad=(0.1, 0.1, 0.1))
     cm_e = matplotlib.colormaps["inferno"].with_extremes(bad=(0.1, 0.1, 0.1))
-    axes[0, 0].imshow(np.ma.masked_invalid(gt), cmap=cm_d, vmin=lo, vmax=hi)
+    shown = axes[0, 0].imshow(np.ma.masked_invalid(gt), cmap=cm_d, vmin=lo, vmax=hi)
     axes[0, 0].set_title("ground truth depth", fontsize=9)
     axes[1, 0].axis("off")
     axes[1, 0].text(0.0, 0.5, f"depth colour range\n{lo:.0f} .. {hi:.0f} mm\n\nerror colour range\n0 .. {max_err:g} mm",
@@ -46,7 +46,8 @@ def comparison_figure(path, gt, results: dict, max_err: float = 3.0) -> None:
     for ax in axes.ravel():
         ax.set_xticks([])
         ax.set_yticks([])
-    fig.colorbar(im, ax=axes[1, :].tolist(), fraction=0.02, pad=0.01, label="mm")
+    fig.colorbar(shown, ax=axes[0, :].tolist(), fraction=0.02, pad=0.01, label="depth mm")
+    fig.colorbar(im, ax=axes[1, :].tolist(), fraction=0.02, pad=0.01, label="error mm")
     fig.savefig(path, bbox_inches="tight")
     plt.close(fig)
 
