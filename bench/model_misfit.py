@@ -27,6 +27,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "bench"))
 
 from study_common import DATE, markdown_table, write_study  # noqa: E402
+from slwarp.scans.data import data_dir  # noqa: E402
 
 SCENES = ("spheres", "torus", "boxes", "bunny", "vase", "steps", "checker", "rods")
 RIGS = ("default", "vertical", "oblique", "rolled")
@@ -108,7 +109,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cameras", default="linear,optics,gamma,srgb", help="camera models (CAMERA_MODELS)")
     ap.add_argument("--camera-rigs", default="default", help="rigs of the other camera models")
     ap.add_argument("--no-real", action="store_true", help="leave out the real capture")
-    ap.add_argument("--data", default=str(REPO.parent / "shared" / "data" / "procam_chessboard"))
+    ap.add_argument("--data", default=str(data_dir() / "procam_chessboard"))  # $SLWARP_DATA (docs/real-captures.md)
     ap.add_argument("--out", default=str(REPO / "bench" / "results"))
     args = ap.parse_args(argv)
     rigs, scenes = args.rigs.split(","), args.scenes.split(",")
