@@ -42,7 +42,7 @@ def colorize(values: np.ndarray, value_range=None, cmap: str = "turbo", nan_colo
     v = np.asarray(values, np.float64)
     bad = ~np.isfinite(v)
     # entry floor(256 t) of t = (v - lo) / (hi - lo) in [0, 1], the last one for t = 1: matplotlib's own lookup
-    x = (v - lo) * (256.0 / (hi - lo))
+    x = (v - lo) * (256.0 / (hi - lo) if hi > lo else 0.0)  # an empty range: the low end's colour
     np.clip(x, 0.0, 255.0, out=x)
     x[bad] = 0.0
     rgb = np.take(colormap_lut(cmap), x.astype(np.uint8), axis=0)
