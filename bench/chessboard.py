@@ -25,8 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
+from slwarp.scans.data import data_dir
+
 REPO = Path(__file__).resolve().parents[1]
-DEFAULT_DATA = REPO.parent / "shared" / "data" / "procam_chessboard"
+DEFAULT_DATA = data_dir() / "procam_chessboard"  # $SLWARP_DATA, else ../shared/data (docs/real-captures.md)
 DEPTH_RANGE = (1050.0, 1750.0)  # the full decode spans 1117 to 1649 mm (0.5 and 99.5 percentiles)
 SEVEN_ROWS = "gray:row:bit=0-6:noinv"  # the 7 most significant row bits, no inverses (role selector)
 SEVEN_COLS = "gray:col:bit=0-6:noinv"

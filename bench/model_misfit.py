@@ -26,6 +26,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 
 from bench import DATE, markdown_table, write_study
+from slwarp.scans.data import data_dir
 
 SCENES = ("spheres", "torus", "boxes", "bunny", "vase", "steps", "checker", "rods")
 RIGS = ("default", "vertical", "oblique", "rolled")
@@ -107,7 +108,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cameras", default="linear,optics,gamma,srgb", help="camera models (CAMERA_MODELS)")
     ap.add_argument("--camera-rigs", default="default", help="rigs of the other camera models")
     ap.add_argument("--no-real", action="store_true", help="leave out the real capture")
-    ap.add_argument("--data", default=str(REPO.parent / "shared" / "data" / "procam_chessboard"))
+    ap.add_argument("--data", default=str(data_dir() / "procam_chessboard"))  # $SLWARP_DATA (docs/real-captures.md)
     ap.add_argument("--out", default=str(REPO / "bench" / "results"))
     args = ap.parse_args(argv)
     rigs, scenes = args.rigs.split(","), args.scenes.split(",")

@@ -2,11 +2,16 @@
 
 Warp is initialised on first use, never at import. The kernel cache goes to $SLWARP_KERNEL_CACHE, else
 $WARP_CACHE_PATH, else Warp's default (per user). Kernels are pure functions of their source, so a warm
-cache changes only compile time, never results or test order.
+cache changes only compile time, never results or test order. On a machine without the CUDA driver, Warp's
+"Could not find or load the NVIDIA CUDA driver" warning is held back (SLWARP_VERBOSE=1 shows it and Warp's banner).
 """
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import os
+import sys
+import tempfile
 import threading
 
 _lock = threading.Lock()
@@ -25,11 +30,60 @@ def init():
             cache = os.environ.get("SLWARP_KERNEL_CACHE") or os.environ.get("WARP_CACHE_PATH")
             if cache:
                 wp.config.kernel_cache_dir = cache
-            if not os.environ.get("SLWARP_VERBOSE"):
+            verbose = bool(os.environ.get("SLWARP_VERBOSE"))
+            if not verbose:
                 wp.config.log_level = 30  # warnings and errors only: no banner, no per-module load lines
-            wp.init()
+            with contextlib.nullcontext() if verbose or _cuda_driver_present() else _without_driver_warning():
+                wp.init()
             _ready = True
     return wp
+
+
+# what Warp's native library prints (with fprintf, so Warp's log level does not apply) when it finds no CUDA driver:
+# on a CPU-only machine that is expected, not a problem worth a line on every command
+DRIVER_WARNING = "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver"
+
+
+def _cuda_driver_present() -> bool:
+    """Whether the CUDA driver library loads, as Warp looks for it (Linux: libcuda.so[.1]; Windows: nvcuda.dll);
+    True elsewhere (macOS builds of Warp have no CUDA and print nothing)."""
+    names = {"linux": ("libcuda.so", "libcuda.so.1"), "win32": ("nvcuda.dll",)}.get(sys.platform)
+    if names is None:
+        return True
+    for name in names:
+        try:
+            ctypes.CDLL(name)
+            return True
+        except OSError:
+            pass
+    return False
+
+
+@contextlib.contextmanager
+def _without_driver_warning():
+    """Native writes to stderr (file descriptor 2) go to a temporary file for the block; afterwards every line but
+    Warp's missing-driver warning is written back to stderr."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):  # no usable stderr descriptor: nothing to hold back
+        yield
+        return
+    with tempfile.TemporaryFile(mode="w+b") as held:
+        os.dup2(held.fileno(), 2)
+        try:
+            yield
+        finally:
+            with contextlib.suppress(OSError, ValueError):
+                sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            held.seek(0)
+            rest = [line for line in held.read().decode(errors="replace").splitlines(keepends=True)
+                    if not line.startswith(DRIVER_WARNING)]
+            if rest and sys.stderr is not None:
+                sys.stderr.write("".join(rest))
+                sys.stderr.flush()
 
 
 def array_desc(t, vec: int = 0):

@@ -8,12 +8,16 @@
                                           scans: a batch, sharded over torchrun's processes; see slwarp.batch)
     slwarp demo                           the paper's comparison on an embedded default scene
 
+    slwarp --version                      slwarp's version, with torch's and Warp's
+
 The training options of `reconstruct` and `demo` are generated from slwarp.neural.config.TrainConfig (flag,
 type, choices, help and the chosen preset's default); `--config FILE.yaml` reads a config, and flags override it.
+Their --help shows the common options (COMMON_OPTIONS), --help-all every one, --help-all SECTION one section's.
 
 Bad input (a user error: a missing or malformed file, an option out of range) exits with status 2 and a
-one-line message naming the file or option and the problem (SLWARP_DEBUG=1 shows the traceback instead);
-anything else is a bug and keeps its traceback.
+one-line message naming the file or option and the problem (SLWARP_DEBUG=1 shows the traceback instead); a
+command line argparse rejects adds one line pointing to the command's --help, never the usage. Anything else is
+a bug and keeps its traceback.
 """
 from __future__ import annotations
 
@@ -73,8 +77,7 @@ def _warn_problems(scan, stream=None) -> None:
         print(f"warning: {problem}", file=stream or sys.stderr)
 
 
-def _add_info(sub):
-    p = sub.add_parser("info", help="validate a scan and print its summary (rig, frames, ground truth)")
+def _add_info(p):
     p.add_argument("scan", help="scan folder (native scan.yaml, NeSS config.ini or procam calibration_result.xml)")
     p.add_argument("--frames", help=FRAMES_HELP)
     p.add_argument("--roles", action="store_true", help="also list every frame with its role")
@@ -136,10 +139,9 @@ def cmd_simulate(args) -> int:
     return 0
 
 
-def _add_simulate(sub):
+def _add_simulate(p):
     from .sim.rigs import RIG_NAMES
 
-    p = sub.add_parser("simulate", help="render a scan with exact ground truth on the virtual scanner")
     p.add_argument("--scene", help="built-in scene (see --list)")
     p.add_argument("--mesh", action="append", help="mesh file in mm, camera frame (repeatable)")
     p.add_argument("--patterns", default="random6", help="pattern set, e.g. random6, gray7, gt, random6+gray7 (default: random6)")
@@ -266,11 +268,10 @@ def cmd_decode(args) -> int:
     return 0
 
 
-def _add_decode(sub):
+def _add_decode(p):
     from .decode import METHODS
     from .decode.frames import DEFAULT_MIN_AMPLITUDE
 
-    p = sub.add_parser("decode", help="decode a scan with a classical method and triangulate (depth map, point cloud)")
     p.add_argument("scan", help="scan folder")
     p.add_argument("--method", required=True, choices=list(METHODS),
                    help="; ".join(f"{k}: {m.summary} (sets: {m.pattern_sets})" for k, m in METHODS.items()))
@@ -352,9 +353,7 @@ def _evaluation_paths(out: str | None, pred: Path, scan_dir: Path) -> tuple[Path
     return json_path, map_path
 
 
-def _add_evaluate(sub):
-    p = sub.add_parser("evaluate", help="depth metrics (MAE, RMSE, >1/2/5 mm, completeness) against a scan's ground "
-                       "truth, and how well a confidence map ranks the errors")
+def _add_evaluate(p):
     p.add_argument("pred", help="predicted depth: .npy (float, mm) or 16-bit PNG (0.1 mm, 0 = invalid)")
     p.add_argument("scan", help="scan folder with ground-truth depth")
     p.add_argument("--out", help=f"FILE.json, or a folder for {EVALUATION_JSON} and {EVALUATION_MAP} (default: the "
@@ -394,50 +393,77 @@ def _parse_range(text: str | None):
 # training options, generated from TrainConfig
 
 
+# the TrainConfig options that `reconstruct --help` and `demo --help` show; --help-all shows every one
+COMMON_OPTIONS = ("field", "iters", "rays", "device", "seed")
+
+
+def _given(argv, flag: str) -> str | None:
+    """The value of `flag` on a command line (--flag VALUE or --flag=VALUE; the last one wins), else None."""
+    argv = list(argv or [])
+    value = None
+    for i, word in enumerate(argv):
+        if word == flag and i + 1 < len(argv):
+            value = argv[i + 1]
+        elif word.startswith(flag + "="):
+            value = word.split("=", 1)[1]
+    return value
+
+
 def _chosen_preset(argv) -> str:
     """The preset a reconstruct or demo command line runs with: --preset, else the device's default
     (slwarp.neural.config.DEFAULT_PRESET; the device from --device, default auto). Used for the defaults --help shows."""
     from .devices import DeviceError, torch_device
     from .neural.config import PRESETS, default_preset_name
 
-    argv = list(argv or [])
-    given = {}
-    for i, word in enumerate(argv):
-        for flag in ("--preset", "--device"):
-            if word == flag and i + 1 < len(argv):
-                given[flag] = argv[i + 1]
-            elif word.startswith(flag + "="):
-                given[flag] = word.split("=", 1)[1]
-    if given.get("--preset") in PRESETS:
-        return given["--preset"]
+    if _given(argv, "--preset") in PRESETS:
+        return _given(argv, "--preset")
     try:
-        return default_preset_name(torch_device(given.get("--device", "auto")))
+        return default_preset_name(torch_device(_given(argv, "--device") or "auto"))
     except DeviceError:
         return default_preset_name("cpu")
 
 
-def _add_config_options(p, preset_name: str, training: bool = True) -> None:
-    """--preset, --config and one flag per TrainConfig option (grouped by section), with the help and default
-    the config declares (and, with `training`, which options may change on --resume); flags the user does not
-    give stay out of the namespace."""
+def _add_config_options(p, preset_name: str, training: bool = True, argv=None) -> None:
+    """--preset, --config, --help-all and one flag per TrainConfig option (grouped by section), with the help and
+    the default the config declares (and, with `training`, which options may change on --resume); flags the user
+    does not give stay out of the namespace. --help shows the COMMON_OPTIONS, --help-all every option."""
+    import dataclasses
+
     from .neural.config import DEFAULT_PRESET, OPTIONS, PRESET_SUMMARIES, PRESETS, SECTIONS
+    from .neural.describe import describe
 
     p.add_argument("--preset", choices=list(PRESETS), help="the starting configuration (see the list below); default: "
                    f"{DEFAULT_PRESET['cuda']} when the device is CUDA, else {DEFAULT_PRESET['cpu']}")
     p.add_argument("--config", metavar="FILE.yaml", help="a TrainConfig in YAML (sections field, sampling, schedule, "
                    "init, runtime, extraction; any option may be left out) applied over the preset; a run's "
                    "config.yaml reads back; flags override it")
+    p.add_argument("--help-all", action=_HelpAll, choices=["all", *SECTIONS], help="show every option, grouped by "
+                   f"section, and exit; with SECTION ({', '.join(SECTIONS)}) that section's")
     p.description = textwrap.fill(p.description, 100)
     width = max(map(len, PRESET_SUMMARIES))
-    p.epilog = "presets:\n" + "\n".join(f"  {k:{width}s} {v}" for k, v in PRESET_SUMMARIES.items())
-    p.formatter_class = argparse.RawDescriptionHelpFormatter  # keeps the preset list one line each
+    default_on = {v: k.replace("cuda", "CUDA").replace("cpu", "the CPU") for k, v in DEFAULT_PRESET.items()}
+    # --help: one line per preset, generated from its config; --help-all: what each preset is for
+    p.epilog = "presets (--help-all says what each is for):\n" + "\n".join(
+        f"  {k:{width}s} {describe(cfg)}" + (f"; default on {default_on[k]}" if k in default_on else "")
+        for k, cfg in PRESETS.items())
+    p.epilog += (f"\n\n{len(OPTIONS) - len(COMMON_OPTIONS)} more options: '{p.prog} --help-all' lists every option "
+                 f"by section, '{p.prog} --help-all SECTION' one section")
+    p.epilog_all = "presets:\n" + "\n".join(
+        textwrap.fill(v, 100, initial_indent=f"  {k:{width}s} ", subsequent_indent=" " * (width + 3))
+        for k, v in PRESET_SUMMARIES.items())
+    p.formatter_class = _Formatter
     defaults = PRESETS[preset_name]
+    # the field that trains: the preset's, or --field's; the other kind's options do not apply to it
+    kind = _given(argv, "--field") if _given(argv, "--field") in ("mlp", "hashgrid") else defaults.field.kind
+    field_keys = dataclasses.replace(defaults.field, kind=kind).network()
     for section, cls in SECTIONS.items():
         title = cls.__doc__.splitlines()[0].rstrip(".")
         group = p.add_argument_group(f"{section}: {title[0].lower() + title[1:]}")
         for opt in (o for o in OPTIONS.values() if o.section == section):
             default = defaults.get(opt.name)
             shown = "none" if default is None else str(default).lower() if opt.is_bool else default
+            if section == "field" and opt.key not in field_keys:
+                shown = f"not used by the {kind} field"
             resumable = "; may change on resume" if opt.resumable and training else ""
             kw = dict(dest=opt.name, default=argparse.SUPPRESS,
                       help=f"{opt.help} (preset {preset_name}: {shown}{resumable})")
@@ -446,11 +472,14 @@ def _add_config_options(p, preset_name: str, training: bool = True) -> None:
             else:
                 kw["type"] = _option_parser(opt)
                 kw["metavar"] = opt.metavar()
-            group.add_argument("--" + opt.name.replace("_", "-"), **kw)
+            action = group.add_argument("--" + opt.name.replace("_", "-"), **kw)
+            if opt.name not in COMMON_OPTIONS:
+                action.help_section = section
 
 
 def _option_parser(opt):
-    """argparse's `type` for an option: its parser, with errors as argparse reports them."""
+    """argparse's `type` for an option: its parser, with errors as argparse reports them (naming the flag, so
+    the config's 'option NAME (section.key): ' prefix is left out)."""
 
     def parse(text):
         from .neural.config import ConfigError
@@ -458,7 +487,8 @@ def _option_parser(opt):
         try:
             return opt.parse(text)
         except ConfigError as e:
-            raise argparse.ArgumentTypeError(str(e)) from None
+            message, prefix = str(e), f"option {opt.name} ({opt.section}.{opt.key}): "
+            raise argparse.ArgumentTypeError(message[len(prefix):] if message.startswith(prefix) else message) from None
 
     return parse
 
@@ -487,6 +517,7 @@ def cmd_reconstruct(args) -> int:
 
     from .batch import find_scans, launched_by_torchrun
     from .evaluation.metrics import format_table
+    from .neural.describe import describe
     from .neural.reconstruct import reconstruct
     from .scans.scan import load_scan
 
@@ -503,11 +534,9 @@ def cmd_reconstruct(args) -> int:
     depth_range = _parse_range(args.depth_range)
     if depth_range is None and scan.depth_range is None:
         raise UserError(f"{scan_path}: the scan declares no depth range: pass --depth-range NEAR,FAR (mm)")
-    f, s = cfg.field, cfg.sampling
     print(f"reconstructing {scan.source} ({len(scan)} frames: {', '.join(scan.names)}) with preset '{name}'"
           + (f" + {args.config}" if args.config else "")
-          + f" ({cfg.schedule.iters} iterations, {s.rays} rays, {s.n_samples}+{s.n_importance} samples, "
-          f"{f.hidden}x{f.layers} field) on {dev}" + (f" ({torch.cuda.get_device_name(dev)})" if dev.type == "cuda" else ""))
+          + f" ({describe(cfg)}) on {dev}" + (f" ({torch.cuda.get_device_name(dev)})" if dev.type == "cuda" else ""))
     res = reconstruct(scan, cfg, out_dir=args.out, resume=args.resume, depth_range=depth_range, use_mask=args.use_mask,
                       progress=not args.quiet, overwrite=args.overwrite)
     t = res.timings
@@ -540,17 +569,16 @@ def _reconstruct_batch(args, found, name: str, cfg, dev) -> int:
     """The scans `found` (slwarp.batch.find_scans) as a batch: each into --out/<name>/ (--out for a lone scan
     folder), a summary printed by the process that gathers it; exit status 1 when a scan failed."""
     from .batch import BatchOptions, run_batch
+    from .neural.describe import describe
 
     rank = int(os.environ.get("RANK", 0))
     if rank == 0:
         for folder in found.ignored:
             print(f"note: {folder} holds no scan: passed over", file=sys.stderr)
-        f, s = cfg.field, cfg.sampling
         how = (f"{args.per_device} per device" if args.per_device is not None else
                f"torchrun, {os.environ['WORLD_SIZE']} processes" if "WORLD_SIZE" in os.environ else "one after another")
         print(f"reconstructing {len(found.scans)} scans ({how}) with preset '{name}'" + (f" + {args.config}" if args.config else "")
-              + f" ({cfg.schedule.iters} iterations, {s.rays} rays, {s.n_samples}+{s.n_importance} samples, "
-              f"{f.hidden}x{f.layers} field) on {dev}", flush=True)
+              + f" ({describe(cfg)}) on {dev}", flush=True)
     options = BatchOptions(frames=args.frames, depth_range=_parse_range(args.depth_range), use_mask=args.use_mask,
                            resume=args.resume, overwrite=args.overwrite, progress=not args.quiet, log=not args.quiet)
     summary = run_batch(found.scans, cfg, args.out, options, single=found.single, per_device=args.per_device)
@@ -561,11 +589,10 @@ def _reconstruct_batch(args, found, name: str, cfg, dev) -> int:
     return 1 if summary.failed else 0
 
 
-def _add_reconstruct(sub, argv=None):
+def _add_reconstruct(p, argv=None):
     name = _chosen_preset(argv)
-    p = sub.add_parser("reconstruct", help="depth, mesh and point cloud from a scan with the neural SDF method",
-                       description="Train the neural SDF on a scan, then write its depth map, mesh, point cloud and "
-                       f"config.yaml. The defaults shown are preset {name}'s (--preset P --help shows P's).")
+    p.description = ("Train the neural SDF on a scan, then write its depth map, mesh, point cloud and config.yaml. "
+                     f"The defaults shown are preset {name}'s (--preset P --help shows P's).")
     p.add_argument("scans", nargs="+", metavar="SCAN",
                    help="a scan folder, a folder of scan folders, or a quoted glob; several scans (or a folder of "
                         "them, or a glob) write each scan's outputs into OUT/<scan name>/ and a summary "
@@ -582,9 +609,10 @@ def _add_reconstruct(sub, argv=None):
     p.add_argument("--per-device", type=_positive_int, metavar="K", help="run K scans at a time on each device (every visible "
                    "GPU for --device cuda or auto, the CPU for cpu) in worker processes started here, without torchrun")
     p.add_argument("--depth-range", help="NEAR,FAR camera depth in mm (default: the scan's)")
-    p.add_argument("--use-mask", action="store_true", help="also restrict the depth map to the scan's mask")
+    p.add_argument("--use-mask", action="store_true",
+                   help="also restrict the depth map to the scan's mask").help_section = "reconstruct"
     p.add_argument("--quiet", action="store_true", help="no progress output")
-    _add_config_options(p, name)
+    _add_config_options(p, name, argv=argv)
     p.set_defaults(func=cmd_reconstruct)
 
 
@@ -600,15 +628,14 @@ def cmd_watch(args) -> int:
                  until_idle=args.until_idle, say=lambda text: print(text, flush=True))
 
 
-def _add_watch(sub, argv=None):
+def _add_watch(p, argv=None):
     name = _chosen_preset(argv)
-    p = sub.add_parser("watch", help="a scanning station: reconstruct each scan folder that appears in a folder",
-                       description="Watch DIR and reconstruct each scan folder that appears in it, once complete (its "
-                       "scan.yaml and every file it names present, nothing still growing), into OUT/<name>/ as "
-                       "`reconstruct` does, in this one warm process: one line per scan. Scans done before are "
-                       "skipped, a scan with a checkpoint continues, a broken scan is reported and the station goes "
-                       "on; links leading out of DIR are ignored. Ctrl-C or SIGTERM stops it without losing a "
-                       f"finished scan. The defaults shown are preset {name}'s.")
+    p.description = ("Watch DIR and reconstruct each scan folder that appears in it, once complete (its "
+                     "scan.yaml and every file it names present, nothing still growing), into OUT/<name>/ as "
+                     "`reconstruct` does, in this one warm process: one line per scan. Scans done before are "
+                     "skipped, a scan with a checkpoint continues, a broken scan is reported and the station goes "
+                     "on; links leading out of DIR are ignored. Ctrl-C or SIGTERM stops it without losing a "
+                     f"finished scan. The defaults shown are preset {name}'s.")
     p.add_argument("inbox", metavar="DIR", help="the folder scans arrive in (one sub-folder per scan)")
     p.add_argument("--out", required=True, help="output folder: OUT/<scan folder name>/ per scan")
     p.add_argument("--frames", help="use only these frames of each scan (names, globs, indices, slices)")
@@ -619,7 +646,7 @@ def _add_watch(sub, argv=None):
                    help="a scan folder is taken once no file in it changed for S seconds (default 1)")
     p.add_argument("--max-scans", type=_positive_int, metavar="N", help="stop after N scans")
     p.add_argument("--until-idle", action="store_true", help="stop once every scan in DIR is done or failed")
-    _add_config_options(p, name)
+    _add_config_options(p, name, argv=argv)
     p.set_defaults(func=cmd_watch)
 
 
@@ -631,48 +658,146 @@ def cmd_demo(args) -> int:
     return 0
 
 
-def _add_demo(sub, argv=None):
+def _add_demo(p, argv=None):
     from .demo import DEMO_SCENE
     from .sim.scenes import SCENE_NAMES
 
     name = _chosen_preset(argv)
-    p = sub.add_parser("demo", help="simulate a scene, reconstruct it with the neural SDF and with Gray code, compare",
-                       description="The paper's comparison on a simulated scene (the default rig on CUDA, the small rig "
-                       f"on the CPU). The defaults shown are preset {name}'s (--preset P --help shows P's).")
+    p.description = ("The paper's comparison on a simulated scene (the default rig on CUDA, the small rig on the CPU). "
+                     f"The defaults shown are preset {name}'s (--preset P --help shows P's).")
     p.add_argument("--out", default="slwarp-demo", help="output folder (default: ./slwarp-demo)")
     p.add_argument("--scene", default=DEMO_SCENE, choices=list(SCENE_NAMES), help=f"built-in scene (default: {DEMO_SCENE})")
     p.add_argument("--quiet", action="store_true", help="no progress output")
-    _add_config_options(p, name, training=False)
+    _add_config_options(p, name, training=False, argv=argv)
     p.set_defaults(func=cmd_demo)
 
 
 # ----------------------------------------------------------------------------------------------
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse as slwarp answers: a bad command line is one error line and a hint to --help (exit status 2, no
+    usage dump); --help hides the options marked with a `help_section` (the rarely needed ones), which --help-all
+    shows (every one, or one section's)."""
+
+    help_shown: str | None = None  # set by --help-all: "all" or a section
+    epilog_all: str | None = None  # the epilog of --help-all, when it differs from --help's
+
+    def error(self, message):
+        if message.startswith("argument "):  # argparse's "argument --iters: ...": the flag is enough
+            message = message[len("argument "):]
+        self.exit(2, f"{self.prog}: error: {message}\nsee '{self.prog} --help'\n")
+
+    def format_help(self):
+        hidden = [a for a in self._actions if getattr(a, "help_section", None)
+                  and self.help_shown != "all" and a.help_section != self.help_shown]
+        kept = [a.help for a in hidden], self.epilog
+        for a in hidden:
+            a.help = argparse.SUPPRESS
+        if self.help_shown and self.epilog_all:
+            self.epilog = self.epilog_all
+        try:
+            return super().format_help()
+        finally:
+            for a, h in zip(hidden, kept[0]):
+                a.help = h
+            self.epilog = kept[1]
+
+
+class _Formatter(argparse.RawDescriptionHelpFormatter):
+    """Option help wrapped at spaces only (a preset name such as cpu-hashgrid stays whole); the description and
+    epilog as written."""
+
+    def _split_lines(self, text, width):
+        return textwrap.wrap(" ".join(text.split()), width, break_on_hyphens=False)
+
+
+class _HelpAll(argparse.Action):
+    """--help-all [SECTION]: the help with every option (or the common ones and SECTION's), then exit."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, choices=None, help=None):
+        super().__init__(option_strings, dest, nargs="?", const="all", default=default, choices=choices,
+                         metavar="SECTION", help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        parser.help_shown = values or "all"
+        parser.print_help()
+        parser.exit()
+
+
+class _Version(argparse.Action):
+    """--version: slwarp's version and those of torch and Warp, then exit."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS,
+                 help="print the versions of slwarp, torch and Warp and exit"):
+        super().__init__(option_strings, dest, nargs=0, default=default, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(version_text())
+        parser.exit()
+
+
+def version_text() -> str:
+    """'slwarp X.Y.Z (torch A, warp B, Python C)' from the installed packages' metadata: nothing is imported, so it
+    answers at once."""
+    import platform
+    from importlib import metadata
+
+    def installed(dist):
+        try:
+            return metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            return None
+
+    own = installed("slwarp")
+    if own is None:  # run from a source tree that is not installed
+        from . import __version__ as own
+    others = [f"{name} {v}" for name, v in (("torch", installed("torch")), ("warp", installed("warp-lang"))) if v]
+    return f"slwarp {own} ({', '.join([*others, f'Python {platform.python_version()}'])})"
+
+
 def build_parser(argv=None) -> argparse.ArgumentParser:
-    """The `slwarp` parser; argv (the command line to parse) picks the preset whose defaults --help shows."""
-    parser = argparse.ArgumentParser(
-        prog="slwarp",
-        description="Depth reconstruction with neural SDFs in camera + projector structured-light systems.",
-    )
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    """The `slwarp` parser. argv (the command line to parse) picks the preset whose defaults --help shows, and the
+    command whose options are built: the others get their name and summary only, so that `slwarp --help`, `slwarp
+    --version` and the light commands do not load the training configuration (and torch). argv None: every command
+    in full."""
+    parser = _Parser(prog="slwarp",
+                     description="Depth reconstruction with neural SDFs in camera + projector structured-light systems.")
+    parser.add_argument("--version", action=_Version)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
-    for add in _COMMANDS:
-        if add in _TRAINING_COMMANDS:
-            add(sub, argv)
-        else:
-            add(sub)
+    argv = None if argv is None else list(argv)
+    named = argv[0] if argv and "--version" not in argv else None  # the top level has no option taking a value
+    for name, (summary, add) in _COMMANDS.items():
+        p = sub.add_parser(name, help=summary)
+        p.add_argument("--version", action=_Version)
+        if argv is None or name == named:
+            add(p, argv) if name in _TRAINING_COMMANDS else add(p)
+    parser.commands = sub.choices
     return parser
 
 
-_COMMANDS = [_add_demo, _add_info, _add_simulate, _add_decode, _add_evaluate, _add_reconstruct, _add_watch]
-_TRAINING_COMMANDS = (_add_demo, _add_reconstruct, _add_watch)  # their options come from TrainConfig (and the chosen preset)
+# name: (summary in the command list, the function that adds its options)
+_COMMANDS = {
+    "demo": ("simulate a scene, reconstruct it with the neural SDF and with Gray code, compare", _add_demo),
+    "info": ("validate a scan and print its summary (rig, frames, ground truth)", _add_info),
+    "simulate": ("render a scan with exact ground truth on the virtual scanner", _add_simulate),
+    "decode": ("decode a scan with a classical method and triangulate (depth map, point cloud)", _add_decode),
+    "evaluate": ("depth metrics (MAE, RMSE, >1/2/5 mm, completeness) against a scan's ground truth, and how well a "
+                 "confidence map ranks the errors", _add_evaluate),
+    "reconstruct": ("depth, mesh and point cloud from a scan with the neural SDF method", _add_reconstruct),
+    "watch": ("a scanning station: reconstruct each scan folder that appears in a folder, in one warm process",
+              _add_watch),
+}
+_TRAINING_COMMANDS = ("demo", "reconstruct", "watch")  # their options come from TrainConfig (and the chosen preset)
 
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(argv)
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # reported by the command's parser: its name and its --help
+        parser.commands[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
     try:
         return int(args.func(args) or 0)
     except BrokenPipeError:  # output piped into `head` and the like

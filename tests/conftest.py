@@ -1,19 +1,15 @@
-"""Shared test set-up: a fresh Warp kernel cache per session (results never depend on a warm cache or
-on test order), the devices to run on (CPU always, CUDA when present), and paths to shared data."""
+"""Common test set-up: a fresh Warp kernel cache per test run (results never depend on a warm cache or on test
+order), the devices to run on (CPU always, CUDA when present), and the real capture (found through $SLWARP_DATA:
+slwarp.scans.data; the tests that need it are skipped without it)."""
 from __future__ import annotations
 
 import os
 import tempfile
-from pathlib import Path
 
 import pytest
 
 if not os.environ.get("SLWARP_KERNEL_CACHE"):
     os.environ["SLWARP_KERNEL_CACHE"] = tempfile.mkdtemp(prefix="slwarp-kernels-")
-
-REPO = Path(__file__).resolve().parents[1]
-SHARED = Path(os.environ.get("SLWARP_SHARED", REPO.parent / "shared"))
-CHESSBOARD = SHARED / "data" / "procam_chessboard"
 
 
 def _devices():
@@ -40,9 +36,14 @@ def device(request):
 
 @pytest.fixture(scope="session")
 def chessboard_path():
-    if not CHESSBOARD.is_dir():
-        pytest.skip(f"real capture not found at {CHESSBOARD} (set SLWARP_SHARED)")
-    return CHESSBOARD
+    """The real capture procam_chessboard (docs/real-captures.md); the test is skipped, saying where it looked and
+    which variable to set, when it is absent."""
+    from slwarp.scans.data import CaptureNotFound, real_capture_dir
+
+    try:
+        return real_capture_dir("procam_chessboard")
+    except CaptureNotFound as e:
+        pytest.skip(str(e))
 
 
 @pytest.fixture(scope="session")

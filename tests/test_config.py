@@ -209,8 +209,8 @@ def test_cli_flags_are_generated_for_every_option():
 
 
 def test_cli_help_shows_presets_and_the_chosen_presets_defaults(capsys):
-    for argv, shown in ((["reconstruct", "--preset", "tiny", "--help"], "(preset tiny: 48)"),
-                        (["demo", "--preset=paper", "--help"], "(preset paper: 256)")):
+    for argv, shown in ((["reconstruct", "--preset", "tiny", "--help-all"], "(preset tiny: 48)"),
+                        (["demo", "--preset=paper", "--help-all"], "(preset paper: 256)")):
         with pytest.raises(SystemExit):
             cli.build_parser(argv).parse_args(argv)
         out = capsys.readouterr().out

@@ -386,7 +386,7 @@ def test_calibration_xml_errors_are_scan_errors(chessboard_path, tmp_path, capsy
 
 @pytest.mark.parametrize("argv, expect", [
     (["--iters", "0"], "iters"), (["--iters", "-3"], "iters"), (["--rays", "0"], "rays"),
-    (["--mc-resolution", "0"], "mc_resolution"), (["--min-confidence", "-0.5"], "min_confidence"),
+    (["--mc-resolution", "0"], "--mc-resolution: 0"), (["--min-confidence", "-0.5"], "--min-confidence: -0.5"),
     (["--device", "gpu"], "auto, cpu, cuda or cuda:N"), (["--device", "mps"], "auto, cpu, cuda or cuda:N"),
 ])
 def test_numeric_options_are_checked_at_the_door(tmp_path, capsys, argv, expect):

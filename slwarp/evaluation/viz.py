@@ -1,12 +1,18 @@
 """Pictures: colourised depth maps, error and confidence maps with a colour bar, scan previews, point-cloud renders.
 
-All writers take depth in mm with NaN where invalid and write 8-bit RGB PNGs.
+All writers take depth in mm with NaN where invalid and write 8-bit RGB PNGs. A map is drawn at its own resolution
+(pixel (u, v) of the picture is pixel (u, v) of the map, below a title when there is one) with its colour bar to the
+right: the colour map from the low end (bottom) to the high end (top), ticks in the map's unit. The maps and bars are
+drawn with numpy and OpenCV (a matplotlib figure took about a second per 1280x1024 map).
 """
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
+
+_LUTS: dict[str, np.ndarray] = {}
 
 
 def _finite_range(depth: np.ndarray, value_range=None) -> tuple[float, float]:
@@ -19,50 +25,154 @@ def _finite_range(depth: np.ndarray, value_range=None) -> tuple[float, float]:
     return float(lo), float(max(hi, lo + 1e-6))
 
 
-def colorize(values: np.ndarray, value_range=None, cmap: str = "turbo") -> np.ndarray:
-    """[H, W] values -> [H, W, 3] uint8 RGB through a matplotlib colour map; NaN -> black."""
-    from matplotlib import colormaps
+def colormap_lut(cmap: str = "turbo") -> np.ndarray:
+    """[256, 3] uint8 RGB: a matplotlib colour map's 256 entries."""
+    lut = _LUTS.get(cmap)
+    if lut is None:
+        from matplotlib import colormaps
 
+        lut = _LUTS[cmap] = (colormaps[cmap](np.arange(256))[:, :3] * 255).astype(np.uint8)
+    return lut
+
+
+def colorize(values: np.ndarray, value_range=None, cmap: str = "turbo", nan_color=(0, 0, 0)) -> np.ndarray:
+    """[H, W] values -> [H, W, 3] uint8 RGB through a matplotlib colour map (values outside the range take its end
+    colours; the 1st to 99th percentile by default); NaN -> nan_color (black)."""
     lo, hi = _finite_range(values, value_range)
-    t = np.clip((values - lo) / (hi - lo), 0.0, 1.0)
-    rgb = (colormaps[cmap](np.nan_to_num(t))[..., :3] * 255).astype(np.uint8)
-    rgb[~np.isfinite(values)] = 0
+    v = np.asarray(values, np.float64)
+    bad = ~np.isfinite(v)
+    # entry floor(256 t) of t = (v - lo) / (hi - lo) in [0, 1], the last one for t = 1: matplotlib's own lookup
+    x = (v - lo) * (256.0 / (hi - lo) if hi > lo else 0.0)  # an empty range: the low end's colour
+    np.clip(x, 0.0, 255.0, out=x)
+    x[bad] = 0.0
+    rgb = np.take(colormap_lut(cmap), x.astype(np.uint8), axis=0)
+    rgb[bad] = nan_color
     return rgb
 
 
 def write_rgb(path, rgb: np.ndarray) -> None:
+    """An RGB picture [H, W, 3] uint8 as PNG (or the format of path's suffix)."""
     import cv2
 
-    if not cv2.imwrite(str(path), np.ascontiguousarray(rgb[..., ::-1])):
-        raise OSError(f"could not write {path}")
+    ok, encoded = cv2.imencode(Path(path).suffix or ".png", np.ascontiguousarray(rgb[..., ::-1]))
+    if not ok:
+        raise ValueError(f"{path}: OpenCV cannot encode a picture of this kind")
+    # written by Python, not by OpenCV: a full disk or a read-only folder raises an OSError that says so
+    Path(path).write_bytes(encoded.tobytes())
+
+
+# ----------------------------------------------------------------------------------------------
+# colour bars
+
+BAR_BACKGROUND = (0, 0, 0)
+BAR_TEXT = (235, 235, 235)
+
+
+def _text_scale(height: int) -> float:
+    """OpenCV font scale for a picture `height` rows tall: about 22 px text at 1024 rows, never below legible."""
+    return float(np.clip(height / 1024.0, 0.4, 1.2))
+
+
+def _ticks(lo: float, hi: float, count: int = 6) -> tuple[np.ndarray, int]:
+    """(tick values within [lo, hi] at a round step giving about `count` ticks, decimals their labels need)."""
+    span = hi - lo
+    if not span > 1e-6 * max(1.0, abs(lo)):  # a constant map (its range widened by rounding): one tick
+        return np.array([lo]), 2
+    raw = span / (count - 1)
+    mag = 10.0 ** math.floor(math.log10(raw))
+    step = next(m * mag for m in (1, 2, 2.5, 5, 10) if m * mag >= raw * (1 - 1e-9))
+    ticks = np.arange(math.ceil(lo / step - 1e-9) * step, hi + step * 1e-6, step)
+    decimals = next((d for d in range(10) if abs(round(step, d) - step) <= 1e-6 * step), 10)
+    return ticks[(ticks >= lo - step * 1e-6) & (ticks <= hi + step * 1e-6)], decimals
+
+
+def colorbar_panel(height: int, lo: float, hi: float, cmap: str, label: str) -> np.ndarray:
+    """[height, w, 3] uint8: a vertical colour bar of `cmap` from lo (bottom row of the strip) to hi (top), ticks
+    labelled with their values and `label` (e.g. "depth mm") above, on BAR_BACKGROUND; to be put beside a map of
+    `height` rows."""
+    import cv2
+
+    font, scale = cv2.FONT_HERSHEY_SIMPLEX, _text_scale(height)
+    thick = 1 if scale < 0.9 else 2
+    (_, text_h), _ = cv2.getTextSize("0", font, scale, thick)
+    ticks, decimals = _ticks(lo, hi)
+    labels = [f"{v:.{decimals}f}" for v in ticks]
+    label_w = max(cv2.getTextSize(t, font, scale, thick)[0][0] for t in labels)
+    gap, strip_w, tick_len = text_h, max(8, text_h), max(3, text_h // 3)
+    title_w = cv2.getTextSize(label, font, scale, thick)[0][0]
+    width = max(gap + strip_w + tick_len + gap // 2 + label_w + gap, gap + title_w + gap)
+    top, bottom = 3 * text_h, height - 1 - text_h  # the strip's first and last rows
+    panel = np.empty((height, width, 3), np.uint8)
+    panel[:] = BAR_BACKGROUND
+    if bottom - top < 2:  # too short for a bar: the caller pads the picture first (with_colorbar does)
+        raise ValueError(f"colorbar_panel: {height} rows hold no bar (at least {5 * text_h} are needed)")
+    rows = np.arange(top, bottom + 1)
+    values = hi - (rows - top) / (bottom - top) * (hi - lo)
+    panel[top:bottom + 1, gap:gap + strip_w] = colorize(values[:, None], (lo, hi), cmap)
+    cv2.putText(panel, label, (gap, top - text_h), font, scale, BAR_TEXT, thick, cv2.LINE_AA)
+    for v, text in zip(ticks, labels):
+        y = int(round(top + (hi - v) / (hi - lo) * (bottom - top))) if hi > lo else (top + bottom) // 2
+        x = gap + strip_w
+        cv2.line(panel, (x, y), (x + tick_len - 1, y), BAR_TEXT, 1)
+        cv2.putText(panel, text, (x + tick_len + gap // 2, y + text_h // 2), font, scale, BAR_TEXT, thick, cv2.LINE_AA)
+    return panel
+
+
+def _title_rows(title: str, width: int, scale: float) -> np.ndarray:
+    """[h, width, 3]: `title` on BAR_BACKGROUND, wrapped at spaces to fit `width`."""
+    import cv2
+
+    font, thick = cv2.FONT_HERSHEY_SIMPLEX, 1 if scale < 0.9 else 2
+    (_, text_h), _ = cv2.getTextSize("0", font, scale, thick)
+    lines: list[str] = []
+    for word in title.split():
+        if lines and cv2.getTextSize(lines[-1] + " " + word, font, scale, thick)[0][0] <= width - text_h:
+            lines[-1] += " " + word
+        else:
+            lines.append(word)
+    step = 2 * text_h
+    rows = np.empty((step * len(lines) + text_h, width, 3), np.uint8)
+    rows[:] = BAR_BACKGROUND
+    for i, line in enumerate(lines):
+        cv2.putText(rows, line, (text_h // 2, step * (i + 1)), font, scale, BAR_TEXT, thick, cv2.LINE_AA)
+    return rows
+
+
+def with_colorbar(rgb: np.ndarray, value_range: tuple[float, float], cmap: str, label: str,
+                  title: str | None = None) -> np.ndarray:
+    """The picture `rgb` [H, W, 3] (a map coloured with `cmap` over value_range) with its colour bar to the right
+    (colorbar_panel) and, when given, a title above; a map too short for the bar is padded below."""
+    import cv2
+
+    h, w = rgb.shape[:2]
+    (_, text_h), _ = cv2.getTextSize("0", cv2.FONT_HERSHEY_SIMPLEX, _text_scale(h), 1 if _text_scale(h) < 0.9 else 2)
+    rows = max(h, 8 * text_h)
+    panel = colorbar_panel(rows, float(value_range[0]), float(value_range[1]), cmap, label)
+    out = np.empty((rows, w + panel.shape[1], 3), np.uint8)
+    out[:] = BAR_BACKGROUND
+    out[:h, :w] = rgb
+    out[:, w:] = panel
+    if title:
+        out = np.concatenate([_title_rows(title, out.shape[1], _text_scale(h)), out], axis=0)
+    return out
 
 
 def save_depth_color(path, depth: np.ndarray, value_range=None) -> None:
-    """Colourised depth PNG (turbo, near = blue), NaN black."""
-    write_rgb(path, colorize(depth, value_range))
+    """Colourised depth PNG (turbo, near = blue; the 1st to 99th percentile, or value_range in mm), NaN black, with
+    its colour bar in mm to the right: the map keeps its pixels at the left, so the picture is wider than the map."""
+    lo, hi = _finite_range(depth, value_range)
+    write_rgb(path, with_colorbar(colorize(depth, (lo, hi)), (lo, hi), "turbo", "depth mm"))
+
+
+NAN_GRAY = (38, 38, 38)  # where a map with a colour bar has no value
 
 
 def save_map_with_colorbar(path, values: np.ndarray, title: str, label: str, value_range=None,
                            cmap: str = "turbo", dpi: int = 100) -> None:
-    """A map with a labelled colour bar (matplotlib, headless); NaN shown in dark gray."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    """A map with a title above and a labelled colour bar to the right, at the map's resolution; NaN dark gray.
+    dpi: unused (the picture has the map's own pixels), kept for callers that pass it."""
     lo, hi = _finite_range(values, value_range)
-    h, w = values.shape
-    fig_w = 7.0
-    fig, ax = plt.subplots(figsize=(fig_w, fig_w * h / w * 0.95 + 0.6), dpi=dpi)
-    cm = matplotlib.colormaps[cmap].with_extremes(bad=(0.15, 0.15, 0.15))
-    im = ax.imshow(np.ma.masked_invalid(values), cmap=cm, vmin=lo, vmax=hi, interpolation="nearest")
-    ax.set_title(title, fontsize=10)
-    ax.axis("off")
-    cb = fig.colorbar(im, ax=ax, fraction=0.04, pad=0.02)
-    cb.set_label(label)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    write_rgb(path, with_colorbar(colorize(values, (lo, hi), cmap, NAN_GRAY), (lo, hi), cmap, label, title))
 
 
 def save_confidence_map(path, confidence: np.ndarray, title: str = "confidence") -> None:
@@ -77,7 +187,7 @@ def save_confidence_map(path, confidence: np.ndarray, title: str = "confidence")
 def save_error_map(path, pred: np.ndarray, gt: np.ndarray, title: str = "absolute depth error", max_mm: float = 5.0) -> None:
     """|pred - gt| in mm with a colour bar clipped at `max_mm`; gray where either is invalid."""
     err = np.abs(pred - gt)
-    save_map_with_colorbar(path, err, title, "|error| (mm)", value_range=(0.0, max_mm), cmap="inferno")
+    save_map_with_colorbar(path, err, title, "error mm", value_range=(0.0, max_mm), cmap="inferno")
 
 
 def save_scan_preview(path, scan, max_frames: int = 3) -> None:
@@ -89,10 +199,12 @@ def save_scan_preview(path, scan, max_frames: int = 3) -> None:
         g = (np.clip(scan.images[i], 0, 1) * 255).astype(np.uint8)
         tiles.append(np.repeat(g[..., None], 3, axis=2))
     if scan.gt_depth is not None:
-        tiles.append(colorize(scan.gt_depth))
+        lo_hi = _finite_range(scan.gt_depth)
+        tiles.append(with_colorbar(colorize(scan.gt_depth, lo_hi), lo_hi, "turbo", "depth mm"))
     if scan.mask is not None:
         tiles.append(np.repeat((scan.mask * 255).astype(np.uint8)[..., None], 3, axis=2))
-    row = np.concatenate(tiles, axis=1)
+    rows = max(t.shape[0] for t in tiles)  # a short map's colour bar may be taller than the map
+    row = np.concatenate([np.pad(t, ((0, rows - t.shape[0]), (0, 0), (0, 0))) for t in tiles], axis=1)
     scale = min(1.0, 1600.0 / row.shape[1])
     if scale < 1.0:
         row = cv2.resize(row, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
@@ -101,7 +213,8 @@ def save_scan_preview(path, scan, max_frames: int = 3) -> None:
 
 def save_point_cloud_render(path, points: np.ndarray, colors: np.ndarray | None = None, title: str = "",
                             elev: float = 20.0, azim: float = -110.0, max_points: int = 60000) -> None:
-    """A 3-D scatter render of a point cloud [P, 3] (mm, camera frame), viewed obliquely."""
+    """A 3-D scatter render of a point cloud [P, 3] (mm, camera frame), viewed obliquely; coloured by depth (with a
+    colour bar in mm) unless `colors` are given."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -114,8 +227,10 @@ def save_point_cloud_render(path, points: np.ndarray, colors: np.ndarray | None 
     ax = fig.add_subplot(projection="3d")
     if len(pts):
         c = pts[:, 2] if colors is None else colors
-        ax.scatter(pts[:, 0], pts[:, 2], -pts[:, 1], c=c, s=0.3, cmap="turbo", linewidths=0)
+        drawn = ax.scatter(pts[:, 0], pts[:, 2], -pts[:, 1], c=c, s=0.3, cmap="turbo", linewidths=0)
         ax.set_box_aspect((np.ptp(pts[:, 0]) + 1, np.ptp(pts[:, 2]) + 1, np.ptp(pts[:, 1]) + 1))
+        if colors is None:  # coloured by depth: say which colour is which depth
+            fig.colorbar(drawn, ax=ax, shrink=0.6, pad=0.08, label="depth mm")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("z (mm)")
     ax.set_zlabel("-y (mm)")
