@@ -5,8 +5,8 @@
                                          read_confidence reads it back, checked
     write_depth_png(path, depth)         the 16-bit PNG alone (the authors' depth format; read back by
                                          slwarp.scans.scan.read_depth)
-    write_points_ply(path, points, ...)  the finite points of a point map as a binary PLY (trimesh), gray or RGB
-    write_mesh_ply(path, mesh)           a trimesh mesh as a binary PLY
+    write_points_ply(path, points, ...)  the finite points of a point map as a binary PLY, gray or RGB
+    write_mesh_ply(path, mesh)           a triangle mesh (vertices, faces) as a binary PLY
     check_output_folder(path)            OutputError unless `path` can be (or is) a folder: not a file, nor under one
     with staged_outputs(folder) as tmp:  write a run's outputs into `tmp`; they appear in `folder` together on
         ...                              success, and not at all on failure
@@ -105,14 +105,33 @@ def write_depth(folder: str | os.PathLike, depth: np.ndarray) -> None:
     write_depth_png(folder / "depth.png", depth)
 
 
+def _write_ply(path: str | os.PathLike, vertices: np.ndarray, vertex_props: list[tuple[str, str]],
+               faces: np.ndarray | None = None) -> None:
+    """A binary little-endian PLY: `vertices` a structured array whose fields are `vertex_props` (name, PLY type),
+    and triangle `faces` [F, 3] (int) when given. Written with numpy (trimesh's exporter cost a fresh process about
+    half a second of imports)."""
+    header = ["ply", "format binary_little_endian 1.0", "comment slwarp", f"element vertex {len(vertices)}"]
+    header += [f"property {t} {n}" for n, t in vertex_props]
+    if faces is not None:
+        header += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
+    header.append("end_header")
+    with open(path, "wb") as f:
+        f.write(("\n".join(header) + "\n").encode("ascii"))
+        f.write(vertices.tobytes())
+        if faces is not None:
+            rec = np.empty(len(faces), dtype=[("n", "u1"), ("v", "<i4", (3,))])
+            rec["n"] = 3
+            rec["v"] = faces
+            f.write(rec.tobytes())
+
+
 def write_points_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | None = None) -> int:
     """Write the finite points of points [..., 3] (mm) as a binary little-endian PLY (float32 x, y, z); colors
     [...] gray or [..., 3] RGB, in [0, 1] (rounded to 8 bits) or uint8, optional (written as RGBA, alpha 255).
     Returns the number of points written."""
-    import trimesh
-
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     keep = np.isfinite(pts).all(1)
+    props = [("x", "float"), ("y", "float"), ("z", "float")]
     rgba = None
     if colors is not None:
         c = np.asarray(colors)
@@ -123,13 +142,24 @@ def write_points_ply(path: str | os.PathLike, points: np.ndarray, colors: np.nda
             c = np.clip(np.rint(np.asarray(c, np.float64) * 255), 0, 255).astype(np.uint8)
         rgb = np.repeat(c, 3, axis=1) if c.shape[1] == 1 else c
         rgba = np.concatenate([rgb, np.full((len(rgb), 1), 255, np.uint8)], 1)[keep]
-    trimesh.PointCloud(pts[keep], colors=rgba).export(str(path), file_type="ply")
-    return int(keep.sum())
+        props += [("red", "uchar"), ("green", "uchar"), ("blue", "uchar"), ("alpha", "uchar")]
+    n = int(keep.sum())
+    v = np.empty(n, dtype=[("xyz", "<f4", (3,))] + ([("rgba", "u1", (4,))] if rgba is not None else []))
+    v["xyz"] = pts[keep]
+    if rgba is not None:
+        v["rgba"] = rgba
+    _write_ply(path, v, props)
+    return n
 
 
 def write_mesh_ply(path: str | os.PathLike, mesh) -> None:
-    """Write a trimesh mesh (mm) as a binary PLY."""
-    mesh.export(str(path), file_type="ply")
+    """Write a triangle mesh (mm; anything with `vertices` [V, 3] and `faces` [F, 3], e.g. a trimesh mesh) as a
+    binary little-endian PLY (float32 vertices)."""
+    verts = np.asarray(mesh.vertices, np.float32).reshape(-1, 3)
+    faces = np.asarray(mesh.faces).reshape(-1, 3)
+    v = np.empty(len(verts), dtype=[("xyz", "<f4", (3,))])
+    v["xyz"] = verts
+    _write_ply(path, v, [("x", "float"), ("y", "float"), ("z", "float")], faces)
 
 
 def write_confidence(folder: str | os.PathLike, confidence: np.ndarray) -> None:

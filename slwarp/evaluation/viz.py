@@ -26,12 +26,21 @@ def _finite_range(depth: np.ndarray, value_range=None) -> tuple[float, float]:
 
 
 def colormap_lut(cmap: str = "turbo") -> np.ndarray:
-    """[256, 3] uint8 RGB: a matplotlib colour map's 256 entries."""
+    """[256, 3] uint8 RGB: a colour map's 256 entries, OpenCV's where it has the map (turbo, viridis, inferno, magma,
+    plasma, ...: matplotlib's tables, rounded instead of truncated, so within 1 of them), else matplotlib's.
+    Why OpenCV first: importing matplotlib costs a fresh process a noticeable part of a second."""
     lut = _LUTS.get(cmap)
     if lut is None:
-        from matplotlib import colormaps
+        import cv2
 
-        lut = _LUTS[cmap] = (colormaps[cmap](np.arange(256))[:, :3] * 255).astype(np.uint8)
+        code = getattr(cv2, f"COLORMAP_{cmap.upper()}", None)
+        if code is not None:
+            lut = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], code)[:, 0, ::-1].copy()
+        else:
+            from matplotlib import colormaps
+
+            lut = (colormaps[cmap](np.arange(256))[:, :3] * 255).astype(np.uint8)
+        _LUTS[cmap] = lut
     return lut
 
 
@@ -254,28 +263,103 @@ FATE_COLOURS = {"measured": (0.55, 0.55, 0.55), "repaired": (0.2, 0.4, 1.0), "fi
                 "flying_pixel": (1.0, 0.55, 0.0), "low_confidence": (0.9, 0.1, 0.1), "search_doubt": (1.0, 0.9, 0.1)}
 
 
-def save_fate_map(path, fate: np.ndarray, names: tuple[str, ...], title: str = "what became of each pixel",
-                  dpi: int = 100) -> None:
-    """fate [H, W] (indices into `names`, e.g. PIXEL_FATES) as a picture with a legend giving each fate's share of
-    the pixels; fates without a colour in FATE_COLOURS are drawn gray-green."""
-    import matplotlib
+def _legend_panel(entries: list[tuple[tuple[int, int, int], str]], height: int, title: str | None = None) -> np.ndarray:
+    """[height, w, 3] uint8: a legend of (RGB swatch, text) lines, top-aligned, on BAR_BACKGROUND, for a map of
+    `height` rows."""
+    import cv2
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.patches import Patch
+    font, scale = cv2.FONT_HERSHEY_SIMPLEX, _text_scale(height)
+    thick = 1 if scale < 0.9 else 2
+    (_, text_h), _ = cv2.getTextSize("0", font, scale, thick)
+    step, gap = 2 * text_h, text_h
+    texts = ([title] if title else []) + [t for _, t in entries]
+    width = gap + 2 * text_h + gap + max(cv2.getTextSize(t, font, scale, thick)[0][0] for t in texts) + gap
+    rows = max(height, step * (len(texts) + 1))
+    panel = np.empty((rows, width, 3), np.uint8)
+    panel[:] = BAR_BACKGROUND
+    y = step
+    if title:
+        cv2.putText(panel, title, (gap, y), font, scale, BAR_TEXT, thick, cv2.LINE_AA)
+        y += step
+    for rgb, text in entries:
+        cv2.rectangle(panel, (gap, y - text_h), (gap + 2 * text_h, y), tuple(int(c) for c in rgb), -1)
+        cv2.rectangle(panel, (gap, y - text_h), (gap + 2 * text_h, y), (80, 80, 80), 1)
+        cv2.putText(panel, text, (2 * gap + 2 * text_h, y), font, scale, BAR_TEXT, thick, cv2.LINE_AA)
+        y += step
+    return panel
 
+
+def save_fate_map(path, fate: np.ndarray, names: tuple[str, ...], title: str = "what became of each pixel") -> None:
+    """fate [H, W] (indices into `names`, e.g. PIXEL_FATES) at its own resolution with a legend to the right giving
+    each fate's share of the pixels; fates without a colour in FATE_COLOURS are drawn gray-green."""
     fate = np.asarray(fate)
-    colours = np.array([FATE_COLOURS.get(n, (0.5, 0.6, 0.5)) for n in names])
     if fate.size and int(fate.max()) >= len(names):
         raise ValueError(f"save_fate_map: fate value {int(fate.max())} has no name (names: {', '.join(names)})")
+    colours = np.rint(255 * np.array([FATE_COLOURS.get(n, (0.5, 0.6, 0.5)) for n in names])).astype(np.uint8)
     h, w = fate.shape
-    fig, ax = plt.subplots(figsize=(8.5, 7.0 * h / w * 0.95 + 0.6), dpi=dpi)
-    ax.imshow(colours[fate], interpolation="nearest")
-    ax.set_title(title, fontsize=10)
-    ax.axis("off")
     counts = np.bincount(fate.ravel(), minlength=len(names))
-    handles = [Patch(facecolor=colours[i], edgecolor="0.3", label=f"{n.replace('_', ' ')} {100.0 * c / fate.size:.2f}%")
+    entries = [(tuple(colours[i]), f"{n.replace('_', ' ')} {100.0 * c / fate.size:.2f}%")
                for i, (n, c) in enumerate(zip(names, counts)) if c > 0]
-    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
-    fig.savefig(path, bbox_inches="tight")  # the legend beside the map, inside the picture
-    plt.close(fig)
+    legend = _legend_panel(entries, h, title)
+    out = np.empty((legend.shape[0], w + legend.shape[1], 3), np.uint8)
+    out[:] = BAR_BACKGROUND
+    out[:h, :w] = colours[fate]
+    out[:, w:] = legend
+    write_rgb(path, out)
+
+
+# the loss curves' colours (RGB) and the picture's size
+CURVE_COLOURS = ((31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40))
+CURVE_PANEL = (520, 360)  # width, height of each panel in pixels
+
+
+def _curve_panel(x: np.ndarray, curves: list[tuple[str, np.ndarray]], title: str) -> np.ndarray:
+    """[h, w, 3]: `curves` (name, values > 0) against x on a log scale, axes with decade ticks, a legend, a title."""
+    import cv2
+
+    w, h = CURVE_PANEL
+    font, scale, thick = cv2.FONT_HERSHEY_SIMPLEX, 0.45, 1
+    panel = np.full((h, w, 3), 255, np.uint8)
+    left, right, top, bottom = 62, w - 12, 26, h - 36
+    ys = np.concatenate([np.asarray(v, np.float64) for _, v in curves])
+    ys = ys[np.isfinite(ys) & (ys > 0)]
+    lo, hi = (math.floor(math.log10(ys.min())), math.ceil(math.log10(ys.max()))) if ys.size else (0, 1)
+    hi = max(hi, lo + 1)
+    x0, x1 = float(x.min()), float(max(x.max(), x.min() + 1))
+
+    def px(xv, yv):
+        ly = np.log10(np.clip(yv, 10.0 ** lo, None))
+        return (left + (xv - x0) / (x1 - x0) * (right - left), bottom - (ly - lo) / (hi - lo) * (bottom - top))
+
+    cv2.rectangle(panel, (left, top), (right, bottom), (0, 0, 0), 1)
+    for d in range(lo, hi + 1):
+        y = int(round(px(x0, 10.0 ** d)[1]))
+        cv2.line(panel, (left, y), (right, y), (225, 225, 225), 1)
+        cv2.putText(panel, f"1e{d}", (8, y + 4), font, scale, (0, 0, 0), thick, cv2.LINE_AA)
+    for t in _ticks(x0, x1, 5)[0]:
+        xx = int(round(px(t, 10.0 ** lo)[0]))
+        cv2.line(panel, (xx, bottom), (xx, bottom + 3), (0, 0, 0), 1)
+        cv2.putText(panel, f"{t:.0f}", (xx - 12, bottom + 16), font, scale, (0, 0, 0), thick, cv2.LINE_AA)
+    cv2.putText(panel, "iteration", (w // 2 - 30, h - 6), font, scale, (0, 0, 0), thick, cv2.LINE_AA)
+    cv2.putText(panel, title, (left, 18), font, scale, (0, 0, 0), thick, cv2.LINE_AA)
+    for k, (name, v) in enumerate(curves):
+        v = np.asarray(v, np.float64)
+        ok = np.isfinite(v) & (v > 0)
+        if ok.sum() >= 2:
+            pts = np.stack(px(x[ok].astype(np.float64), v[ok]), axis=1)
+            colour = CURVE_COLOURS[k % len(CURVE_COLOURS)][::-1]  # OpenCV draws BGR
+            cv2.polylines(panel, [np.round(pts).astype(np.int32)], False, colour, 1, cv2.LINE_AA)
+        if len(curves) > 1:
+            y = top + 16 + 16 * k
+            cv2.line(panel, (right - 190, y - 4), (right - 170, y - 4), CURVE_COLOURS[k % len(CURVE_COLOURS)][::-1], 2)
+            cv2.putText(panel, name, (right - 165, y), font, scale, (0, 0, 0), thick, cv2.LINE_AA)
+    return panel[..., ::-1]  # drawn as BGR: back to RGB
+
+
+def save_loss_curves(path, iters, losses: dict[str, np.ndarray], inv_s) -> None:
+    """The training's loss terms (log scale) and NeuS's inv_s (1/mm) against the iteration, two panels side by
+    side (drawn with OpenCV: a matplotlib figure cost a fresh process about a second)."""
+    x = np.asarray(iters, np.float64)
+    left = _curve_panel(x, [(k, np.asarray(v)) for k, v in losses.items()], "loss terms")
+    right = _curve_panel(x, [("inv_s", np.asarray(inv_s))], "inv_s (1/mm)")
+    write_rgb(path, np.concatenate([left, right], axis=1))

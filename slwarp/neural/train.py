@@ -914,25 +914,12 @@ class Trainer:
 
     def save_history(self, folder) -> None:
         """loss curves: history.json and loss.png."""
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        from ..evaluation.viz import save_loss_curves
 
         folder = Path(folder)
         (folder / "history.json").write_text(json.dumps(dataclasses.asdict(self.history)))
         h = self.history
-        if not h.iters:
-            return
-        fig, ax = plt.subplots(1, 2, figsize=(10, 3.5), dpi=100)
-        ax[0].semilogy(h.iters, h.color, label="L_rc (rendered colour)")
-        ax[0].semilogy(h.iters, h.surface, label="L_sc (surface colour)")
-        ax[0].semilogy(h.iters, h.eikonal, label="L_reg (Eikonal)")
-        ax[0].set_xlabel("iteration")
-        ax[0].legend(fontsize=8)
-        ax[1].semilogy(h.iters, h.inv_s)
-        ax[1].set_xlabel("iteration")
-        ax[1].set_ylabel("inv_s (1/mm)")
-        fig.tight_layout()
-        fig.savefig(folder / "loss.png")
-        plt.close(fig)
+        if h.iters:
+            save_loss_curves(folder / "loss.png", h.iters, {"L_rc (rendered colour)": h.color,
+                                                            "L_sc (surface colour)": h.surface,
+                                                            "L_reg (Eikonal)": h.eikonal}, h.inv_s)
