@@ -29,6 +29,10 @@ import textwrap
 import time
 from pathlib import Path
 
+from . import timeline
+
+timeline.mark("started")  # the interpreter has started and imported the command's module
+
 
 class UserError(Exception):
     """An error caused by the user's input: printed as one line, exit status 2."""
@@ -521,6 +525,7 @@ def cmd_reconstruct(args) -> int:
     from .neural.reconstruct import reconstruct
     from .scans.scan import load_scan
 
+    timeline.mark("imports")
     name, cfg, dev = _config_from_args(args)
     if args.per_device is not None and launched_by_torchrun():
         raise UserError("--per-device starts its own worker processes: under torchrun use --nproc-per-node "
@@ -530,6 +535,7 @@ def cmd_reconstruct(args) -> int:
         return _reconstruct_batch(args, found, name, cfg, dev)
     scan_path = args.scans[0]
     scan = load_scan(scan_path, frames=args.frames)
+    timeline.mark("scan loaded")
     _warn_problems(scan)
     depth_range = _parse_range(args.depth_range)
     if depth_range is None and scan.depth_range is None:
@@ -537,8 +543,10 @@ def cmd_reconstruct(args) -> int:
     print(f"reconstructing {scan.source} ({len(scan)} frames: {', '.join(scan.names)}) with preset '{name}'"
           + (f" + {args.config}" if args.config else "")
           + f" ({describe(cfg)}) on {dev}" + (f" ({torch.cuda.get_device_name(dev)})" if dev.type == "cuda" else ""))
+    timeline.mark("reconstruct")
     res = reconstruct(scan, cfg, out_dir=args.out, resume=args.resume, depth_range=depth_range, use_mask=args.use_mask,
                       progress=not args.quiet, overwrite=args.overwrite)
+    timeline.mark("reconstructed")
     t = res.timings
     valid = np.isfinite(res.depth)
     print(f"trained {t['iterations']} iterations in {t['train_wall_s_total']:.1f} s; marching cubes {t['marching_cubes_s']:.1f} s; "
@@ -814,6 +822,19 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print(f"slwarp {args.command}: interrupted", file=sys.stderr)
         return 130
+
+
+def entry() -> None:
+    """The `slwarp` console command and `python -m slwarp`: `main`, then the process ends as soon as its output is
+    flushed. Why not a plain return: the interpreter's teardown (torch's, Warp's and CUDA's exit handlers, every
+    module's objects freed) ran for seconds after the last output file was closed, while the user waited on the
+    prompt; every file a command writes is closed (or renamed into place) before `main` returns."""
+    code = main()
+    timeline.mark("exit")
+    timeline.write()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 def _interrupted():

@@ -1,0 +1,199 @@
+"""What a user waits for: `slwarp reconstruct SCAN --out DIR` as a fresh process, from a scan on disk to its outputs
+on disk, with caches empty (a new machine) and filled (the run before filled them), and where the time goes.
+
+    python -m bench.command_wall --preset fast --runs 3 --cold          # CUDA: bunny, default rig; run 1 on empty caches
+    python -m bench.command_wall --preset fast --bytecode warm          # Python's bytecode compiled first, as a user's
+    python -m bench.command_wall --smoke                                # CPU: small rig, tiny settings (a smoke test)
+
+One simulated scan (made once into the work folder). Then --runs fresh processes, one after another, each the
+command a user types (`python -m slwarp reconstruct SCAN --preset P --out DIR --quiet`), timed from spawn to exit.
+The caches a machine keeps between commands (Warp's kernels, Inductor's and Triton's compiled graphs) live in
+<work>/caches: with --cold the first run finds them empty. Python's own bytecode cache: `--bytecode as-is` leaves it
+as the machine has it (some hosts run with PYTHONDONTWRITEBYTECODE and compile every module from source in every
+process); `--bytecode warm` compiles the installed packages into <work>/pycache first (PYTHONPYCACHEPREFIX), as a
+user's machine, which keeps its bytecode caches, has them.
+
+The breakdown comes from the command's own marks ($SLWARP_TIMELINE, slwarp.timeline) and its timings.json:
+the interpreter's start, imports, scan load, until the reconstruction starts (device start, config), setup (depth search, blur
+fit), training, extraction, outputs, the report, and the interpreter's exit. Writes <out>/<stem>.json and .md.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from bench.batch_throughput import compile_cache_env
+
+REPO = Path(__file__).resolve().parents[1]
+SMOKE_SET = ["iters=3", "init_iters=2", "mc_resolution=32", "rays=64"]
+PHASES = (("interpreter", "interpreter"), ("imports", "imports"), ("scan", "scan load"), ("before", "to reconstruct()"),
+          ("setup", "setup"), ("train", "training"), ("extract", "extraction"), ("outputs", "metrics, outputs"),
+          ("report", "report"), ("teardown", "exit"))
+
+
+def option_flags(items: list[str]) -> list[str]:
+    """KEY=VALUE options -> the reconstruct command's flags (`--key value`, `--key` / `--no-key` for booleans)."""
+    from slwarp.neural.config import OPTIONS, ConfigError, parse_assignments
+
+    try:
+        values = parse_assignments(items)
+    except ConfigError as e:
+        raise SystemExit(f"--set {e}") from None
+    flags = []
+    for key, value in values.items():
+        flag = "--" + key.replace("_", "-")
+        if OPTIONS[key].is_bool:
+            flags.append(flag if value else "--no-" + flag[2:])
+        else:
+            flags += [flag, str(value)]
+    return flags
+
+
+def breakdown(spawn: float, end: float, marks: dict, timings: dict) -> dict:
+    """Seconds per phase (PHASES) of one command from its marks (wall clock) and timings.json."""
+    start = marks["reconstruct"]  # timings.json counts from here; its total_s ends before the files are written
+    return {"interpreter": marks["started"] - spawn, "imports": marks["imports"] - marks["started"],
+            "scan": marks["scan loaded"] - marks["imports"],
+            "before": start - marks["scan loaded"], "setup": timings["setup_s"], "train": timings["train_s"],
+            "extract": timings["depth_map_s"] - timings["setup_s"] - timings["train_s"],
+            "outputs": marks["reconstructed"] - start - timings["depth_map_s"],
+            "report": marks["exit"] - marks["reconstructed"], "teardown": end - marks["exit"],
+            "to_depth_map": start + timings["depth_map_s"] - spawn}
+
+
+def run_command(cmd: list[str], env: dict, out: Path) -> dict:
+    """One fresh process of `cmd`: its wall time from spawn to exit and, when it succeeded, its breakdown."""
+    tl = out.parent / f"{out.name}.timeline.jsonl"
+    tl.unlink(missing_ok=True)
+    spawn = time.time()
+    p = subprocess.run(cmd, cwd=REPO, env={**env, "SLWARP_TIMELINE": str(tl)}, capture_output=True, text=True)
+    end = time.time()
+    row = {"wall_s": end - spawn, "rc": p.returncode}
+    if p.returncode:
+        row["error"] = (p.stdout + p.stderr).strip()[-1500:]
+        return row
+    marks = {}
+    for line in tl.read_text().splitlines():
+        marks.update({k: v for k, v in json.loads(line)["marks"]})
+    timings = json.loads((out / "timings.json").read_text())
+    row.update(breakdown(spawn, end, marks, timings))
+    return row
+
+
+def compile_bytecode(prefix: Path) -> float:
+    """Compile the interpreter's installed packages and the project into `prefix` (PYTHONPYCACHEPREFIX); seconds."""
+    import site
+    import sysconfig
+
+    roots = {sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"], *site.getsitepackages(),
+             *(p for p in sys.path if p.endswith(("site-packages", "dist-packages")) or "/tmp/site" in p),
+             str(REPO / "slwarp"), str(REPO / "kernels")}
+    t = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "compileall", "-q", "-j", "0", *sorted(r for r in roots if Path(r).is_dir())],
+                   env={**os.environ, "PYTHONPYCACHEPREFIX": str(prefix)}, capture_output=True)
+    return time.perf_counter() - t
+
+
+def markdown(doc: dict) -> str:
+    s = doc["setup"]
+    lines = [f"# The command's wall time, preset `{s['preset']}`, {s['scene']} ({s['rig']} rig), {doc['device']}, "
+             f"{doc['date']}", "", f"`{doc['bench_command']}`", "",
+             f"Each run: `{' '.join(doc['command'])}` as a fresh process, timed from spawn to exit. Caches (Warp "
+             "kernels, Inductor, Triton) in the work folder" + (", emptied before run 1" if s["cold"] else "")
+             + f"; Python bytecode {s['bytecode']}"
+             + (f" (compiled into a cache prefix first, {doc['bytecode_s']:.0f} s)" if s["bytecode"] == "warm" else "")
+             + ". Phases in seconds (marks of the command and its timings.json).", "",
+             "| run | caches | wall s | to depth map s | " + " | ".join(t for _, t in PHASES) + " |",
+             "|---|---|---:|---:|" + "---:|" * len(PHASES)]
+    for i, r in enumerate(doc["runs"], 1):
+        if r.get("error"):
+            why = r["error"][-200:].replace("\n", " / ").replace("|", "\\|")
+            lines.append(f"| {i} | {r['caches']} | {r['wall_s']:.1f} | failed: {why} |" + "|" * len(PHASES))
+            continue
+        lines.append(f"| {i} | {r['caches']} | {r['wall_s']:.2f} | {r['to_depth_map']:.2f} | "
+                     + " | ".join(f"{r[k]:.2f}" for k, _ in PHASES) + " |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--preset", default=None, help="default: the device's default preset (tiny with --smoke)")
+    p.add_argument("--scene", default="bunny")
+    p.add_argument("--rig", default=None, help="default: default on CUDA, small on the CPU")
+    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="options given to the command as flags")
+    p.add_argument("--runs", type=int, default=3, help="fresh processes, one after another")
+    p.add_argument("--cold", action="store_true", help="empty the caches before the first run")
+    p.add_argument("--bytecode", choices=["as-is", "warm"], default="as-is")
+    p.add_argument("--work", default="/tmp/slwarp-command-wall", help="the scan, the caches and the outputs")
+    p.add_argument("--smoke", action="store_true", help="CPU, small rig, tiny preset and a few iterations")
+    p.add_argument("--stem", default=None)
+    p.add_argument("--out", default=str(REPO / "bench" / "results"))
+    args = p.parse_args(argv)
+    if args.runs < 1:
+        raise SystemExit("--runs must be >= 1")
+    cuda = not args.smoke and bool(shutil.which("nvidia-smi")) and subprocess.run(
+        ["nvidia-smi", "-L"], capture_output=True).returncode == 0
+    if args.smoke:
+        args.preset, args.rig, args.scene = args.preset or "tiny", args.rig or "small", "spheres"
+        args.set = SMOKE_SET + args.set
+    from slwarp.neural.config import default_preset_name
+
+    args.preset = args.preset or default_preset_name("cuda" if cuda else "cpu")
+    args.rig = args.rig or ("default" if cuda else "small")
+    flags = option_flags(args.set)
+    work = Path(args.work)
+    caches = work / "caches"
+    if args.cold:
+        shutil.rmtree(caches, ignore_errors=True)
+    caches.mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", **compile_cache_env(caches)}
+    if not args.smoke:  # the CPU's Warp kernels compile for minutes: the smoke test keeps the user's kernel cache
+        env["SLWARP_KERNEL_CACHE"] = str(caches / "warp")
+    bytecode_s = None
+    if args.bytecode == "warm":
+        env["PYTHONPYCACHEPREFIX"] = str(work / "pycache")
+        bytecode_s = compile_bytecode(work / "pycache")
+    scan = work / f"scan-{args.scene}-{args.rig}"
+    if not (scan / "scan.yaml").is_file():
+        made = subprocess.run([sys.executable, "-m", "slwarp", "simulate", "--scene", args.scene, "--rig", args.rig,
+                               "--patterns", "random6", "--out", str(scan)], cwd=REPO, env=env, capture_output=True,
+                              text=True)
+        if made.returncode:
+            raise SystemExit(f"could not simulate the scan into {scan}:\n{made.stdout[-800:]}{made.stderr[-800:]}")
+    command = ["python", "-m", "slwarp", "reconstruct", str(scan), "--preset", args.preset, "--out", "OUT", "--quiet",
+               "--overwrite", *flags]
+    runs = []
+    for i in range(args.runs):
+        warm = any(caches.rglob("*"))
+        out = work / f"out-{i + 1}"
+        row = {"caches": "filled" if warm else "empty",
+               **run_command([sys.executable, *[str(out) if c == "OUT" else c for c in command[1:]]], env, out)}
+        runs.append(row)
+        print(f"run {i + 1} ({row['caches']} caches): " + (f"{row['wall_s']:.2f} s, depth map at {row['to_depth_map']:.2f} s"
+                                                            if "error" not in row else f"failed:\n{row['error']}"), flush=True)
+    device = "CPU"
+    if cuda:
+        device = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
+                                text=True).stdout.strip().splitlines()[0]
+    doc = {"device": device, "date": str(datetime.date.today()), "command": command, "bytecode_s": bytecode_s,
+           "bench_command": "python -m bench.command_wall " + " ".join(argv if argv is not None else sys.argv[1:]),
+           "setup": {"preset": args.preset, "scene": args.scene, "rig": args.rig, "set": args.set, "cold": args.cold,
+                     "bytecode": args.bytecode, "smoke": args.smoke}, "runs": runs}
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stem = args.stem or f"command-wall-{'cuda' if cuda else 'cpu'}-{args.preset}"
+    md = markdown(doc)
+    print(md)
+    (out_dir / f"{stem}.json").write_text(json.dumps(doc, indent=1))
+    (out_dir / f"{stem}.md").write_text(md + "\n")
+
+
+if __name__ == "__main__":
+    main()
