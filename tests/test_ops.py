@@ -16,7 +16,7 @@ import warp as wp
 
 from slwarp.kernels.geometry import TRANS_EPS
 from slwarp.kernels.sampling import CDF_EPS, PDF_EPS, upsample_inverse_cdf, upsample_place
-from slwarp.neural import ops, twin
+from slwarp.neural import launch, ops, twin
 from slwarp.scans.patterns import random_binary
 from slwarp.sim.rigs import make_rig
 
@@ -78,7 +78,7 @@ def test_twin_gradcheck_float64():
     inputs = make_inputs(R=5, S=7, N=2, dtype=torch.float64, seed=3)
     inputs["patterns"] = torch.rand(2, PROJ.height, PROJ.width, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     proj = ops.pack_projector(PROJ)
-    bounds = ops._bounds_list([[-300.0, -300.0, 550.0], [300.0, 300.0, 850.0]])
+    bounds = launch.bounds_list([[-300.0, -300.0, 550.0], [300.0, 300.0, 850.0]])
 
     def f(sdf, grad, inv_s):
         outs = twin.render_structured_light(sdf, grad, inputs["z_vals"], inputs["rays_o"], inputs["rays_d"], inputs["a"], inputs["b"],
@@ -325,15 +325,15 @@ def test_upsample_placement_follows_the_cdf_rules(device):
     n_new = 8
     zd, ad, td = z.to(device), alpha.to(device), total.float().to(device)
     z_new = torch.empty(3, n_new, device=device)
-    ops._launch(inverse_cdf_with_total, (3, n_new), [ops._desc(zd), ops._desc(ad), ops._desc(td), ops._desc(z_new)],
-                zd.device)
+    launch.launch(inverse_cdf_with_total, (3, n_new), [launch.desc(zd), launch.desc(ad), launch.desc(td),
+                                                       launch.desc(z_new)], zd.device)
     ref = inverse_cdf_reference(z.double(), alpha.double(), total, n_new)
     assert_close(z_new.double(), ref, rtol=0, atol=1e-4, what="placement")
     assert z_new[0, -2:].tolist() == [9.0, 9.0] and z_new[0, -3].item() < 9.0
     assert 0 < z_new[1, -1].item() - 11.0 < 1e-4 and z_new[1, -2].item() < 11.0
     # and through the op's kernel (total = the weights' sum): the same walk
     z_op = torch.empty(3, n_new, device=device)
-    ops._launch(upsample_place, (3, n_new), [ops._desc(zd), ops._desc(ad), ops._desc(z_op)], zd.device)
+    launch.launch(upsample_place, (3, n_new), [launch.desc(zd), launch.desc(ad), launch.desc(z_op)], zd.device)
     assert_close(z_op.double(), inverse_cdf_reference(z.double(), alpha.double(), w.sum(1), n_new), rtol=0, atol=1e-4,
                  what="upsample_place")
 

@@ -47,7 +47,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from .field import Volume, geometric_init, register_volume_buffers
-from . import ops
+from .launch import launch
 from slwarp.kernels import runtime
 
 __all__ = ["HashGridLayout", "HashGridSDF", "hashgrid_encode", "hashgrid_gradient"]
@@ -217,7 +217,7 @@ def _encode_impl(x, table, meta, active):
     if P > 0:
         encode, _, _, _ = _kernels(Fe)
         d = runtime.array_desc
-        ops._launch(encode, (L, P), [d(_vec(x), 3), d(table, Fe), d(meta), d(active), d(feat)], x.device)
+        launch(encode, (L, P), [d(_vec(x), 3), d(table, Fe), d(meta), d(active), d(feat)], x.device)
     return feat
 
 
@@ -227,7 +227,7 @@ def _encode_backward_impl(x, table, meta, active, g_feat):
     if P > 0:
         _, backward, _, _ = _kernels(Fe)
         d = runtime.array_desc
-        ops._launch(backward, (L, -(-P // BACKWARD_RUN)), [d(_vec(x), 3), d(meta), d(active), d(g_feat), BACKWARD_RUN,
+        launch(backward, (L, -(-P // BACKWARD_RUN)), [d(_vec(x), 3), d(meta), d(active), d(g_feat), BACKWARD_RUN,
                                                            d(d_table, Fe)], x.device)
     return d_table
 
@@ -238,7 +238,7 @@ def _gradient_impl(x, table, meta, active, g):
     if P > 0:
         _, _, gradient, _ = _kernels(Fe)
         d = runtime.array_desc
-        ops._launch(gradient, (L, P), [d(_vec(x), 3), d(table, Fe), d(meta), d(active), d(g), d(out, 3)], x.device)
+        launch(gradient, (L, P), [d(_vec(x), 3), d(table, Fe), d(meta), d(active), d(g), d(out, 3)], x.device)
     return out
 
 
@@ -250,7 +250,7 @@ def _gradient_backward_impl(x, table, meta, active, g, h_out, need_x):
     if P > 0:
         _, _, _, backward = _kernels(Fe)
         d = runtime.array_desc
-        ops._launch(backward, (L, P), [d(_vec(x), 3), d(table, Fe), d(meta), d(active), d(g), d(_vec(h_out), 3),
+        launch(backward, (L, P), [d(_vec(x), 3), d(table, Fe), d(meta), d(active), d(g), d(_vec(h_out), 3),
                                        int(need_x), d(d_table, Fe), d(d_g), d(d_x, 3)], x.device)
     return d_table, d_g, d_x
 

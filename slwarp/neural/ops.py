@@ -8,6 +8,7 @@ Public functions take `backend="warp"` (default: fused Warp kernels, CPU or CUDA
     stratified_samples(...)       stratified samples with per-ray jitter
     upsample_samples(...)         one NeuS hierarchical up-sampling step
     merge_samples(...)            merge two sorted per-ray sample lists
+(the last four live in slwarp.neural.sampling_ops).
 
 The Warp render composes with autograd through one forward and one hand-written backward (kernels/render.py),
 reached eagerly through a torch.autograd.Function and, under torch.compile, through torch.library custom ops
@@ -17,20 +18,13 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import numpy as np
 import torch
 
 from . import twin
-from ..devices import warp_device
+from .launch import BACKENDS, bounds_list, check_backend, desc, f32, f32v, launch, projector_struct, vec3  # noqa: F401 (BACKENDS: re-exported)
+from .sampling_ops import camera_rays, merge_samples, stratified_samples, upsample_samples
 from ..scans.scanner import PackedProjector
-from slwarp.kernels import runtime
-from slwarp.kernels.geometry import camera_params, projector_params
 from slwarp.kernels.render import render_kernels
-from slwarp.kernels.sampling import camera_rays as camera_rays_kernel
-from slwarp.kernels.sampling import merge_sorted as merge_sorted_kernel
-from slwarp.kernels.sampling import stratified as stratified_kernel
-from slwarp.kernels.sampling import upsample_intervals as upsample_intervals_kernel
-from slwarp.kernels.sampling import upsample_place as upsample_place_kernel
 
 __all__ = [
     "RenderOutput",
@@ -42,9 +36,6 @@ __all__ = [
     "pack_projector",
     "pack_patterns",
 ]
-
-BACKENDS = ("warp", "torch")
-
 
 class RenderOutput(NamedTuple):
     """Result of `render_structured_light` (R rays, S samples, N patterns).
@@ -71,11 +62,6 @@ class RenderOutput(NamedTuple):
     eikonal_count: torch.Tensor
 
 
-def _check_backend(backend: str):
-    if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-
-
 def pack_projector(projector) -> PackedProjector:
     """The 24 packed floats (`slwarp.scans.scanner.PackedProjector`) of a `slwarp.Projector`, of a
     PackedProjector, or of any sequence of 24 numbers in that order."""
@@ -88,87 +74,13 @@ def pack_projector(projector) -> PackedProjector:
     return projector.packed
 
 
-def _bounds_list(bounds) -> list[float]:
-    """[xmin, ymin, zmin, xmax, ymax, zmax] (mm) of the working volume; None = unbounded."""
-    if bounds is None:
-        return [-3.0e38, -3.0e38, -3.0e38, 3.0e38, 3.0e38, 3.0e38]
-    if isinstance(bounds, (torch.Tensor, np.ndarray)):
-        bounds = bounds.tolist()
-    flat = [float(x) for row in bounds for x in (row if isinstance(row, (list, tuple)) else [row])]
-    if len(flat) != 6:
-        raise ValueError(f"bounds must be [[xmin, ymin, zmin], [xmax, ymax, zmax]], got {len(flat)} numbers")
-    return flat
-
-
 def pack_patterns(patterns: torch.Tensor) -> torch.Tensor:
     """[N, H, W] -> contiguous float32 [H, W, N]: the N values of a projector pixel side by side."""
     return patterns.detach().to(torch.float32).permute(1, 2, 0).contiguous()
 
 
 # ----------------------------------------------------------------------------------------------
-# Warp launches: array descriptors straight from torch tensors and recorded launch commands, so a call
-# costs a few microseconds of Python per kernel instead of a full wp.launch.
-
-_PARAMS_CACHE: dict = {}
-_LAUNCHERS: dict = {}
-_STREAMS: dict = {}
-
-
-def _wp_params(projector):
-    """The Warp struct of a packed projector (list or PackedProjector), made once per projector."""
-    key = tuple(projector)
-    prm = _PARAMS_CACHE.get(key)
-    if prm is None:
-        runtime.init()
-        prm = _PARAMS_CACHE[key] = projector_params(PackedProjector(*key))
-    return prm
-
-
-def _camera_params(camera):
-    key = ("camera", camera.fx, camera.fy, camera.cx, camera.cy, *map(float, camera.dist))
-    prm = _PARAMS_CACHE.get(key)
-    if prm is None:
-        prm = _PARAMS_CACHE[key] = camera_params(camera)
-    return prm
-
-
-def _vec3(values):
-    wp = runtime.init()
-    return wp.vec3(*values)
-
-
-_desc = runtime.array_desc
-
-
-def _launch(kernel, dim, inputs, device: torch.device):
-    """Launch on torch's current stream of `device` (asynchronous: no host synchronisation)."""
-    launcher = _LAUNCHERS.get(kernel)
-    if launcher is None:
-        # 64-thread blocks: one thread per ray leaves few warps per SM, so spread them over more blocks
-        launcher = _LAUNCHERS[kernel] = runtime.CachedLaunch(kernel, block_dim=64)
-    if device.type == "cuda":
-        wp = runtime.init()
-        torch_stream = torch.cuda.current_stream(device)
-        key = (device.index, torch_stream.cuda_stream)
-        stream = _STREAMS.get(key)
-        if stream is None:
-            stream = _STREAMS[key] = wp.stream_from_torch(torch_stream)
-        launcher(dim, inputs, warp_device(device), stream)
-    else:
-        launcher(dim, inputs, "cpu")
-
-
-def _f32(t: torch.Tensor) -> torch.Tensor:
-    """float32 view for a kernel argument. Any strides are fine (descriptors carry them): sample-major
-    [R, S] tensors (stride 1 along R) give coalesced loads, and broadcast cotangents (stride 0) are read
-    without being materialised."""
-    return t.detach().to(torch.float32)
-
-
-def _f32v(t: torch.Tensor) -> torch.Tensor:
-    """float32 for a vector-element argument ([..., 3]): the last axis must be contiguous."""
-    t = t.detach().to(torch.float32)
-    return t if t.stride(-1) == 1 else t.contiguous()
+# the render's Warp launches
 
 
 def _empty_like_layout(ref: torch.Tensor, *tail: int) -> torch.Tensor:
@@ -225,9 +137,9 @@ _SAVED_INPUTS = ("sdf", "sdf_grad", "z_vals", "rays_o", "rays_d", "a", "b", "pat
 def _kernel_inputs(inp: RenderInputs) -> list:
     """The launch arguments both render kernels start with."""
     bnd = inp.bounds
-    return [_desc(inp.sdf), _desc(inp.sdf_grad, 3), _desc(inp.z_vals), _desc(inp.rays_o, 3), _desc(inp.rays_d, 3),
-            _desc(inp.a), _desc(inp.b), _desc(inp.patterns_hwn), _wp_params(inp.projector), _desc(inp.inv_s),
-            float(inp.cos_anneal_ratio), float(inp.last_delta), _vec3(bnd[0:3]), _vec3(bnd[3:6])]
+    return [desc(inp.sdf), desc(inp.sdf_grad, 3), desc(inp.z_vals), desc(inp.rays_o, 3), desc(inp.rays_d, 3),
+            desc(inp.a), desc(inp.b), desc(inp.patterns_hwn), projector_struct(inp.projector), desc(inp.inv_s),
+            float(inp.cos_anneal_ratio), float(inp.last_delta), vec3(bnd[0:3]), vec3(bnd[3:6])]
 
 
 def _render_forward_impl(inp: RenderInputs) -> _KernelOutputs:
@@ -242,11 +154,11 @@ def _render_forward_impl(inp: RenderInputs) -> _KernelOutputs:
         trans=_empty_like_layout(inp.z_vals), pattern_values=_empty_like_layout(inp.z_vals, N))
     if R > 0:
         samples, forward, _ = render_kernels(int(N))
-        _launch(samples, (R, S), [_desc(inp.z_vals), _desc(inp.rays_o, 3), _desc(inp.rays_d, 3), _desc(inp.patterns_hwn),
-                                  _wp_params(inp.projector), _desc(out.pattern_values, N)], dev)
-        _launch(forward, R, _kernel_inputs(inp) + [_desc(out.pattern_values, N),
-            _desc(out.weights), _desc(out.rendered), _desc(out.surface, 3), _desc(out.surface_rendered), _desc(out.depth),
-            _desc(out.weight_sum), _desc(out.eikonal), _desc(out.eikonal_sum), _desc(out.eikonal_count), _desc(out.trans),
+        launch(samples, (R, S), [desc(inp.z_vals), desc(inp.rays_o, 3), desc(inp.rays_d, 3), desc(inp.patterns_hwn),
+                                  projector_struct(inp.projector), desc(out.pattern_values, N)], dev)
+        launch(forward, R, _kernel_inputs(inp) + [desc(out.pattern_values, N),
+            desc(out.weights), desc(out.rendered), desc(out.surface, 3), desc(out.surface_rendered), desc(out.depth),
+            desc(out.weight_sum), desc(out.eikonal), desc(out.eikonal_sum), desc(out.eikonal_count), desc(out.trans),
         ], dev)
     return out
 
@@ -264,12 +176,12 @@ def _render_backward_impl(inp: RenderInputs, trans, surface, weight_sum, pattern
         dummy = torch.zeros(1, 1, dtype=torch.float32, device=dev)  # stands in for a cotangent no loss produced
         N = int(inp.patterns_hwn.shape[2])
         _, _, backward = render_kernels(N)
-        _launch(backward, R, _kernel_inputs(inp) + [
-            _desc(pattern_values, N), _desc(trans), _desc(surface, 3), _desc(weight_sum),
-            _desc(g_weights if g_weights is not None else dummy), int(g_weights is not None), _desc(g_rendered),
-            _desc(g_surface, 3), _desc(g_surface_rendered), _desc(g_depth), _desc(g_weight_sum),
-            _desc(g_eikonal if g_eikonal is not None else dummy), int(g_eikonal is not None), _desc(g_eikonal_sum),
-            _desc(d_sdf), _desc(d_grad, 3), _desc(d_inv_s),
+        launch(backward, R, _kernel_inputs(inp) + [
+            desc(pattern_values, N), desc(trans), desc(surface, 3), desc(weight_sum),
+            desc(g_weights if g_weights is not None else dummy), int(g_weights is not None), desc(g_rendered),
+            desc(g_surface, 3), desc(g_surface_rendered), desc(g_depth), desc(g_weight_sum),
+            desc(g_eikonal if g_eikonal is not None else dummy), int(g_eikonal is not None), desc(g_eikonal_sum),
+            desc(d_sdf), desc(d_grad, 3), desc(d_inv_s),
         ], dev)
     return d_sdf, d_grad, d_inv_s.sum().reshape(1)
 
@@ -284,10 +196,10 @@ def _cotangents(z_vals, N, grads):
     def cot(g, *shape):
         if g is None:
             return z_vals.new_zeros(shape, dtype=torch.float32)
-        return _f32v(g) if shape[-1] == 3 and len(shape) == 2 and shape[0] == R else _f32(g)
+        return f32v(g) if shape[-1] == 3 and len(shape) == 2 and shape[0] == R else f32(g)
 
-    return (_f32(g_weights) if g_weights is not None else None, cot(g_rendered, R, N), cot(g_surface, R, 3),
-            cot(g_srend, R, N), cot(g_depth, R), cot(g_wsum, R), _f32(g_eik) if g_eik is not None else None,
+    return (f32(g_weights) if g_weights is not None else None, cot(g_rendered, R, N), cot(g_surface, R, 3),
+            cot(g_srend, R, N), cot(g_depth, R), cot(g_wsum, R), f32(g_eik) if g_eik is not None else None,
             cot(g_eik_sum, R))
 
 
@@ -416,7 +328,7 @@ def render_structured_light(
     Differentiable in sdf, sdf_grad and inv_s (not in z_vals, rays, a, b or patterns).
     backend "warp" computes in float32 on the inputs' device; "torch" in the inputs' dtype.
     """
-    _check_backend(backend)
+    check_backend(backend)
     if z_vals.dim() != 2:
         raise ValueError(f"z_vals must be [R, S], got {tuple(z_vals.shape)}")
     R, S = z_vals.shape
@@ -429,7 +341,7 @@ def render_structured_light(
     if patterns_layout not in ("NHW", "HWN"):
         raise ValueError("patterns_layout must be 'NHW' or 'HWN'")
     proj = pack_projector(projector)
-    bnd = _bounds_list(bounds)
+    bnd = bounds_list(bounds)
     ld = -1.0 if last_delta is None else float(last_delta)
     if not isinstance(inv_s, torch.Tensor):
         inv_s = torch.tensor(float(inv_s), device=z_vals.device)
@@ -441,87 +353,10 @@ def render_structured_light(
     else:
         pat_hwn = pack_patterns(patterns) if patterns_layout == "NHW" else patterns.detach().to(torch.float32).contiguous()
         sg = sdf_grad.to(torch.float32)
-        inputs = RenderInputs(sdf.to(torch.float32), sg if sg.stride(-1) == 1 else sg.contiguous(), _f32(z_vals),
-                              _f32v(rays_o), _f32v(rays_d), _f32(a), _f32(b), pat_hwn, list(proj),
+        inputs = RenderInputs(sdf.to(torch.float32), sg if sg.stride(-1) == 1 else sg.contiguous(), f32(z_vals),
+                              f32v(rays_o), f32v(rays_d), f32(a), f32(b), pat_hwn, list(proj),
                               inv_s.to(torch.float32).reshape(1), float(cos_anneal_ratio), ld, bnd)
         outs = _render_forward(*inputs) if torch.compiler.is_compiling() else _RenderFunction.apply(*inputs)
         out = _KernelOutputs(*outs)
     return RenderOutput(out.rendered, out.surface, out.surface_rendered, out.weights, out.depth, out.eikonal,
                         out.weight_sum, out.eikonal_sum, out.eikonal_count)
-
-
-def camera_rays(pixels: torch.Tensor, camera, depth_range, *, backend: str = "warp"):
-    """Rays through camera pixels.
-
-    pixels [R, 2] (u, v) in camera pixels; depth_range (z_near, z_far) in mm of camera z.
-    Returns rays_o [R, 3] (zeros: the camera centre), rays_d [R, 3] unit (undistorted), near [R] and
-    far [R]: distances along each ray where it reaches z_near and z_far.
-    """
-    _check_backend(backend)
-    z_near, z_far = (float(x) for x in depth_range)
-    R = pixels.shape[0]
-    if backend == "torch" or R == 0:
-        d, near, far = twin.camera_rays(pixels, camera, z_near, z_far)
-    else:
-        dev = pixels.device
-        d = torch.empty(R, 3, dtype=torch.float32, device=dev)
-        near = torch.empty(R, dtype=torch.float32, device=dev)
-        far = torch.empty(R, dtype=torch.float32, device=dev)
-        _launch(camera_rays_kernel, R, [_desc(_f32v(pixels), 2), _camera_params(camera), z_near, z_far,
-                            _desc(d, 3), _desc(near), _desc(far)], dev)
-    return torch.zeros_like(d), d, near, far
-
-
-def stratified_samples(near: torch.Tensor, far: torch.Tensor, n: int, jitter: torch.Tensor | None = None,
-                       *, backend: str = "warp") -> torch.Tensor:
-    """z [R, n]: near + (far - near) (k + 0.5 + jitter_r) / n; jitter [R] in [-0.5, 0.5) (None: 0)."""
-    _check_backend(backend)
-    R = near.shape[0]
-    if jitter is None:
-        jitter = torch.zeros_like(near)
-    if backend == "torch" or R == 0:
-        return twin.stratified_samples(near, far, n, jitter)
-    z = torch.empty(R, n, dtype=torch.float32, device=near.device)
-    _launch(stratified_kernel, (R, n), [_desc(_f32(near)), _desc(_f32(far)), _desc(_f32(jitter)), _desc(z)], near.device)
-    return z
-
-
-def upsample_samples(z_vals: torch.Tensor, sdf: torch.Tensor, rays_o: torch.Tensor, rays_d: torch.Tensor,
-                     n_new: int, inv_s: float, *, bounds=None, backend: str = "warp") -> torch.Tensor:
-    """One NeuS up-sampling step: n_new new sorted distances [R, n_new] placed by inverse CDF of NeuS's
-    estimated weights from the SDF at the current samples with a fixed inv_s (1/mm)."""
-    _check_backend(backend)
-    bnd = _bounds_list(bounds)
-    R = z_vals.shape[0]
-    if backend == "torch" or R == 0:
-        return twin.upsample_samples(z_vals, sdf, rays_o, rays_d, n_new, float(inv_s), bnd)
-    S = z_vals.shape[1]
-    if S == 0:
-        raise ValueError("upsample_samples needs at least one sample per ray")
-    dev = z_vals.device
-    z = _f32(z_vals)
-    z_new = torch.empty(R, n_new, dtype=torch.float32, device=dev)
-    # scratch: the alpha of each interval (its shape is fixed by the inputs: graph-capturable). Row-major: the
-    # n_new threads of a ray walk the same row in step, and its few cache lines stay in L1 after the first load
-    alpha = torch.empty(R, S - 1, dtype=torch.float32, device=dev)
-    if S > 1:
-        _launch(upsample_intervals_kernel, (R, S - 1), [_desc(z), _desc(_f32(sdf)), _desc(_f32v(rays_o), 3),
-                _desc(_f32v(rays_d), 3), float(inv_s), _vec3(bnd[0:3]), _vec3(bnd[3:6]), _desc(alpha)], dev)
-    if n_new > 0:
-        _launch(upsample_place_kernel, (R, n_new), [_desc(z), _desc(alpha), _desc(z_new)], dev)
-    return z_new
-
-
-def merge_samples(z_a: torch.Tensor, f_a: torch.Tensor, z_b: torch.Tensor, f_b: torch.Tensor, *, backend: str = "warp"):
-    """Merge two per-ray sorted sample lists (distances z and values f) -> (z [R, Sa+Sb], f)."""
-    _check_backend(backend)
-    R = z_a.shape[0]
-    if backend == "torch" or R == 0:
-        return twin.merge_samples(z_a, f_a, z_b, f_b)
-    n = z_a.shape[1] + z_b.shape[1]
-    z = torch.empty(R, n, dtype=torch.float32, device=z_a.device)
-    f = torch.empty(R, n, dtype=torch.float32, device=z_a.device)
-    if n == 0:
-        return z, f
-    _launch(merge_sorted_kernel, (R, n), [_desc(_f32(z_a)), _desc(_f32(f_a)), _desc(_f32(z_b)), _desc(_f32(f_b)), _desc(z), _desc(f)], z_a.device)
-    return z, f
