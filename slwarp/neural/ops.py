@@ -16,15 +16,17 @@ reached eagerly through a torch.autograd.Function and, under torch.compile, thro
 """
 from __future__ import annotations
 
+import typing
 from typing import NamedTuple
 
 import torch
 
 from . import twin
-from .launch import BACKENDS, bounds_list, check_backend, desc, f32, f32v, launch, projector_struct, vec3  # noqa: F401 (BACKENDS: re-exported)
+from .launch import BACKENDS, bounds_list, check_backend, desc, f32, f32v, launch, projector_struct, struct, vec3  # noqa: F401 (BACKENDS: re-exported)
 from .sampling_ops import camera_rays, merge_samples, stratified_samples, upsample_samples
 from ..scans.scanner import PackedProjector
-from slwarp.kernels.render import render_kernels
+from slwarp.kernels.render import (Cotangents, ForwardOutputs, ForwardSaved, InputGrads, RaySamples, RenderParams,
+                                   render_kernels)
 
 __all__ = [
     "RenderOutput",
@@ -36,6 +38,7 @@ __all__ = [
     "pack_projector",
     "pack_patterns",
 ]
+
 
 class RenderOutput(NamedTuple):
     """Result of `render_structured_light` (R rays, S samples, N patterns).
@@ -80,7 +83,8 @@ def pack_patterns(patterns: torch.Tensor) -> torch.Tensor:
 
 
 # ----------------------------------------------------------------------------------------------
-# the render's Warp launches
+# the render's Warp launches: the kernels take their arguments as structs (kernels/render.py), filled by field
+# name from the NamedTuples below in one place (`_render_structs`, `_fill`)
 
 
 def _empty_like_layout(ref: torch.Tensor, *tail: int) -> torch.Tensor:
@@ -130,19 +134,55 @@ class _KernelOutputs(NamedTuple):
     pattern_values: torch.Tensor
 
 
+class _Saved(NamedTuple):
+    """The forward's outputs the backward reads (see _KernelOutputs)."""
+
+    trans: torch.Tensor
+    surface: torch.Tensor
+    weight_sum: torch.Tensor
+    pattern_values: torch.Tensor
+
+
+class _Cotangents(NamedTuple):
+    """Float32 cotangents of the outputs (R rays, S samples, N patterns): those of weights [R, S] and eikonal
+    [R, S] may be None (no loss used them: the kernel skips them), the others are tensors (zeros where missing)."""
+
+    g_weights: typing.Optional[torch.Tensor]
+    g_rendered: torch.Tensor
+    g_surface: torch.Tensor
+    g_surface_rendered: torch.Tensor
+    g_depth: torch.Tensor
+    g_weight_sum: torch.Tensor
+    g_eikonal: typing.Optional[torch.Tensor]
+    g_eikonal_sum: torch.Tensor
+
+
 # the inputs autograd saves as tensors (the others are constants)
 _SAVED_INPUTS = ("sdf", "sdf_grad", "z_vals", "rays_o", "rays_d", "a", "b", "patterns_hwn", "inv_s")
 
 
-def _kernel_inputs(inp: RenderInputs) -> list:
-    """The launch arguments both render kernels start with."""
+def _fill(cls, values, **more):
+    """Warp struct `cls` with its fields from the same-named fields of the NamedTuple `values`, or from `more`."""
+    return struct(cls, **{k: getattr(values, k) for k in cls.vars if k not in more}, **more)
+
+
+def _render_structs(inp: RenderInputs) -> tuple:
+    """(RaySamples, RenderParams): the structs every render kernel takes, made once per forward (the eager
+    backward reuses them: its inputs are the same tensors)."""
     bnd = inp.bounds
-    return [desc(inp.sdf), desc(inp.sdf_grad, 3), desc(inp.z_vals), desc(inp.rays_o, 3), desc(inp.rays_d, 3),
-            desc(inp.a), desc(inp.b), desc(inp.patterns_hwn), projector_struct(inp.projector), desc(inp.inv_s),
-            float(inp.cos_anneal_ratio), float(inp.last_delta), vec3(bnd[0:3]), vec3(bnd[3:6])]
+    params = struct(RenderParams, patterns=inp.patterns_hwn, projector=projector_struct(inp.projector), inv_s=inp.inv_s,
+                    cos_anneal_ratio=float(inp.cos_anneal_ratio), last_delta=float(inp.last_delta),
+                    bmin=vec3(bnd[0:3]), bmax=vec3(bnd[3:6]))
+    return _fill(RaySamples, inp), params
 
 
-def _render_forward_impl(inp: RenderInputs) -> _KernelOutputs:
+def _cotangent_struct(cots: _Cotangents):
+    return _fill(Cotangents, cots, has_g_weights=int(cots.g_weights is not None),
+                 has_g_eikonal=int(cots.g_eikonal is not None))
+
+
+def _render_forward_impl(inp: RenderInputs, structs: tuple | None = None) -> _KernelOutputs:
+    """The forward kernels on RenderInputs; structs: `_render_structs(inp)` when already made."""
     R, S = inp.z_vals.shape
     N = inp.patterns_hwn.shape[2]
     dev = inp.z_vals.device
@@ -154,42 +194,34 @@ def _render_forward_impl(inp: RenderInputs) -> _KernelOutputs:
         trans=_empty_like_layout(inp.z_vals), pattern_values=_empty_like_layout(inp.z_vals, N))
     if R > 0:
         samples, forward, _ = render_kernels(int(N))
-        launch(samples, (R, S), [desc(inp.z_vals), desc(inp.rays_o, 3), desc(inp.rays_d, 3), desc(inp.patterns_hwn),
-                                  projector_struct(inp.projector), desc(out.pattern_values, N)], dev)
-        launch(forward, R, _kernel_inputs(inp) + [desc(out.pattern_values, N),
-            desc(out.weights), desc(out.rendered), desc(out.surface, 3), desc(out.surface_rendered), desc(out.depth),
-            desc(out.weight_sum), desc(out.eikonal), desc(out.eikonal_sum), desc(out.eikonal_count), desc(out.trans),
-        ], dev)
+        rays, params = structs or _render_structs(inp)
+        values = desc(out.pattern_values, N)
+        launch(samples, (R, S), [rays, params, values], dev)
+        launch(forward, R, [rays, params, values, _fill(ForwardOutputs, out)], dev)
     return out
 
 
-def _render_backward_impl(inp: RenderInputs, trans, surface, weight_sum, pattern_values, g_weights, g_rendered, g_surface,
-                          g_surface_rendered, g_depth, g_weight_sum, g_eikonal, g_eikonal_sum):
-    """(d sdf [R, S], d sdf_grad [R, S, 3], d inv_s [1]) from the cotangents of the outputs (see
-    `_cotangents`); trans, surface, weight_sum and pattern_values are the forward's."""
+def _render_backward_impl(inp: RenderInputs, saved: _Saved, cots: _Cotangents, structs: tuple | None = None):
+    """(d sdf [R, S], d sdf_grad [R, S, 3], d inv_s [1]) from the cotangents of the outputs (see `_cotangents`)
+    and what the forward saved; structs: `_render_structs(inp)` when already made."""
     R, S = inp.z_vals.shape
     dev = inp.z_vals.device
     d_sdf = _empty_like_layout(inp.sdf)
     d_grad = _empty_like_layout(inp.sdf, 3)
     d_inv_s = torch.empty(R, dtype=torch.float32, device=dev)
     if R > 0:
-        dummy = torch.zeros(1, 1, dtype=torch.float32, device=dev)  # stands in for a cotangent no loss produced
         N = int(inp.patterns_hwn.shape[2])
         _, _, backward = render_kernels(N)
-        launch(backward, R, _kernel_inputs(inp) + [
-            desc(pattern_values, N), desc(trans), desc(surface, 3), desc(weight_sum),
-            desc(g_weights if g_weights is not None else dummy), int(g_weights is not None), desc(g_rendered),
-            desc(g_surface, 3), desc(g_surface_rendered), desc(g_depth), desc(g_weight_sum),
-            desc(g_eikonal if g_eikonal is not None else dummy), int(g_eikonal is not None), desc(g_eikonal_sum),
-            desc(d_sdf), desc(d_grad, 3), desc(d_inv_s),
-        ], dev)
+        rays, params = structs or _render_structs(inp)
+        launch(backward, R, [rays, params, desc(saved.pattern_values, N), _fill(ForwardSaved, saved),
+                             _cotangent_struct(cots), struct(InputGrads, d_sdf=d_sdf, d_grad=d_grad, d_inv_s=d_inv_s)], dev)
     return d_sdf, d_grad, d_inv_s.sum().reshape(1)
 
 
-def _cotangents(z_vals, N, grads):
-    """Cotangents of (weights, rendered, surface, surface_rendered, depth, weight_sum, eikonal, eikonal_sum)
-    as float32; None for weights/Eikonal stays None (the kernel skips them), other missing ones become zeros
-    (they are [R] or [R, N]: cheap)."""
+def _cotangents(z_vals, N, grads) -> _Cotangents:
+    """The float32 `_Cotangents` of (weights, rendered, surface, surface_rendered, depth, weight_sum, eikonal,
+    eikonal_sum): None for weights/Eikonal stays None, other missing ones become zeros (they are [R] or [R, N]:
+    cheap)."""
     g_weights, g_rendered, g_surface, g_srend, g_depth, g_wsum, g_eik, g_eik_sum = grads
     R, S = z_vals.shape
 
@@ -198,9 +230,9 @@ def _cotangents(z_vals, N, grads):
             return z_vals.new_zeros(shape, dtype=torch.float32)
         return f32v(g) if shape[-1] == 3 and len(shape) == 2 and shape[0] == R else f32(g)
 
-    return (f32(g_weights) if g_weights is not None else None, cot(g_rendered, R, N), cot(g_surface, R, 3),
-            cot(g_srend, R, N), cot(g_depth, R), cot(g_wsum, R), f32(g_eik) if g_eik is not None else None,
-            cot(g_eik_sum, R))
+    return _Cotangents(f32(g_weights) if g_weights is not None else None, cot(g_rendered, R, N), cot(g_surface, R, 3),
+                       cot(g_srend, R, N), cot(g_depth, R), cot(g_wsum, R), f32(g_eik) if g_eik is not None else None,
+                       cot(g_eik_sum, R))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -209,24 +241,28 @@ def _cotangents(z_vals, N, grads):
 # (the custom ops below, opaque to the compiler).
 
 
-def _save_for_backward(ctx, inputs, outputs, opaque: bool) -> None:
+def _save_for_backward(ctx, inputs, outputs, opaque: bool, structs: tuple | None = None) -> None:
     inp, out = RenderInputs(*inputs), _KernelOutputs(*outputs)
-    ctx.save_for_backward(*(getattr(inp, k) for k in _SAVED_INPUTS), out.trans, out.surface, out.weight_sum,
-                          out.pattern_values)
+    ctx.save_for_backward(*(getattr(inp, k) for k in _SAVED_INPUTS), *(getattr(out, k) for k in _Saved._fields))
     ctx.constants = inp._replace(**{k: None for k in _SAVED_INPUTS})
     ctx.opaque = opaque  # backward through the custom op (compiled graphs) or the launch itself (eager)
+    # the forward's kernel structs, for the eager backward: they point at these inputs' memory
+    ctx.structs = structs
+    ctx.pointers = [getattr(inp, k).data_ptr() for k in _SAVED_INPUTS] if structs is not None else None
 
 
 def _backward(ctx, *grads):
     saved = ctx.saved_tensors
     n = len(_SAVED_INPUTS)
     inp = ctx.constants._replace(**{k: t.detach() for k, t in zip(_SAVED_INPUTS, saved[:n])})
-    trans, surface, weight_sum, values = (t.detach() for t in saved[n:])
+    kept = _Saved(*(t.detach() for t in saved[n:]))
     cots = _cotangents(inp.z_vals, inp.patterns_hwn.shape[2], grads[:8])
     if ctx.opaque:
-        d_sdf, d_grad, d_inv_s = _render_backward(*inp, trans, surface, weight_sum, values, *cots)
+        d_sdf, d_grad, d_inv_s = _render_backward(*inp, *kept, *cots)
     else:
-        d_sdf, d_grad, d_inv_s = _render_backward_impl(inp, trans, surface, weight_sum, values, *cots)
+        # reuse the forward's structs unless saved-tensor hooks gave back copies (other memory)
+        same = ctx.pointers == [t.data_ptr() for t in saved[:n]]
+        d_sdf, d_grad, d_inv_s = _render_backward_impl(inp, kept, cots, ctx.structs if same else None)
     grads_in = dict(sdf=d_sdf, sdf_grad=d_grad, inv_s=d_inv_s)  # the differentiable inputs
     return tuple(grads_in.get(k) for k in RenderInputs._fields)
 
@@ -236,24 +272,42 @@ class _RenderFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, *inputs):
-        out = _render_forward_impl(RenderInputs(*inputs))
-        _save_for_backward(ctx, inputs, out, opaque=False)
+        inp = RenderInputs(*inputs)
+        structs = _render_structs(inp) if inp.z_vals.shape[0] > 0 else None
+        out = _render_forward_impl(inp, structs)
+        _save_for_backward(ctx, inputs, out, opaque=False, structs=structs)
         ctx.mark_non_differentiable(out.eikonal_count, out.trans, out.pattern_values)
         return tuple(out)
 
     backward = staticmethod(_backward)
 
 
-@torch.library.custom_op("slwarp::render_forward", mutates_args=())
-def _render_forward(
-    sdf: torch.Tensor, sdf_grad: torch.Tensor, z_vals: torch.Tensor, rays_o: torch.Tensor, rays_d: torch.Tensor,
-    a: torch.Tensor, b: torch.Tensor, patterns_hwn: torch.Tensor, projector: list[float], inv_s: torch.Tensor,
-    cos_anneal_ratio: float, last_delta: float, bounds: list[float],
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
-           torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """RenderInputs -> _KernelOutputs, as a custom op."""
-    return tuple(_render_forward_impl(RenderInputs(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector,
-                                                   inv_s, cos_anneal_ratio, last_delta, bounds)))
+# The custom ops' schemas are written from the NamedTuples' fields (the one list of the render's arguments)
+_SCHEMA_TYPES = {torch.Tensor: "Tensor", typing.Optional[torch.Tensor]: "Tensor?", list: "float[]", float: "float"}
+
+
+def _schema(*records, returns: int) -> str:
+    """A custom op's schema: the fields of the NamedTuples `records` in order, then `returns` tensors."""
+    hints = [(k, t) for r in records for k, t in typing.get_type_hints(r).items()]
+    args = ", ".join(f"{_SCHEMA_TYPES[t]} {k}" for k, t in hints)
+    return f"({args}) -> ({', '.join(['Tensor'] * returns)})"
+
+
+def _render_forward_op(*inputs):
+    """RenderInputs -> _KernelOutputs."""
+    return tuple(_render_forward_impl(RenderInputs(*inputs)))
+
+
+def _render_backward_op(*args):
+    """`_render_backward_impl` on RenderInputs, then _Saved and _Cotangents."""
+    n, m = len(RenderInputs._fields), len(_Saved._fields)
+    return _render_backward_impl(RenderInputs(*args[:n]), _Saved(*args[n:n + m]), _Cotangents(*args[n + m:]))
+
+
+_render_forward = torch.library.custom_op("slwarp::render_forward", _render_forward_op, mutates_args=(),
+                                          schema=_schema(RenderInputs, returns=len(_KernelOutputs._fields)))
+_render_backward = torch.library.custom_op("slwarp::render_backward", _render_backward_op, mutates_args=(),
+                                           schema=_schema(RenderInputs, _Saved, _Cotangents, returns=3))
 
 
 @_render_forward.register_fake
@@ -265,22 +319,6 @@ def _(*inputs):
     return tuple(_KernelOutputs(weights=e(R, S), rendered=e(R, N), surface=e(R, 3), surface_rendered=e(R, N), depth=e(R),
                                 weight_sum=e(R), eikonal=e(R, S), eikonal_sum=e(R), eikonal_count=e(R), trans=e(R, S),
                                 pattern_values=e(R, S, N)))
-
-
-@torch.library.custom_op("slwarp::render_backward", mutates_args=())
-def _render_backward(
-    sdf: torch.Tensor, sdf_grad: torch.Tensor, z_vals: torch.Tensor, rays_o: torch.Tensor, rays_d: torch.Tensor,
-    a: torch.Tensor, b: torch.Tensor, patterns_hwn: torch.Tensor, projector: list[float], inv_s: torch.Tensor,
-    cos_anneal_ratio: float, last_delta: float, bounds: list[float], trans: torch.Tensor, surface: torch.Tensor,
-    weight_sum: torch.Tensor, pattern_values: torch.Tensor, g_weights: torch.Tensor | None, g_rendered: torch.Tensor, g_surface: torch.Tensor,
-    g_surface_rendered: torch.Tensor, g_depth: torch.Tensor, g_weight_sum: torch.Tensor, g_eikonal: torch.Tensor | None,
-    g_eikonal_sum: torch.Tensor,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """`_render_backward_impl` as a custom op (RenderInputs, then the saved tensors and the cotangents)."""
-    inp = RenderInputs(sdf, sdf_grad, z_vals, rays_o, rays_d, a, b, patterns_hwn, projector, inv_s, cos_anneal_ratio,
-                       last_delta, bounds)
-    return _render_backward_impl(inp, trans, surface, weight_sum, pattern_values, g_weights, g_rendered, g_surface, g_surface_rendered,
-                                 g_depth, g_weight_sum, g_eikonal, g_eikonal_sum)
 
 
 @_render_backward.register_fake
