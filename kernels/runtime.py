@@ -114,8 +114,21 @@ class CachedLaunch:
         cmd.launch(stream)
 
     def _packable(self, i: int, a):
-        """Argument i as wp.launch packs it: a struct's ctypes value wrapped as an instance of the struct."""
-        arg_type = self.kernel.adj.args[i].type
-        if isinstance(a, ctypes.Structure) and hasattr(arg_type, "instance_type"):
-            return arg_type.instance_type(a)
+        """Argument i as wp.launch packs it: a struct's ctypes value in an object that gives it back (wp.launch
+        asks a struct argument for its __ctype__())."""
+        if isinstance(a, ctypes.Structure) and not init().types.is_array(self.kernel.adj.args[i].type):
+            return _StructValue(a)
         return a
+
+
+class _StructValue:
+    """A struct's ctypes value as wp.launch takes a struct argument (it only asks for __ctype__(); a struct's own
+    instance type is not built from a ctypes value the same way in every Warp version)."""
+
+    __slots__ = ("value",)
+
+    def __init__(self, value):
+        self.value = value
+
+    def __ctype__(self):
+        return self.value
