@@ -9,12 +9,15 @@ bytes the fused Warp kernels must move (each input read once, each output writte
 device's measured copy bandwidth, and the fraction of it the Warp path achieves.
 
 The sampling ops of a training step (`bench_sampling`: one NeuS up-sampling step and the merge of the new
-samples, at the training step's ray counts) are timed the same way, with the GPU time of each of their kernels.
+samples, at the training step's ray counts) are timed the same way, with the GPU time of each of their kernels,
+and so are the hash-grid ops (`bench_hashgrid`: encoding, spatial gradient and their backward passes at the
+points of a fast or accurate step).
 
     python -m bench.kernels                  # CUDA if present, else CPU (a reduced grid)
     python -m bench.kernels --device cpu --sizes 2048x64x6
+    python -m bench.kernels --parts hashgrid,render --backends warp,warp+graph   # the Warp kernels only
     python -m bench.kernels --sampling-only  # only the up-sampling and merge ops
-Writes bench/results/kernels-<device>.json and prints a markdown table.
+Writes bench/results/kernels-<device>[-<parts>].json and .md, and prints the tables.
 """
 from __future__ import annotations
 
@@ -30,6 +33,7 @@ from pathlib import Path
 import torch
 
 from slwarp.neural import ops
+from slwarp.neural.hashgrid import TETRAHEDRON, HashGridLayout, hashgrid_encode, hashgrid_gradient
 from slwarp.neural.render import structured_light_losses
 from slwarp.scans.patterns import random_binary
 from slwarp.sim.rigs import make_rig
@@ -156,23 +160,10 @@ def check(inp) -> dict:
 
 
 def kernel_times(inp, device) -> dict:
-    """GPU time per kernel (us) of one warp fwd+bwd, from the torch profiler (CUPTI sees Warp's kernels)."""
-    from torch.profiler import ProfilerActivity, profile
-
+    """GPU time per kernel (us) of one warp fwd+bwd (see profiled_kernel_times), longest first."""
     f = loss_fn("warp", inp)
     args = [inp["sdf"].clone().requires_grad_(), inp["grad"].clone().requires_grad_(), inp["inv_s"].clone().requires_grad_()]
-    for _ in range(3):
-        torch.autograd.grad(f(*args)[0], args)
-    torch.cuda.synchronize(device)
-    with profile(activities=[ProfilerActivity.CUDA]) as prof:
-        for _ in range(5):
-            torch.autograd.grad(f(*args)[0], args)
-        torch.cuda.synchronize(device)
-    out = {}
-    for ev in prof.key_averages():
-        t = getattr(ev, "device_time_total", None) or getattr(ev, "cuda_time_total", 0)
-        if t:
-            out[ev.key[:60]] = t / 5
+    out = profiled_kernel_times([lambda: torch.autograd.grad(f(*args)[0], args)], device, ("",))
     return dict(sorted(out.items(), key=lambda kv: -kv[1]))
 
 
@@ -265,8 +256,9 @@ def graphed_repeat(fn, device, n=20):
     return replay, n
 
 
-def sampling_kernel_times(fns, device) -> dict:
-    """GPU time per call (us) of each Warp kernel the sampling ops launch, from the torch profiler."""
+def profiled_kernel_times(fns, device, markers) -> dict:
+    """GPU time per call (us) of each kernel whose name holds one of `markers` ("" for all), over the calls fns, from
+    the torch profiler (CUPTI sees Warp's kernels)."""
     from torch.profiler import ProfilerActivity, profile
 
     for f in fns:
@@ -280,7 +272,7 @@ def sampling_kernel_times(fns, device) -> dict:
     out = {}
     for ev in prof.key_averages():
         t = getattr(ev, "device_time_total", None) or getattr(ev, "cuda_time_total", 0)
-        if t and ("upsample" in ev.key or "merge_sorted" in ev.key):
+        if t and any(m in ev.key for m in markers):
             out[ev.key[:60]] = t / 10
     return out
 
@@ -310,7 +302,8 @@ def bench_sampling(R, S, n, device, reps) -> dict:
             replay, k = graphed_repeat(lambda: call("warp"), device)
             row[f"{name}_warp+graph_ms"] = timeit(replay, device, reps) * 1e3 / k
     if device.type == "cuda":
-        row["kernel_us"] = sampling_kernel_times([lambda: calls["upsample"]("warp"), lambda: calls["merge"]("warp")], device)
+        row["kernel_us"] = profiled_kernel_times([lambda: calls["upsample"]("warp"), lambda: calls["merge"]("warp")], device,
+                                                 ("upsample", "merge_sorted"))
     return row
 
 
@@ -327,6 +320,77 @@ def format_sampling_table(rows) -> str:
     return "\n".join(lines)
 
 
+# (R rays, S samples per ray, L levels): the hash grid evaluated at the 4 tetrahedral taps around each sample (P = 4 R S
+# points, ray after ray), 2 features per level, 2^19 entries per hashed level, 16..2048 cells: the fast (1024 rays) and
+# accurate (2048 rays) presets' 8 levels, and 16 levels
+HASHGRID_GRID = [(1024, 64, 8), (2048, 64, 8), (2048, 64, 16)]
+CPU_HASHGRID_GRID = [(64, 32, 8)]
+
+
+def hashgrid_inputs(R, S, levels, device, seed=0) -> dict:
+    """Unit-cube points x [4 R S, 3] as the field sees them in a step, a table, meta, active (all levels on) and
+    cotangents g [P, 2 L] of the features and h [P, 3] of the spatial gradient."""
+    layout = HashGridLayout(levels=levels, features=2, log2_table_size=19, base_resolution=16, finest_resolution=2048)
+    g = torch.Generator().manual_seed(seed)
+    o = torch.rand(R, 3, generator=g) * 0.3 + 0.35
+    d = torch.nn.functional.normalize(torch.randn(R, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, 1.0]), dim=-1)
+    x = o[:, None] + d[:, None] * torch.linspace(-0.3, 0.3, S)[None, :, None]  # [R, S, 3]
+    taps = torch.tensor(TETRAHEDRON) / layout.resolutions[-1]
+    x = (x.reshape(1, -1, 3) + taps[:, None]).reshape(-1, 3)
+    return dict(x=x.to(device), table=(torch.randn(layout.n_entries, 2, generator=g) * 1e-2).to(device),
+                meta=layout.meta(device), active=torch.tensor([levels], dtype=torch.int32, device=device),
+                g=torch.randn(x.shape[0], 2 * levels, generator=g).to(device), h=torch.randn(x.shape[0], 3, generator=g).to(device))
+
+
+def bench_hashgrid(R, S, levels, device, reps) -> dict:
+    """Median ms per call of the hash-grid ops, Warp (eager and, on CUDA, replayed from a CUDA graph of 20 calls):
+    the encoding, it and its backward into the table (the finite-difference fields' path), the spatial gradient,
+    and it and its backward into the table and g (the analytic path); the GPU time of each kernel; the relative
+    error against the twin on the first 4096 points."""
+    inp = hashgrid_inputs(R, S, levels, device)
+    x, table, meta, active, g, h = (inp[k] for k in ("x", "table", "meta", "active", "g", "h"))
+    tp, gp = table.clone().requires_grad_(), g.clone().requires_grad_()
+    calls = {
+        "encode": lambda: hashgrid_encode(x, table, meta, active),
+        "encode_fwd_bwd": lambda: torch.autograd.grad(hashgrid_encode(x, tp, meta, active), [tp], g),
+        "gradient": lambda: hashgrid_gradient(x, table, g, meta, active),
+        "gradient_fwd_bwd": lambda: torch.autograd.grad(hashgrid_gradient(x, tp, gp, meta, active), [tp, gp], h),
+    }
+    row = {"R": R, "S": S, "levels": levels, "points": x.shape[0]}
+    k = slice(0, 4096)
+    for name, op, args in (("encode", hashgrid_encode, (x[k], table)), ("gradient", hashgrid_gradient, (x[k], table, g[k]))):
+        w, t = op(*args, meta, active), op(*args, meta, active, backend="torch")
+        row[f"{name}_rel_err"] = float((w - t).abs().max() / t.abs().max().clamp(min=1e-30))
+    for name, call in calls.items():
+        row[f"{name}_ms"] = timeit(call, device, reps) * 1e3
+        if device.type == "cuda":
+            replay, n = graphed_repeat(call, device)
+            row[f"{name}_graph_ms"] = timeit(replay, device, reps) * 1e3 / n
+    if device.type == "cuda":
+        row["kernel_us"] = profiled_kernel_times(list(calls.values()), device, ("hashgrid",))
+    return row
+
+
+def format_hashgrid_table(rows) -> str:
+    names = ("encode", "encode_fwd_bwd", "gradient", "gradient_fwd_bwd")
+    cols = [f"{n}_ms" for n in names] + [f"{n}_graph_ms" for n in names if any(f"{n}_graph_ms" in r for r in rows)]
+    head = "| R | S | levels | points | " + " | ".join(c[:-3].replace("_fwd_bwd", " fwd+bwd").replace("_graph", " graph")
+                                                     for c in cols) + " | encode vs twin | gradient vs twin |"
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for r in rows:
+        cells = [str(r[c]) for c in ("R", "S", "levels", "points")] + [f"{r[c]:.4f}" for c in cols]
+        cells += [f"{r['encode_rel_err']:.1e}", f"{r['gradient_rel_err']:.1e}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def print_row(row):
+    print(json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()}), flush=True)
+
+
+PARTS = ("sampling", "hashgrid", "render")
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -337,57 +401,67 @@ def main(argv=None):
     p.add_argument("--layout", default="sample-major", choices=["sample-major", "ray-major"],
                    help="memory order of the [R, S] inputs (default: sample-major, as the renderer builds them)")
     p.add_argument("--out", default=str(REPO / "bench" / "results"))
-    p.add_argument("--sampling-only", action="store_true", help="time only the up-sampling and merge ops (bench_sampling)")
+    p.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated, of {', '.join(PARTS)} (default: all)")
+    p.add_argument("--sampling-only", action="store_true", help="the same as --parts sampling")
     args = p.parse_args(argv)
+    parts = ["sampling"] if args.sampling_only else args.parts.split(",")
+    if not parts or not set(parts) <= set(PARTS):
+        p.error(f"--parts: choose from {', '.join(PARTS)}")
     device = torch.device(args.device)
-    grid = [tuple(int(v) for v in s.split("x")) for s in args.sizes] if args.sizes else (FULL_GRID if device.type == "cuda" else CPU_GRID)
-    reps = args.reps or (30 if device.type == "cuda" else 3)
-    backends = (args.backends or ("warp,warp+graph,torch,compile" if device.type == "cuda" else "warp,torch,compile")).split(",")
+    cuda = device.type == "cuda"
+    grid = [tuple(int(v) for v in s.split("x")) for s in args.sizes] if args.sizes else (FULL_GRID if cuda else CPU_GRID)
+    reps = args.reps or (30 if cuda else 3)
+    backends = (args.backends or ("warp,warp+graph,torch,compile" if cuda else "warp,torch,compile")).split(",")
     bw = measure_bandwidth(device)
-    name = torch.cuda.get_device_name(device) if device.type == "cuda" else (platform.processor() or platform.machine()) + f" ({torch.get_num_threads()} threads)"
+    name = torch.cuda.get_device_name(device) if cuda else (platform.processor() or platform.machine()) + f" ({torch.get_num_threads()} threads)"
     print(f"device: {name}; measured copy bandwidth {bw / 1e9:.0f} GB/s")
-    sampling_rows = []
-    for R, S, n in (SAMPLING_GRID if device.type == "cuda" else CPU_SAMPLING_GRID):
-        row = bench_sampling(R, S, n, device, reps)
-        sampling_rows.append(row)
-        print(json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()}), flush=True)
-    sampling_table = format_sampling_table(sampling_rows)
-    print(sampling_table)
-    rows = []
-    for R, S, N in ([] if args.sampling_only else grid):
+    res = {"sampling": [], "hashgrid": [], "rows": []}
+    for R, S, n in (SAMPLING_GRID if cuda else CPU_SAMPLING_GRID) if "sampling" in parts else []:
+        res["sampling"].append(bench_sampling(R, S, n, device, reps))
+        print_row(res["sampling"][-1])
+    for R, S, levels in (HASHGRID_GRID if cuda else CPU_HASHGRID_GRID) if "hashgrid" in parts else []:
+        res["hashgrid"].append(bench_hashgrid(R, S, levels, device, reps))
+        print_row(res["hashgrid"][-1])
+    for R, S, N in grid if "render" in parts else []:
         row = bench_size(R, S, N, device, reps, backends, args.layout)
         for key in ("fwd", "fwd_bwd"):
             row[f"floor_{key}_ms"] = row["floor_bytes"][key] / bw * 1e3
             for be in ("warp", "warp+graph"):
                 if f"{be}_{key}_ms" in row:
                     row[f"{be}_{key}_floor_fraction"] = row[f"floor_{key}_ms"] / row[f"{be}_{key}_ms"]
-        rows.append(row)
-        print(json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()}), flush=True)
-    table = format_table(rows, backends)
-    if rows:
-        print(table)
-    out = Path(args.out)
+        res["rows"].append(row)
+        print_row(row)
+    tag = ("cuda" if cuda else "cpu") + ("" if args.layout == "sample-major" else "-raymajor")
+    tag += "" if parts == list(PARTS) else "-" + "-".join(parts)
+    write_results(Path(args.out), tag, res, backends, args.layout, name, bw)
+    return 0
+
+
+def write_results(out: Path, tag: str, res: dict, backends, layout: str, name: str, bw: float):
+    """kernels-<tag>.json (the rows of each part) and kernels-<tag>.md (their tables), also printed."""
     out.mkdir(parents=True, exist_ok=True)
-    tag = "cuda" if device.type == "cuda" else "cpu"
-    meta = {"device": name, "date": datetime.date.today().isoformat(), "torch": torch.__version__, "layout": args.layout,
-            "copy_bandwidth_GBps": bw / 1e9, "rows": rows, "sampling": sampling_rows}
+    meta = {"device": name, "date": datetime.date.today().isoformat(), "torch": torch.__version__, "layout": layout,
+            "copy_bandwidth_GBps": bw / 1e9, **res}
     try:
         import warp
 
         meta["warp"] = warp.__version__
     except ImportError:
         pass
-    tag += "" if args.layout == "sample-major" else "-raymajor"
-    tag += "-sampling" if args.sampling_only else ""
     (out / f"kernels-{tag}.json").write_text(json.dumps(meta, indent=1))
-    title = "Sampling ops" if args.sampling_only else "Fused render + losses"
-    render_part = "" if args.sampling_only else table + "\n\n"
-    (out / f"kernels-{tag}.md").write_text(f"# {title}, {name}, {meta['date']}\n\n"
-                                           f"Copy bandwidth {bw / 1e9:.0f} GB/s (read + write). Inputs {args.layout}. Times: median ms.\n\n" + render_part +
-                                           "## Sampling ops (one up-sampling step, S -> n new samples; the merge S + n)\n\n"
-                                           "warp+graph: per call, replayed from a CUDA graph of 20 calls. Times: median ms.\n\n"
-                                           + sampling_table + "\n")
-    return 0
+    sections = []
+    if res["rows"]:
+        sections.append(f"## Fused render + losses (inputs {layout})\n\n" + format_table(res["rows"], backends))
+    if res["sampling"]:
+        sections.append("## Sampling ops (one up-sampling step, S -> n new samples; the merge S + n)\n\n"
+                        "warp+graph: per call, replayed from a CUDA graph of 20 calls.\n\n" + format_sampling_table(res["sampling"]))
+    if res["hashgrid"]:
+        sections.append("## Hash-grid ops (Warp; 2 features per level, 2^19 entries per hashed level)\n\n"
+                        "graph: per call, replayed from a CUDA graph of 20 calls.\n\n" + format_hashgrid_table(res["hashgrid"]))
+    text = f"# Kernels, {name}, {meta['date']}\n\nCopy bandwidth {bw / 1e9:.0f} GB/s (read + write). Times: median ms.\n\n"
+    text += "\n\n".join(sections) + "\n"
+    print(text)
+    (out / f"kernels-{tag}.md").write_text(text)
 
 
 def format_table(rows, backends) -> str:

@@ -16,8 +16,11 @@ s_d = +1 for an upper corner (c_d = 1) and -1 for a lower one, m_d = 0 where the
 its second derivatives are d2 w_c / dx_d dx_e = res^2 m_d m_e s_d s_e w_k (k the third axis) for d != e,
 and zero on the diagonal (trilinear is linear along each axis).
 
-Kernels (launched with dim (L, P): one thread per level and point, consecutive threads on consecutive
-points of one level; levels l >= active[0] are switched off: zero features, zero gradients):
+Every kernel starts with the same per-level decode (`level`, then `locate`: the point's cell, t and m) and
+walks the 8 corners with `corner` (table row, weight factors, derivative signs); the points x [P, 3], the
+table, meta and active travel together in one struct (`Grid`). Kernels (launched with dim (L, P): one
+thread per level and point, consecutive threads on consecutive points of one level; levels l >= active[0]
+are switched off: zero features, zero gradients):
     encode             feat [P, L F]:  feat[p, l F + f] = sum_c w_c T[e_c, f]
     encode_backward    dT [E, F] +=    w_c g[p, l F + f]                                    (atomic)
                        launched with dim (L, ceil(P / run)): a thread takes `run` consecutive points and
@@ -37,6 +40,7 @@ Kernels are specialised on F (a compile-time constant: a table row is one vector
 """
 
 import functools
+from typing import NamedTuple
 
 import warp as wp
 
@@ -62,14 +66,47 @@ def axis_coord(x: float, res: int):
     return cell, u - float(cell), m
 
 
+@wp.struct
+class Level:
+    """One level of the grid (its row of meta) and, once located, a point's cell there (see the module doc)."""
+
+    res: int  # cells per side
+    offset: int  # first table row of the level
+    size: int  # table rows of the level (a power of two where hashed)
+    hashed: int  # 1: hashed, 0: dense
+    cell: wp.vec3i  # lower vertex of the point's cell
+    t: wp.vec3  # the point's fraction in the cell per axis, in [0, 1]
+    m: wp.vec3  # 1 where the coordinate is inside [0, 1], 0 where it is clamped (or NaN)
+
+
 @wp.func
-def vertex_entry(vx: int, vy: int, vz: int, res: int, offset: int, size: int, hashed: int) -> int:
-    """Row of the table holding vertex (vx, vy, vz) of a level."""
-    if hashed != 0:
+def level(meta: wp.array2d(dtype=int), l: int) -> Level:
+    """Level l's description from meta [L, 4] (no point located yet)."""
+    lv = Level()
+    lv.res = meta[l, 0]
+    lv.offset = meta[l, 1]
+    lv.size = meta[l, 2]
+    lv.hashed = meta[l, 3]
+    return lv
+
+
+@wp.func
+def locate(lv: Level, x: wp.vec3) -> Level:
+    """Level lv with unit-cube point x located in it: its cell, fractions and clamp masks."""
+    ix, tx, mx = axis_coord(x[0], lv.res)
+    iy, ty, my = axis_coord(x[1], lv.res)
+    iz, tz, mz = axis_coord(x[2], lv.res)
+    return Level(lv.res, lv.offset, lv.size, lv.hashed, wp.vec3i(ix, iy, iz), wp.vec3(tx, ty, tz), wp.vec3(mx, my, mz))
+
+
+@wp.func
+def vertex_entry(lv: Level, vx: int, vy: int, vz: int) -> int:
+    """Row of the table holding vertex (vx, vy, vz) of level lv."""
+    if lv.hashed != 0:
         h = wp.uint32(vx) ^ (wp.uint32(vy) * PRIME_Y) ^ (wp.uint32(vz) * PRIME_Z)
-        return offset + int(h & wp.uint32(size - 1))
-    n = res + 1
-    return offset + vx + n * (vy + n * vz)
+        return lv.offset + int(h & wp.uint32(lv.size - 1))
+    n = lv.res + 1
+    return lv.offset + vx + n * (vy + n * vz)
 
 
 @wp.func
@@ -78,6 +115,48 @@ def corner_factors(bit: int, t: float):
     if bit == 1:
         return t, 1.0
     return 1.0 - t, -1.0
+
+
+@wp.func
+def corner(lv: Level, c: int):
+    """Corner c = b_x + 2 b_y + 4 b_z of the point's cell: (its table row, the weight factors (w_x, w_y, w_z)
+    whose product is w_c, their derivative signs (s_x, s_y, s_z))."""
+    bx = c & 1
+    by = (c >> 1) & 1
+    bz = (c >> 2) & 1
+    wx, sx = corner_factors(bx, lv.t[0])
+    wy, sy = corner_factors(by, lv.t[1])
+    wz, sz = corner_factors(bz, lv.t[2])
+    e = vertex_entry(lv, lv.cell[0] + bx, lv.cell[1] + by, lv.cell[2] + bz)
+    return e, wp.vec3(wx, wy, wz), wp.vec3(sx, sy, sz)
+
+
+@wp.func
+def weight(w: wp.vec3) -> float:
+    """w_c = w_x w_y w_z."""
+    return w[0] * w[1] * w[2]
+
+
+@wp.func
+def weight_gradient(w: wp.vec3, s: wp.vec3) -> wp.vec3:
+    """grad w_c without the chain factors res m_d: (s_x w_y w_z, w_x s_y w_z, w_x w_y s_z)."""
+    return wp.vec3(s[0] * w[1] * w[2], w[0] * s[1] * w[2], w[0] * w[1] * s[2])
+
+
+@wp.func
+def weight_hessian_dot(w: wp.vec3, s: wp.vec3, h: wp.vec3) -> wp.vec3:
+    """Hess(w_c) h without the chain factors: d2 w_c / dx_d dx_e = s_d s_e w_k (k the third axis), zero diagonal."""
+    hxy = s[0] * s[1] * w[2]
+    hxz = s[0] * s[2] * w[1]
+    hyz = s[1] * s[2] * w[0]
+    return wp.vec3(hxy * h[1] + hxz * h[2], hxy * h[0] + hyz * h[2], hxz * h[0] + hyz * h[1])
+
+
+@wp.func
+def chain(v: wp.vec3, lv: Level) -> wp.vec3:
+    """v times the chain factor res m_d of each axis (d u_d / d x_d: zero where the coordinate is clamped)."""
+    r = float(lv.res)
+    return wp.vec3(v[0] * lv.m[0] * r, v[1] * lv.m[1] * r, v[2] * lv.m[2] * r)
 
 
 # Adding a table row's gradient: one vector reduction (PTX red.global.add.v2/v4.f32, sm_90 and newer) instead of
@@ -113,11 +192,30 @@ def add_row4(d: wp.array(dtype=wp.vec4), e: int, v: wp.vec4):
     ...
 
 
+class HashGridKernels(NamedTuple):
+    """The kernels of one feature count F and the struct they take (see the module doc)."""
+
+    Grid: type
+    encode: wp.Kernel
+    encode_backward: wp.Kernel
+    gradient: wp.Kernel
+    gradient_backward: wp.Kernel
+
+
 @functools.lru_cache(maxsize=None)
-def hashgrid_kernels(F: int):
-    """(encode, encode_backward, gradient, gradient_backward) for F features per entry (see module doc)."""
+def hashgrid_kernels(F: int) -> HashGridKernels:
+    """The hash-grid kernels for F features per entry (see module doc)."""
     vecF = wp.types.vector(length=F, dtype=wp.float32)
     matF = wp.types.matrix(shape=(8, F), dtype=wp.float32)  # one row per cell corner
+
+    @wp.struct
+    class Grid:
+        """The points and the grid every kernel reads (P points, L levels, E table rows)."""
+
+        x: wp.array(dtype=wp.vec3)  # [P] unit-cube points
+        table: wp.array(dtype=vecF)  # [E] rows of F features
+        meta: wp.array2d(dtype=int)  # [L, 4] (res, offset, size, hashed)
+        active: wp.array(dtype=int)  # [1] levels switched on
 
     @wp.func
     def add_row(d: wp.array(dtype=vecF), e: int, v: vecF):
@@ -137,133 +235,72 @@ def hashgrid_kernels(F: int):
         return out
 
     @wp.kernel(enable_backward=False, module="unique")
-    def encode(
-        x: wp.array(dtype=wp.vec3),
-        table: wp.array(dtype=vecF),
-        meta: wp.array2d(dtype=int),
-        active: wp.array(dtype=int),
-        feat: wp.array2d(dtype=float),
-    ):
+    def encode(grid: Grid, feat: wp.array2d(dtype=float)):
         l, p = wp.tid()
         acc = vecF()
-        if l < active[0]:
-            res = meta[l, 0]
-            offset = meta[l, 1]
-            size = meta[l, 2]
-            hashed = meta[l, 3]
-            xp = x[p]
-            ix, tx, mx = axis_coord(xp[0], res)
-            iy, ty, my = axis_coord(xp[1], res)
-            iz, tz, mz = axis_coord(xp[2], res)
+        if l < grid.active[0]:
+            table = grid.table
+            lv = locate(level(grid.meta, l), grid.x[p])
             for c in range(8):
-                bx = c & 1
-                by = (c >> 1) & 1
-                bz = (c >> 2) & 1
-                wx, sx = corner_factors(bx, tx)
-                wy, sy = corner_factors(by, ty)
-                wz, sz = corner_factors(bz, tz)
-                e = vertex_entry(ix + bx, iy + by, iz + bz, res, offset, size, hashed)
-                acc += (wx * wy * wz) * table[e]
+                e, w, s = corner(lv, c)
+                acc += weight(w) * table[e]
         for f in range(F):
             feat[p, l * F + f] = acc[f]
 
     @wp.func
-    def scatter_cell(d_table: wp.array(dtype=vecF), acc: matF, ix: int, iy: int, iz: int, res: int, offset: int,
-                     size: int, hashed: int):
-        """Add the 8 corner rows of `acc` to the table rows of cell (ix, iy, iz)'s corners (atomic)."""
+    def scatter_cell(d_table: wp.array(dtype=vecF), acc: matF, lv: Level, cell: wp.vec3i):
+        """Add the 8 corner rows of `acc` to the table rows of the corners of level lv's cell `cell` (atomic)."""
         for c in range(8):
-            e = vertex_entry(ix + (c & 1), iy + ((c >> 1) & 1), iz + ((c >> 2) & 1), res, offset, size, hashed)
+            e = vertex_entry(lv, cell[0] + (c & 1), cell[1] + ((c >> 1) & 1), cell[2] + ((c >> 2) & 1))
             add_row(d_table, e, acc[c])
 
     @wp.kernel(enable_backward=False, module="unique")
-    def encode_backward(
-        x: wp.array(dtype=wp.vec3),
-        meta: wp.array2d(dtype=int),
-        active: wp.array(dtype=int),
-        g_feat: wp.array2d(dtype=float),
-        run: int,
-        d_table: wp.array(dtype=vecF),
-    ):
+    def encode_backward(grid: Grid, g_feat: wp.array2d(dtype=float), run: int, d_table: wp.array(dtype=vecF)):
         # one thread per level and run of `run` consecutive points: while the points stay in one cell (samples
         # along a ray at the coarse levels) their weighted cotangents add up in registers and reach the table
         # in one atomic per corner when the cell changes. Same-address atomics serialise, and at the coarse
         # levels whole warps hit the same 8 rows (1.11 -> 0.92 ms for this kernel in an accurate step, H100)
         l, q = wp.tid()
-        if l >= active[0]:
+        if l >= grid.active[0]:
             return
-        res = meta[l, 0]
-        offset = meta[l, 1]
-        size = meta[l, 2]
-        hashed = meta[l, 3]
+        x = grid.x
         n = x.shape[0]
+        lv = level(grid.meta, l)
         acc = matF()
-        cx = int(-1)
-        cy = int(-1)
-        cz = int(-1)
+        cur = wp.vec3i(-1, -1, -1)  # the cell whose corners acc holds
         for k in range(run):
             p = q * run + k
             if p < n:
                 gv = load_cotangent(g_feat, p, l)
-                xp = x[p]
-                ix, tx, mx = axis_coord(xp[0], res)
-                iy, ty, my = axis_coord(xp[1], res)
-                iz, tz, mz = axis_coord(xp[2], res)
-                if ix != cx or iy != cy or iz != cz:
-                    if cx >= 0:
-                        scatter_cell(d_table, acc, cx, cy, cz, res, offset, size, hashed)
+                pt = locate(lv, x[p])
+                if pt.cell[0] != cur[0] or pt.cell[1] != cur[1] or pt.cell[2] != cur[2]:
+                    if cur[0] >= 0:
+                        scatter_cell(d_table, acc, lv, cur)
                     acc = matF()
-                    cx = ix
-                    cy = iy
-                    cz = iz
+                    cur = pt.cell
                 for c in range(8):
-                    wx, sx = corner_factors(c & 1, tx)
-                    wy, sy = corner_factors((c >> 1) & 1, ty)
-                    wz, sz = corner_factors((c >> 2) & 1, tz)
-                    acc[c] = acc[c] + (wx * wy * wz) * gv
-        if cx >= 0:
-            scatter_cell(d_table, acc, cx, cy, cz, res, offset, size, hashed)
+                    e, w, s = corner(pt, c)
+                    acc[c] = acc[c] + weight(w) * gv
+        if cur[0] >= 0:
+            scatter_cell(d_table, acc, lv, cur)
 
     @wp.kernel(enable_backward=False, module="unique")
-    def gradient(
-        x: wp.array(dtype=wp.vec3),
-        table: wp.array(dtype=vecF),
-        meta: wp.array2d(dtype=int),
-        active: wp.array(dtype=int),
-        g: wp.array2d(dtype=float),
-        out: wp.array(dtype=wp.vec3),
-    ):
+    def gradient(grid: Grid, g: wp.array2d(dtype=float), out: wp.array(dtype=wp.vec3)):
         l, p = wp.tid()
-        if l >= active[0]:
+        if l >= grid.active[0]:
             return
         gv = load_cotangent(g, p, l)
-        res = meta[l, 0]
-        offset = meta[l, 1]
-        size = meta[l, 2]
-        hashed = meta[l, 3]
-        xp = x[p]
-        ix, tx, mx = axis_coord(xp[0], res)
-        iy, ty, my = axis_coord(xp[1], res)
-        iz, tz, mz = axis_coord(xp[2], res)
+        table = grid.table
+        lv = locate(level(grid.meta, l), grid.x[p])
         acc = wp.vec3(0.0, 0.0, 0.0)
         for c in range(8):
-            bx = c & 1
-            by = (c >> 1) & 1
-            bz = (c >> 2) & 1
-            wx, sx = corner_factors(bx, tx)
-            wy, sy = corner_factors(by, ty)
-            wz, sz = corner_factors(bz, tz)
-            e = vertex_entry(ix + bx, iy + by, iz + bz, res, offset, size, hashed)
-            a = wp.dot(gv, table[e])
-            acc += a * wp.vec3(sx * wy * wz, wx * sy * wz, wx * wy * sz)
-        r = float(res)
-        wp.atomic_add(out, p, wp.vec3(acc[0] * mx * r, acc[1] * my * r, acc[2] * mz * r))
+            e, w, s = corner(lv, c)
+            acc += wp.dot(gv, table[e]) * weight_gradient(w, s)
+        wp.atomic_add(out, p, chain(acc, lv))
 
     @wp.kernel(enable_backward=False, module="unique")
     def gradient_backward(
-        x: wp.array(dtype=wp.vec3),
-        table: wp.array(dtype=vecF),
-        meta: wp.array2d(dtype=int),
-        active: wp.array(dtype=int),
+        grid: Grid,
         g: wp.array2d(dtype=float),
         h_out: wp.array(dtype=wp.vec3),
         need_x: int,
@@ -273,44 +310,25 @@ def hashgrid_kernels(F: int):
     ):
         l, p = wp.tid()
         dg = vecF()
-        if l < active[0]:
+        if l < grid.active[0]:
             gv = load_cotangent(g, p, l)
-            res = meta[l, 0]
-            offset = meta[l, 1]
-            size = meta[l, 2]
-            hashed = meta[l, 3]
-            r = float(res)
-            xp = x[p]
-            ix, tx, mx = axis_coord(xp[0], res)
-            iy, ty, my = axis_coord(xp[1], res)
-            iz, tz, mz = axis_coord(xp[2], res)
-            hp = h_out[p]
-            # H with the chain factors res m_d folded in: H . grad w_c = hm . (s_x w_y w_z, w_x s_y w_z, w_x w_y s_z)
-            hm = wp.vec3(hp[0] * mx * r, hp[1] * my * r, hp[2] * mz * r)
+            table = grid.table
+            lv = locate(level(grid.meta, l), grid.x[p])
+            # H with the chain factors res m_d folded in: H . grad w_c = hm . weight_gradient(w, s)
+            hm = chain(h_out[p], lv)
             dx = wp.vec3(0.0, 0.0, 0.0)
             for c in range(8):
-                bx = c & 1
-                by = (c >> 1) & 1
-                bz = (c >> 2) & 1
-                wx, sx = corner_factors(bx, tx)
-                wy, sy = corner_factors(by, ty)
-                wz, sz = corner_factors(bz, tz)
-                e = vertex_entry(ix + bx, iy + by, iz + bz, res, offset, size, hashed)
+                e, w, s = corner(lv, c)
                 tv = table[e]
-                hdot = wp.dot(hm, wp.vec3(sx * wy * wz, wx * sy * wz, wx * wy * sz))
+                hdot = wp.dot(hm, weight_gradient(w, s))
                 dg += hdot * tv
                 add_row(d_table, e, hdot * gv)
                 if need_x != 0:
-                    a = wp.dot(gv, tv)
-                    # Hess(w_c) H with the res m factors of both axes: (hm_y s_x s_y w_z + hm_z s_x s_z w_y, ...)
-                    hxy = sx * sy * wz
-                    hxz = sx * sz * wy
-                    hyz = sy * sz * wx
-                    dx += a * wp.vec3((hxy * hm[1] + hxz * hm[2]) * mx * r, (hxy * hm[0] + hyz * hm[2]) * my * r,
-                                      (hxz * hm[0] + hyz * hm[1]) * mz * r)
+                    # Hess(w_c) H with the res m factors of both axes
+                    dx += wp.dot(gv, tv) * chain(weight_hessian_dot(w, s, hm), lv)
             if need_x != 0:
                 wp.atomic_add(d_x, p, dx)
         for f in range(F):
             d_g[p, l * F + f] = dg[f]
 
-    return encode, encode_backward, gradient, gradient_backward
+    return HashGridKernels(Grid, encode, encode_backward, gradient, gradient_backward)

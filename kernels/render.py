@@ -75,6 +75,87 @@ def neus_alpha_vjp(sdf: float, true_cos: float, dz: float, inv_s: float, anneal:
     return wp.vec3(g_prev + g_next, g_c * dc_dcos, g_prev_arg * prev + g_next_arg * nxt)
 
 
+# The kernels' arguments in the groups that travel together (R rays, S samples, N patterns; mm). Field names are
+# those of the torch side (slwarp.neural.ops), which fills each struct by name in one place.
+
+
+@wp.struct
+class RaySamples:
+    """The rays and the field at their samples: what both passes read per ray and per sample."""
+
+    sdf: wp.array2d(dtype=float)  # [R, S] f_k (mm)
+    sdf_grad: wp.array2d(dtype=wp.vec3)  # [R, S] g_k
+    z_vals: wp.array2d(dtype=float)  # [R, S] z_k (mm along the ray)
+    rays_o: wp.array(dtype=wp.vec3)  # [R] o (mm)
+    rays_d: wp.array(dtype=wp.vec3)  # [R] d (unit)
+    a: wp.array(dtype=float)  # [R] offset of I = a + b P
+    b: wp.array(dtype=float)  # [R] modulation
+
+
+@wp.struct
+class RenderParams:
+    """The patterns, the projector and the scalars of a render."""
+
+    patterns: wp.array3d(dtype=float)  # [H, W, N]
+    projector: ProjectorParams
+    inv_s: wp.array(dtype=float)  # [1] NeuS's s (1/mm)
+    cos_anneal_ratio: float
+    last_delta: float  # the last sample's interval (mm); < 0: the previous interval
+    bmin: wp.vec3  # the working volume's box (mm), where the Eikonal term counts
+    bmax: wp.vec3
+
+
+@wp.struct
+class ForwardOutputs:
+    """What the forward writes (the T_k in `trans` are kept for the backward)."""
+
+    weights: wp.array2d(dtype=float)  # [R, S]
+    rendered: wp.array2d(dtype=float)  # [R, N]
+    surface: wp.array(dtype=wp.vec3)  # [R]
+    surface_rendered: wp.array2d(dtype=float)  # [R, N]
+    depth: wp.array(dtype=float)  # [R]
+    weight_sum: wp.array(dtype=float)  # [R]
+    eikonal: wp.array2d(dtype=float)  # [R, S]
+    eikonal_sum: wp.array(dtype=float)  # [R]
+    eikonal_count: wp.array(dtype=float)  # [R]
+    trans: wp.array2d(dtype=float)  # [R, S] T_k
+
+
+@wp.struct
+class ForwardSaved:
+    """The forward's outputs the backward reads."""
+
+    trans: wp.array2d(dtype=float)  # [R, S]
+    surface: wp.array(dtype=wp.vec3)  # [R]
+    weight_sum: wp.array(dtype=float)  # [R]
+
+
+@wp.struct
+class Cotangents:
+    """The cotangents of the forward's outputs; the per-sample ones of weights and Eikonal only where a flag is
+    set (a loss that does not use them leaves them unread)."""
+
+    g_weights: wp.array2d(dtype=float)  # [R, S], read when has_g_weights
+    has_g_weights: int
+    g_rendered: wp.array2d(dtype=float)  # [R, N]
+    g_surface: wp.array(dtype=wp.vec3)  # [R]
+    g_surface_rendered: wp.array2d(dtype=float)  # [R, N]
+    g_depth: wp.array(dtype=float)  # [R]
+    g_weight_sum: wp.array(dtype=float)  # [R]
+    g_eikonal: wp.array2d(dtype=float)  # [R, S], read when has_g_eikonal
+    has_g_eikonal: int
+    g_eikonal_sum: wp.array(dtype=float)  # [R]
+
+
+@wp.struct
+class InputGrads:
+    """What the backward writes: the gradients of the differentiable inputs."""
+
+    d_sdf: wp.array2d(dtype=float)  # [R, S]
+    d_grad: wp.array2d(dtype=wp.vec3)  # [R, S]
+    d_inv_s: wp.array(dtype=float)  # [R]: one term per ray (summed by the caller)
+
+
 @functools.lru_cache(maxsize=None)
 def render_kernels(N: int):
     """(samples, forward, backward) kernels for N patterns: `samples` writes P_n(pi(x_k)) of every sample, one
@@ -84,49 +165,26 @@ def render_kernels(N: int):
 
     @wp.kernel(module="unique")
     def samples(
-        z: wp.array2d(dtype=float),
-        rays_o: wp.array(dtype=wp.vec3),
-        rays_d: wp.array(dtype=wp.vec3),
-        pat: wp.array3d(dtype=float),
-        prm: ProjectorParams,
+        rays: RaySamples,
+        params: RenderParams,
         values: wp.array2d(dtype=vecN),  # [R, S]: the N patterns' bilinear values at sample k of ray r
     ):
         r, k = wp.tid()
-        values[r, k] = sample_all(pat, project_to_projector(prm, rays_o[r] + rays_d[r] * z[r, k]))
+        x = rays.rays_o[r] + rays.rays_d[r] * rays.z_vals[r, k]
+        values[r, k] = sample_all(params.patterns, project_to_projector(params.projector, x))
 
     @wp.kernel(module="unique")
-    def forward(
-        sdf: wp.array2d(dtype=float),
-        grad: wp.array2d(dtype=wp.vec3),
-        z: wp.array2d(dtype=float),
-        rays_o: wp.array(dtype=wp.vec3),
-        rays_d: wp.array(dtype=wp.vec3),
-        a: wp.array(dtype=float),
-        b: wp.array(dtype=float),
-        pat: wp.array3d(dtype=float),
-        prm: ProjectorParams,
-        inv_s_arr: wp.array(dtype=float),
-        anneal: float,
-        last_delta: float,
-        bmin: wp.vec3,
-        bmax: wp.vec3,
-        pvals: wp.array2d(dtype=vecN),
-        weights: wp.array2d(dtype=float),
-        rendered: wp.array2d(dtype=float),
-        surface: wp.array(dtype=wp.vec3),
-        surface_rendered: wp.array2d(dtype=float),
-        depth: wp.array(dtype=float),
-        weight_sum: wp.array(dtype=float),
-        eikonal: wp.array2d(dtype=float),
-        eikonal_sum: wp.array(dtype=float),
-        eikonal_count: wp.array(dtype=float),
-        trans_out: wp.array2d(dtype=float),
-    ):
+    def forward(rays: RaySamples, params: RenderParams, pvals: wp.array2d(dtype=vecN), out: ForwardOutputs):
         r = wp.tid()
+        sdf = rays.sdf
+        grad = rays.sdf_grad
+        z = rays.z_vals
         S = z.shape[1]
-        inv_s = inv_s_arr[0]
-        o = rays_o[r]
-        d = rays_d[r]
+        inv_s = params.inv_s[0]
+        anneal = params.cos_anneal_ratio
+        last_delta = params.last_delta
+        o = rays.rays_o[r]
+        d = rays.rays_d[r]
         trans = float(1.0)
         wsum = float(0.0)
         sp = wp.vec3(0.0, 0.0, 0.0)
@@ -155,91 +213,72 @@ def render_kernels(N: int):
             z_prev = zk
             alpha = neus_alpha(f, wp.dot(d, g), dz, inv_s, anneal)
             w = alpha * trans
-            trans_out[r, k] = trans
+            out.trans[r, k] = trans
             trans = trans * (1.0 - alpha + TRANS_EPS)
-            weights[r, k] = w
+            out.weights[r, k] = w
             wsum += w
             x = o + d * zk
             sp += w * x
             acc += w * pk
             e = float(0.0)
-            if inside_box(x, bmin, bmax):
+            if inside_box(x, params.bmin, params.bmax):
                 nrm = wp.sqrt(wp.dot(g, g) + NORM_EPS)
                 e = (nrm - 1.0) * (nrm - 1.0)
                 count += 1.0
-            eikonal[r, k] = e
+            out.eikonal[r, k] = e
             esum += e
         sp = sp / (wsum + WSUM_EPS)
-        ps = sample_all(pat, project_to_projector(prm, sp))
-        ar = a[r]
-        br = b[r]
+        ps = sample_all(params.patterns, project_to_projector(params.projector, sp))
+        ar = rays.a[r]
+        br = rays.b[r]
         for n in range(N):
-            rendered[r, n] = ar * wsum + br * acc[n]
-            surface_rendered[r, n] = ar + br * ps[n]
-        surface[r] = sp
-        depth[r] = sp[2]
-        weight_sum[r] = wsum
-        eikonal_sum[r] = esum
-        eikonal_count[r] = count
+            out.rendered[r, n] = ar * wsum + br * acc[n]
+            out.surface_rendered[r, n] = ar + br * ps[n]
+        out.surface[r] = sp
+        out.depth[r] = sp[2]
+        out.weight_sum[r] = wsum
+        out.eikonal_sum[r] = esum
+        out.eikonal_count[r] = count
 
     @wp.kernel(module="unique")
     def backward(
-        sdf: wp.array2d(dtype=float),
-        grad: wp.array2d(dtype=wp.vec3),
-        z: wp.array2d(dtype=float),
-        rays_o: wp.array(dtype=wp.vec3),
-        rays_d: wp.array(dtype=wp.vec3),
-        a: wp.array(dtype=float),
-        b: wp.array(dtype=float),
-        pat: wp.array3d(dtype=float),
-        prm: ProjectorParams,
-        inv_s_arr: wp.array(dtype=float),
-        anneal: float,
-        last_delta: float,
-        bmin: wp.vec3,
-        bmax: wp.vec3,
+        rays: RaySamples,
+        params: RenderParams,
         pvals: wp.array2d(dtype=vecN),
-        trans_saved: wp.array2d(dtype=float),
-        surface: wp.array(dtype=wp.vec3),
-        weight_sum: wp.array(dtype=float),
-        g_weights: wp.array2d(dtype=float),
-        has_g_weights: int,
-        g_rendered: wp.array2d(dtype=float),
-        g_surface: wp.array(dtype=wp.vec3),
-        g_surface_rendered: wp.array2d(dtype=float),
-        g_depth: wp.array(dtype=float),
-        g_weight_sum: wp.array(dtype=float),
-        g_eikonal: wp.array2d(dtype=float),
-        has_g_eikonal: int,
-        g_eikonal_sum: wp.array(dtype=float),
-        d_sdf: wp.array2d(dtype=float),
-        d_grad: wp.array2d(dtype=wp.vec3),
-        d_inv_s: wp.array(dtype=float),
+        saved: ForwardSaved,
+        cot: Cotangents,
+        grads: InputGrads,
     ):
         r = wp.tid()
+        sdf = rays.sdf
+        grad = rays.sdf_grad
+        z = rays.z_vals
+        trans_saved = saved.trans
         S = z.shape[1]
-        inv_s = inv_s_arr[0]
-        o = rays_o[r]
-        d = rays_d[r]
-        br = b[r]
+        inv_s = params.inv_s[0]
+        anneal = params.cos_anneal_ratio
+        last_delta = params.last_delta
+        o = rays.rays_o[r]
+        d = rays.rays_d[r]
+        br = rays.b[r]
         gr = vecN()
         gsr = vecN()
         sum_gr = float(0.0)
         for n in range(N):
-            gr[n] = g_rendered[r, n]
-            gsr[n] = g_surface_rendered[r, n] * br
+            gr[n] = cot.g_rendered[r, n]
+            gsr[n] = cot.g_surface_rendered[r, n] * br
             sum_gr += gr[n]
-        common = g_weight_sum[r] + a[r] * sum_gr
-        g_eik_ray = g_eikonal_sum[r]
+        common = cot.g_weight_sum[r] + rays.a[r] * sum_gr
+        g_eik_ray = cot.g_eikonal_sum[r]
 
         # cotangent of the surface point (saved by the forward): direct, through depth, and through the
         # surface intensities
-        sp = surface[r]
-        g_s = g_surface[r] + wp.vec3(0.0, 0.0, g_depth[r])
-        duv = sample_all_grad(pat, project_to_projector(prm, sp), gsr)
-        g_s += project_to_projector_grad(prm, sp, duv[0], duv[1])
+        sp = saved.surface[r]
+        g_s = cot.g_surface[r] + wp.vec3(0.0, 0.0, cot.g_depth[r])
+        duv = sample_all_grad(params.patterns, project_to_projector(params.projector, sp), gsr)
+        g_s += project_to_projector_grad(params.projector, sp, duv[0], duv[1])
         # s = sum w x / (W + eps): ds/dw_k = (x_k - s) / (W + eps)
-        g_s = g_s / (weight_sum[r] + WSUM_EPS)
+        g_s = g_s / (saved.weight_sum[r] + WSUM_EPS)
 
         # one pass in reverse: G_k (the total cotangent of w_k), the U recurrence with the saved
         # transmittance T_k, then the NeuS alpha and Eikonal adjoints. Inputs of the next (lower) sample
@@ -274,22 +313,22 @@ def render_kernels(N: int):
             alpha = neus_alpha(f, cos_k, dz, inv_s, anneal)
             x = o + d * zk
             gw = common + br * wp.dot(gr, pk) + wp.dot(g_s, x - sp)
-            if has_g_weights != 0:
-                gw += g_weights[r, k]
+            if cot.has_g_weights != 0:
+                gw += cot.g_weights[r, k]
             g_alpha = t_k * (gw - u_suffix)
             u_suffix = gw * alpha + (1.0 - alpha + TRANS_EPS) * u_suffix
             v = neus_alpha_vjp(f, cos_k, dz, inv_s, anneal, g_alpha)
             dg = d * v[1]
-            if inside_box(x, bmin, bmax):
+            if inside_box(x, params.bmin, params.bmax):
                 g_e = g_eik_ray
-                if has_g_eikonal != 0:
-                    g_e += g_eikonal[r, k]
+                if cot.has_g_eikonal != 0:
+                    g_e += cot.g_eikonal[r, k]
                 if g_e != 0.0:
                     nrm = wp.sqrt(wp.dot(g, g) + NORM_EPS)
                     dg += g * (g_e * 2.0 * (nrm - 1.0) / nrm)
-            d_sdf[r, k] = v[0]
-            d_grad[r, k] = dg
+            grads.d_sdf[r, k] = v[0]
+            grads.d_grad[r, k] = dg
             g_inv_s += v[2]
-        d_inv_s[r] = g_inv_s
+        grads.d_inv_s[r] = g_inv_s
 
     return samples, forward, backward

@@ -1,4 +1,5 @@
-"""Warp runtime helpers: lazy init, the kernel cache location, array descriptors and cached launches.
+"""Warp runtime helpers: lazy init, the kernel cache location, array descriptors, struct values and cached
+launches.
 
 Warp is initialised on first use, never at import. The kernel cache goes to $SLWARP_KERNEL_CACHE, else
 $WARP_CACHE_PATH, else Warp's default (per user). Kernels are pure functions of their source, so a warm
@@ -102,12 +103,39 @@ def array_desc(t, vec: int = 0):
     return wp.from_torch(t, dtype=dtype, requires_grad=False, return_ctype=True)
 
 
+def _field_converter(var_type):
+    """How `struct_value` turns a value into the ctypes value of one struct field of type var_type."""
+    wp = init()
+    if wp.types.is_array(var_type):
+        n = var_type.dtype._length_ if wp.types.type_is_vector(var_type.dtype) else 0  # 0: the tensor's own dtype
+        null = var_type.__ctype__()  # the annotation's descriptor: a null array of the field's shape
+        return lambda t: array_desc(t, n) if t is not None else null
+    if hasattr(var_type, "ctype") and hasattr(var_type, "vars"):  # a nested struct: its instance or ctypes value
+        return lambda v: v.__ctype__() if hasattr(v, "__ctype__") else v
+    return lambda v: v
+
+
+_CONVERTERS: dict = {}
+
+
+def struct_value(cls, **fields):
+    """The ctypes value of Warp struct `cls` (what a kernel takes; `CachedLaunch` passes it as is) from its fields
+    by name: torch tensors for array fields (as array descriptors, `array_desc`; a vector element's length comes
+    from the field's type; None gives a null array, for a field the kernel does not read), struct instances or
+    ctypes values for nested structs, numbers and Warp vectors for the rest. Fields left out are zero."""
+    conv = _CONVERTERS.get(cls)
+    if conv is None:
+        conv = _CONVERTERS[cls] = {name: _field_converter(var.type) for name, var in cls.vars.items()}
+    return cls.ctype(**{name: conv[name](v) for name, v in fields.items()})
+
+
 class CachedLaunch:
     """Launch one kernel repeatedly at a fraction of wp.launch's Python cost.
 
     The first call records a launch command (wp.launch(record_cmd=True)); later calls only rewrite its
-    parameters from ctypes values (array descriptors, struct ctypes, numbers) and relaunch it. Argument
-    lists must keep the same kinds in the same places from call to call.
+    parameters from ctypes values (array descriptors, struct ctypes values as `struct_value` makes them, struct
+    instances, numbers) and relaunch it. Argument lists must keep the same kinds in the same places from call
+    to call.
     """
 
     def __init__(self, kernel, block_dim: int | None = None):
@@ -121,7 +149,8 @@ class CachedLaunch:
         entry = self._cmds.get(key)
         if entry is None:
             kw = {"block_dim": self.block_dim} if self.block_dim else {}
-            cmd = wp.launch(self.kernel, dim=dim, inputs=list(args), device=device, record_cmd=True, **kw)
+            inputs = [self._packable(i, a) for i, a in enumerate(args)]
+            cmd = wp.launch(self.kernel, dim=dim, inputs=inputs, device=device, record_cmd=True, **kw)
             self._cmds[key] = [cmd, dim]
         else:
             cmd, last_dim = entry
@@ -129,10 +158,30 @@ class CachedLaunch:
                 cmd.set_dim(dim)
                 entry[1] = dim
             for i, a in enumerate(args):
-                if isinstance(a, (int, float)) or type(a).__name__ == "array_t":
+                if isinstance(a, (int, float, ctypes.Structure)):  # numbers, array descriptors, struct values
                     cmd.set_param_at_index_from_ctype(i, a)
                 elif hasattr(a, "__ctype__") and not hasattr(a, "ptr"):  # a wp.struct instance
                     cmd.set_param_at_index_from_ctype(i, a.__ctype__())
                 else:
                     cmd.set_param_at_index(i, a)
         cmd.launch(stream)
+
+    def _packable(self, i: int, a):
+        """Argument i as wp.launch packs it: a struct's ctypes value in an object that gives it back (wp.launch
+        asks a struct argument for its __ctype__())."""
+        if isinstance(a, ctypes.Structure) and not init().types.is_array(self.kernel.adj.args[i].type):
+            return _StructValue(a)
+        return a
+
+
+class _StructValue:
+    """A struct's ctypes value as wp.launch takes a struct argument (it only asks for __ctype__(); a struct's own
+    instance type is not built from a ctypes value the same way in every Warp version)."""
+
+    __slots__ = ("value",)
+
+    def __init__(self, value):
+        self.value = value
+
+    def __ctype__(self):
+        return self.value

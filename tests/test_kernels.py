@@ -1,6 +1,7 @@
 """The shared Warp helpers (slwarp.kernels.geometry) against numpy references: the bilinear taps of one
-channel and of N packed patterns, the gradient of the pattern taps, and torch tensors passed to kernels
-through array descriptors (any strides, vector elements)."""
+channel and of N packed patterns, the gradient of the pattern taps, torch tensors passed to kernels
+through array descriptors (any strides, vector elements), and struct arguments filled from torch tensors
+through a cached launch whose parameters are rewritten from call to call."""
 import numpy as np
 import pytest
 import torch
@@ -30,6 +31,26 @@ def _patterns_kernel(pat: wp.array3d(dtype=float), uvo: wp.array(dtype=wp.vec3),
         values[i, n] = v[n]
         c[n] = cot[i, n]
     grad[i] = sample_all_grad(pat, uvo[i], c)
+
+
+@wp.struct
+class _Inputs:
+    x: wp.array2d(dtype=wp.vec3)
+    w: wp.array(dtype=float)  # read only where use_w
+    use_w: int
+    scale: float
+    offset: wp.vec3
+
+
+@wp.kernel
+def _weighted_sum(inp: _Inputs, out: wp.array(dtype=float)):
+    r = wp.tid()
+    acc = float(0.0)
+    for k in range(inp.x.shape[1]):
+        acc += wp.dot(inp.x[r, k] + inp.offset, wp.vec3(1.0, 10.0, 100.0))
+    if inp.use_w != 0:
+        acc *= inp.w[r]
+    out[r] = acc * inp.scale
 
 
 @wp.kernel
@@ -115,3 +136,28 @@ def test_array_descriptors_carry_strides_and_vector_elements(device, layout):
         wp_.synchronize_device(warp_device(x.device))
     ref = (x.double() * torch.tensor([1.0, 10.0, 100.0], dtype=torch.float64, device=device)).sum((1, 2))
     torch.testing.assert_close(out.double(), ref, rtol=1e-5, atol=1e-4)
+
+
+def test_cached_launch_rewrites_struct_arguments(device):
+    """One recorded launch, replayed with other tensors (other shapes, strides and devices' pointers), other
+    numbers and a null array that the kernel does not read: each call reads its own arguments."""
+    wp_ = runtime.init()
+    launcher = runtime.CachedLaunch(_weighted_sum, block_dim=64)
+    g = torch.Generator().manual_seed(3)
+    dev = warp_device(torch.device(device))
+    for R, S, use_w, scale in [(5, 4, True, 1.0), (7, 2, False, -2.0), (3, 6, True, 0.5)]:
+        x = torch.randn(S, R, 3, generator=g).to(device).transpose(0, 1)  # sample-major [R, S, 3]
+        w = torch.rand(R, generator=g).to(device)
+        offset = (float(R), 0.5, -1.0)
+        out = torch.full((R,), float("nan"), device=device)
+        inp = runtime.struct_value(_Inputs, x=x, w=w if use_w else None, use_w=int(use_w), scale=scale,
+                                   offset=wp_.vec3(*offset))
+        if x.device.type == "cuda":
+            torch.cuda.synchronize()  # Warp launches on its own stream here: torch's copies must be done
+        launcher(R, [inp, runtime.array_desc(out)], dev)
+        if x.device.type == "cuda":
+            wp_.synchronize_device(dev)
+        ref = ((x.double() + torch.tensor(offset, dtype=torch.float64, device=device))
+               * torch.tensor([1.0, 10.0, 100.0], dtype=torch.float64, device=device)).sum((1, 2))
+        ref = ref * (w.double() if use_w else 1.0) * scale
+        torch.testing.assert_close(out.double(), ref, rtol=1e-5, atol=1e-4)

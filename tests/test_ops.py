@@ -16,7 +16,7 @@ import warp as wp
 
 from slwarp.kernels.geometry import TRANS_EPS
 from slwarp.kernels.sampling import CDF_EPS, PDF_EPS, upsample_inverse_cdf, upsample_place
-from slwarp.neural import ops, twin
+from slwarp.neural import launch, ops, twin
 from slwarp.scans.patterns import random_binary
 from slwarp.sim.rigs import make_rig
 
@@ -40,13 +40,17 @@ def make_inputs(R=48, S=24, N=6, device="cpu", dtype=torch.float32, seed=0, surf
                 patterns=pats.to(device), inv_s=torch.tensor(0.25, dtype=dtype, device=device))
 
 
-def run(inputs, backend, seed=1, **kw):
+def run(inputs, backend, seed=1, overwrite=None, **kw):
+    """The render's outputs and the gradients (sdf, sdf_grad, inv_s) of a random weighting of them; overwrite: a dict
+    of input tensors to overwrite with garbage between the forward and the backward."""
     sdf = inputs["sdf"].clone().requires_grad_()
     grad = inputs["sdf_grad"].clone().requires_grad_()
     inv_s = inputs["inv_s"].clone().requires_grad_()
     args = {**inputs, "sdf": sdf, "sdf_grad": grad, "inv_s": inv_s}
     out = ops.render_structured_light(**{k: args[k] for k in ["sdf", "sdf_grad", "z_vals", "rays_o", "rays_d", "a", "b", "patterns"]},
                                       projector=PROJ, inv_s=inv_s, backend=backend, **kw)
+    for t in (overwrite or {}).values():
+        t.fill_(float("nan"))
     g = torch.Generator().manual_seed(seed)
     loss = sum((getattr(out, f) * torch.randn(getattr(out, f).shape, generator=g, dtype=getattr(out, f).dtype).to(sdf.device)).sum() for f in FIELDS)
     grads = torch.autograd.grad(loss, [sdf, grad, inv_s])
@@ -78,7 +82,7 @@ def test_twin_gradcheck_float64():
     inputs = make_inputs(R=5, S=7, N=2, dtype=torch.float64, seed=3)
     inputs["patterns"] = torch.rand(2, PROJ.height, PROJ.width, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     proj = ops.pack_projector(PROJ)
-    bounds = ops._bounds_list([[-300.0, -300.0, 550.0], [300.0, 300.0, 850.0]])
+    bounds = launch.bounds_list([[-300.0, -300.0, 550.0], [300.0, 300.0, 850.0]])
 
     def f(sdf, grad, inv_s):
         outs = twin.render_structured_light(sdf, grad, inputs["z_vals"], inputs["rays_o"], inputs["rays_d"], inputs["a"], inputs["b"],
@@ -325,15 +329,15 @@ def test_upsample_placement_follows_the_cdf_rules(device):
     n_new = 8
     zd, ad, td = z.to(device), alpha.to(device), total.float().to(device)
     z_new = torch.empty(3, n_new, device=device)
-    ops._launch(inverse_cdf_with_total, (3, n_new), [ops._desc(zd), ops._desc(ad), ops._desc(td), ops._desc(z_new)],
-                zd.device)
+    launch.launch(inverse_cdf_with_total, (3, n_new), [launch.desc(zd), launch.desc(ad), launch.desc(td),
+                                                       launch.desc(z_new)], zd.device)
     ref = inverse_cdf_reference(z.double(), alpha.double(), total, n_new)
     assert_close(z_new.double(), ref, rtol=0, atol=1e-4, what="placement")
     assert z_new[0, -2:].tolist() == [9.0, 9.0] and z_new[0, -3].item() < 9.0
     assert 0 < z_new[1, -1].item() - 11.0 < 1e-4 and z_new[1, -2].item() < 11.0
     # and through the op's kernel (total = the weights' sum): the same walk
     z_op = torch.empty(3, n_new, device=device)
-    ops._launch(upsample_place, (3, n_new), [ops._desc(zd), ops._desc(ad), ops._desc(z_op)], zd.device)
+    launch.launch(upsample_place, (3, n_new), [launch.desc(zd), launch.desc(ad), launch.desc(z_op)], zd.device)
     assert_close(z_op.double(), inverse_cdf_reference(z.double(), alpha.double(), w.sum(1), n_new), rtol=0, atol=1e-4,
                  what="upsample_place")
 
@@ -414,5 +418,19 @@ def test_sample_major_layout_gives_the_same_result(device):
     for f in FIELDS:
         assert torch.equal(getattr(out, f), getattr(ref_out, f)), f
     assert out.weights.stride(0) == 1  # outputs follow the input layout
+    for g, r in zip(grads, ref_grads):
+        assert torch.equal(g, r)
+
+
+def test_backward_reads_the_copies_that_saved_tensor_hooks_return(device):
+    """The eager backward reuses the forward's kernel arguments only while the saved inputs are the same memory:
+    saved-tensor hooks (offloading) may return copies, and the forward's memory may change meanwhile."""
+    inputs = make_inputs(R=16, S=8, N=3, device=device, seed=17)
+    ref_out, ref_grads = run(inputs, "warp")
+    moved = {k: v.clone() for k, v in inputs.items()}
+    with torch.autograd.graph.saved_tensors_hooks(lambda t: t.clone(), lambda t: t):
+        out, grads = run(moved, "warp", overwrite=moved)
+    for f in FIELDS:
+        assert torch.equal(getattr(out, f), getattr(ref_out, f)), f
     for g, r in zip(grads, ref_grads):
         assert torch.equal(g, r)
