@@ -54,6 +54,15 @@ _VALUE_ERRORS_ARE_USER_ERRORS = {"decode"}
 # ----------------------------------------------------------------------------------------------
 
 
+OUTSIDE_PATHS_HELP = ("read the scan's files (frames, patterns, gt_depth, mask) that lie outside its folder, links "
+                      "followed (default: only when its scan.yaml says allow_outside_paths: true; "
+                      "--no-allow-outside-paths refuses them even then, for scans from others; see docs/inputs.md)")
+
+
+def _add_outside_paths(p) -> None:
+    p.add_argument("--allow-outside-paths", action=argparse.BooleanOptionalAction, default=None, help=OUTSIDE_PATHS_HELP)
+
+
 FRAMES_HELP = ("frame selection, comma-separated tokens: frame names, indices, slices (0:7), role selectors "
                "(gray:col:bit=0-6:noinv, phase:row:period=40, white, random:size=20) or name globs (gc_col_b*)")
 
@@ -61,7 +70,7 @@ FRAMES_HELP = ("frame selection, comma-separated tokens: frame names, indices, s
 def cmd_info(args) -> int:
     from .scans.scan import load_scan
 
-    scan = load_scan(args.scan, frames=args.frames)
+    scan = load_scan(args.scan, frames=args.frames, outside_paths=args.allow_outside_paths)
     print(scan.summary(each_frame=args.roles))
     _warn_problems(scan, sys.stdout)
     return 0
@@ -78,6 +87,7 @@ def _add_info(sub):
     p.add_argument("scan", help="scan folder (native scan.yaml, NeSS config.ini or procam calibration_result.xml)")
     p.add_argument("--frames", help=FRAMES_HELP)
     p.add_argument("--roles", action="store_true", help="also list every frame with its role")
+    _add_outside_paths(p)
     p.set_defaults(func=cmd_info)
 
 
@@ -210,7 +220,7 @@ def cmd_decode(args) -> int:
     from .evaluation.viz import ensure_dir, save_confidence_map, save_depth_color
     from .scans.scan import load_scan
 
-    scan = load_scan(args.scan)
+    scan = load_scan(args.scan, outside_paths=args.allow_outside_paths)
     _warn_problems(scan)
     params = {"min_amplitude": args.min_amplitude}
     if args.method in ("gc", "gc-interp", "cgc", "gt"):
@@ -291,6 +301,7 @@ def _add_decode(sub):
     p.add_argument("--fallback", default="extrapolate", choices=["extrapolate", "center", "nan"],
                    help="gc-interp: pixels not between two stripe transitions (default: extrapolate)")
     p.add_argument("--no-depth-range", action="store_true", help="keep points outside the scan's depth range")
+    _add_outside_paths(p)
     p.set_defaults(func=cmd_decode)
 
 
@@ -301,7 +312,7 @@ def cmd_evaluate(args) -> int:
     from .evaluation.outputs import read_confidence
     from .scans.scan import load_scan, read_depth
     pred = read_depth(args.pred, "prediction")
-    scan = load_scan(args.scan)
+    scan = load_scan(args.scan, outside_paths=args.allow_outside_paths)
     if scan.gt_depth is None:
         raise UserError(f"{args.scan}: the scan has no ground-truth depth to evaluate against")
     if pred.shape != scan.gt_depth.shape:
@@ -364,6 +375,7 @@ def _add_evaluate(sub):
     p.add_argument("--confidence", metavar="FILE.npy", help="a confidence map [H, W] in [0, 1] of the prediction "
                    "(default: confidence.npy beside it, when there is one): also report the MAE of its 90%% and 75%% "
                    "most confident pixels and the AUSE")
+    _add_outside_paths(p)
     p.set_defaults(func=cmd_evaluate)
 
 
@@ -498,7 +510,7 @@ def cmd_reconstruct(args) -> int:
     if not found.single or args.per_device is not None or launched_by_torchrun():
         return _reconstruct_batch(args, found, name, cfg, dev)
     scan_path = args.scans[0]
-    scan = load_scan(scan_path, frames=args.frames)
+    scan = load_scan(scan_path, frames=args.frames, outside_paths=args.allow_outside_paths)
     _warn_problems(scan)
     depth_range = _parse_range(args.depth_range)
     if depth_range is None and scan.depth_range is None:
@@ -552,7 +564,8 @@ def _reconstruct_batch(args, found, name: str, cfg, dev) -> int:
               + f" ({cfg.schedule.iters} iterations, {s.rays} rays, {s.n_samples}+{s.n_importance} samples, "
               f"{f.hidden}x{f.layers} field) on {dev}", flush=True)
     options = BatchOptions(frames=args.frames, depth_range=_parse_range(args.depth_range), use_mask=args.use_mask,
-                           resume=args.resume, overwrite=args.overwrite, progress=not args.quiet, log=not args.quiet)
+                           resume=args.resume, overwrite=args.overwrite, progress=not args.quiet, log=not args.quiet,
+                           outside_paths=args.allow_outside_paths)
     summary = run_batch(found.scans, cfg, args.out, options, single=found.single, per_device=args.per_device)
     if summary is None:  # a rank other than 0: rank 0 reports
         return 0
@@ -584,6 +597,7 @@ def _add_reconstruct(sub, argv=None):
     p.add_argument("--depth-range", help="NEAR,FAR camera depth in mm (default: the scan's)")
     p.add_argument("--use-mask", action="store_true", help="also restrict the depth map to the scan's mask")
     p.add_argument("--quiet", action="store_true", help="no progress output")
+    _add_outside_paths(p)
     _add_config_options(p, name)
     p.set_defaults(func=cmd_reconstruct)
 
