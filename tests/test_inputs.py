@@ -360,3 +360,19 @@ def test_corrupt_ply_mesh_is_refused(tmp_path):
     (tmp_path / "bad.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99\n")
     with pytest.raises(ValueError, match="bad.ply"):
         load_mesh_objects([tmp_path / "bad.ply"])
+
+
+def test_images_are_read_as_png_or_tiff_only(native, capsys):
+    frames = yaml.safe_load((native / "scan.yaml").read_text())["frames"]
+    first, second = native / frames[0]["image"], native / frames[1]["image"]
+    from_png = load_scan(native).images[0]
+    tiff = first.with_suffix(".tif")
+    assert cv2.imwrite(str(tiff), cv2.imread(str(first), cv2.IMREAD_UNCHANGED))
+    first.unlink()
+    edit_yaml(native, lambda d: d["frames"][0].update(image=tiff.relative_to(native).as_posix()))
+    assert np.array_equal(load_scan(native).images[0], from_png)
+    # a JPEG under a PNG name: OpenCV would decode it by its content; slwarp refuses it
+    assert cv2.imwrite(str(second.with_suffix(".jpg")), np.zeros((48, 64), np.uint8))
+    second.with_suffix(".jpg").replace(second)
+    assert cli_main(["info", str(native)]) == 2
+    one_line_error(capsys, "image of frame 1 is unreadable or corrupt (not a PNG or TIFF file")

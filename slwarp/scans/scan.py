@@ -54,13 +54,28 @@ def _names(names: list[str], limit: int = 6) -> str:
     return ", ".join(names[:limit]) + (f", ... ({len(names)} in all)" if len(names) > limit else "")
 
 
+# the first bytes of the image files slwarp reads: PNG, TIFF and BigTIFF (either byte order)
+IMAGE_SIGNATURES = (b"\x89PNG", b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
+
+
+def _check_image_file(path: Path, what: str) -> None:
+    """ScanError unless `path` is a regular file that starts as a PNG or TIFF does. Why: OpenCV picks its decoder
+    from the content, whatever the name; the contract's two formats keep its other decoders (JPEG, WebP, ...) away
+    from files that others wrote."""
+    if not path.is_file():
+        raise ScanError(f"{what} not found: {path}")
+    with open(path, "rb") as f:
+        head = f.read(4)
+    if not head.startswith(IMAGE_SIGNATURES):
+        raise ScanError(f"{what} is unreadable or corrupt (not a PNG or TIFF file: slwarp reads those two formats): {path}")
+
+
 def read_image(path: str | os.PathLike, what: str = "image") -> np.ndarray:
     """Read an 8/16-bit or float PNG/TIFF as float32 gray in [0, 1] (colour converted to gray)."""
     import cv2
 
     path = Path(path)
-    if not path.is_file():
-        raise ScanError(f"{what} not found: {path}")
+    _check_image_file(path, what)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise ScanError(f"{what} is unreadable or corrupt (not a PNG/TIFF image OpenCV can decode): {path}")
@@ -118,6 +133,7 @@ def read_depth(path: str | os.PathLike, what: str = "depth") -> np.ndarray:
             raise ScanError(f"{what} must be a 2-D array, got shape {d.shape}: {path}")
         d[~np.isfinite(d) | (d <= 0)] = np.nan
         return d
+    _check_image_file(path, what)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise ScanError(f"{what} is unreadable or corrupt: {path}")
