@@ -185,7 +185,7 @@ def write_checkpoint(state: dict, path) -> Path:
 
 
 def _refused_global(error: Exception) -> str | None:
-    """The type or function the weights-only unpickler refused (e.g. posix.system), from its message."""
+    """The type or function the weights-only unpickler refused (e.g. posix.system, io.open), from its message."""
     m = re.search(r"GLOBAL ([\w.]+)", str(error))
     return m[1] if m else None
 
@@ -213,7 +213,7 @@ def read_checkpoint(path, map_location="cpu") -> dict:
         refused = _refused_global(e)
         if refused is None:
             raise CheckpointError(f"{path}: not a readable checkpoint ({_first_line(e)}); {AGAIN}") from None
-        raise CheckpointError(f"{path}: refused unread: it holds a {refused} object, and a slwarp checkpoint holds "
+        raise CheckpointError(f"{path}: refused unread: it refers to {refused}, and a slwarp checkpoint holds "
                               f"tensors and plain data only (not written by slwarp, or altered); {AGAIN}") from None
     except Exception as e:  # noqa: BLE001 - torch reports a damaged archive as many types (zip, EOF, runtime)
         raise CheckpointError(f"{path}: not a readable checkpoint ({_first_line(e)}); {AGAIN}") from None
