@@ -277,6 +277,10 @@ def test_ness_layout_refuses_links_out_and_reports_a_stray_percent(tmp_path):
     (folder / "config.ini").write_text(text.replace("ext_tran = ", "ext_tran = 5%, "))
     with pytest.raises(ScanError, match=r"config.ini: \[RawCalib\] ext_tran is not a list of numbers"):
         load_scan(folder, outside_paths=True)
+    (folder / "config.ini").rename(tmp_path / "config.ini")
+    (folder / "config.ini").symlink_to(tmp_path / "config.ini")
+    with pytest.raises(ScanError, match="ness: config.ini leads outside"):
+        load_scan(folder)
 
 
 def write_procam(folder: Path, scan: Scan) -> None:
@@ -305,6 +309,10 @@ def test_procam_layout_refuses_links_out(tmp_path):
     with pytest.raises(ScanError, match="pattern 'graycode_pattern/pattern_00.png' leads outside"):
         load_scan(folder)
     assert len(load_scan(folder, outside_paths=True)) == 3
+    (folder / "calibration_result.xml").rename(tmp_path / "calibration.xml")
+    (folder / "calibration_result.xml").symlink_to(tmp_path / "calibration.xml")
+    with pytest.raises(ScanError, match="procam: calibration_result.xml leads outside"):
+        load_scan(folder)
 
 
 # --- the readers: what each refuses -------------------------------------------------------------------

@@ -472,7 +472,8 @@ class _Confined:
             raise ScanError(f"{self.source}: {entry} must be a file path relative to the scan folder, got {relative!r}")
         p = self.folder / relative
         if not self.allow and not inside_folder(p, self.folder):
-            raise ScanError(f"{self.source}: {entry} {relative!r} leads outside the scan folder (to "
+            named = entry if entry == relative else f"{entry} {relative!r}"  # a fixed name once (config.ini)
+            raise ScanError(f"{self.source}: {named} leads outside the scan folder (to "
                             f"{os.path.realpath(p)}); a scan's files are read from inside its folder: copy it in, or "
                             f"{self.hint}")
         return p
