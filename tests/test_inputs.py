@@ -90,8 +90,9 @@ def test_checkpoint_that_would_run_code_is_refused_unread(native, tmp_path, caps
 
 def test_batch_resume_refuses_a_hostile_checkpoint_as_that_scans_failure(tmp_path, capsys):
     scans = tmp_path / "scans"
-    for name in ("a", "b"):
+    for name in ("a", "b", "c"):
         small_scan().save(scans / name)
+    edit_yaml(scans / "c", lambda d: d.update(mask="../a/mask.png"))  # another folder's file: c's own failure
     out, ran = tmp_path / "out", tmp_path / "ran"
     hostile_checkpoint(out / "a" / "train" / "checkpoint.pt", ran)
     # b's outputs are complete (resume skips it and reads its summary line from them), with a hostile depth.npy
@@ -104,6 +105,7 @@ def test_batch_resume_refuses_a_hostile_checkpoint_as_that_scans_failure(tmp_pat
     rows = {r["name"]: r for r in json.loads((out / "summary.json").read_text())["scans"]}
     assert rows["a"]["status"] == "failed" and "checkpoint.pt: refused unread" in rows["a"]["error"]
     assert rows["b"]["status"] == "skipped" and "outputs unreadable" in rows["b"]["error"]
+    assert rows["c"]["status"] == "failed" and "mask '../a/mask.png' leads outside the scan folder" in rows["c"]["error"]
     assert "failed: a (" in capsys.readouterr().out
     assert not ran.exists()
 
