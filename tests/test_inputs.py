@@ -160,6 +160,7 @@ def test_checkpoint_of_the_previous_format_resumes_to_the_same_result(interrupte
     (lambda ck: ck.update(iteration="10"), "entry 'iteration' is a str"),
     (lambda ck: ck.pop("optimizer"), "missing ['optimizer']"),
     (lambda ck: ck["history"].update(steps=[1]), "its history holds"),
+    (lambda ck: ck["identity"].pop("frames"), "a malformed run identity"),
     (lambda ck: ck.update(field={}), "does not fit this run's field"),
     (lambda ck: ck.update(init_depth=torch.zeros(7)), "its starting depth map has 7 pixels"),
 ])

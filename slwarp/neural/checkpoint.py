@@ -230,7 +230,18 @@ def read_checkpoint(path, map_location="cpu") -> dict:
                                   f"{type(ck[key]).__name__}); {AGAIN}")
     if ck["generator"].dtype != torch.uint8 or not all(isinstance(v, list) for v in ck["history"].values()):
         raise CheckpointError(f"{path}: not a slwarp training checkpoint (a malformed generator state or history); {AGAIN}")
+    if "identity" in ck and not _is_identity(ck["identity"]):
+        raise CheckpointError(f"{path}: not a slwarp training checkpoint (a malformed run identity); {AGAIN}")
     return ck
+
+
+def _is_identity(doc: dict) -> bool:
+    """Whether `doc` has the shape of a `run_identity` record (what `identity_differences` reads)."""
+    frames, depth_range = doc.get("frames"), doc.get("depth_range")
+    return (isinstance(frames, list) and all(isinstance(f, (list, tuple)) and len(f) == 2 for f in frames)
+            and isinstance(depth_range, (list, tuple)) and len(depth_range) == 2
+            and all(type(x) in (int, float) for x in depth_range)
+            and isinstance(doc.get("calibration"), str) and isinstance(doc.get("options"), dict))
 
 
 def check_field(ck: dict, network: dict, path) -> None:
