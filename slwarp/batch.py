@@ -260,7 +260,7 @@ class BatchOptions:
     (a selection, see `Scan.frame_indices`), depth_range (near, far) mm for scans that declare none, use_mask,
     resume (see the module docstring), overwrite (start each scan afresh over a checkpoint in its folder),
     progress (training progress of each scan; only when one process runs the batch), log (per-scan start and
-    end lines)."""
+    end lines), outside_paths (files outside a scan's folder: see `load_scan`)."""
 
     frames: str | None = None
     depth_range: tuple[float, float] | None = None
@@ -269,6 +269,7 @@ class BatchOptions:
     overwrite: bool = False
     progress: bool = False
     log: bool = True
+    outside_paths: bool | None = None
 
 
 @dataclass(frozen=True)
@@ -329,7 +330,7 @@ def _result_from_outputs(job: ScanJob) -> ScanResult:
     try:
         timings = json.loads((out / "timings.json").read_text())
         row.seconds, row.iterations = timings.get("total_s"), timings.get("iterations")
-        depth = np.load(out / "depth.npy")
+        depth = np.load(out / "depth.npy", allow_pickle=False)
         row.valid_share, row.pixels = float(np.isfinite(depth).mean()), int(depth.size)
         if (out / "metrics.json").is_file():
             m = json.loads((out / "metrics.json").read_text())["metrics"]
@@ -392,7 +393,7 @@ def run_scan(job: ScanJob, config, options: BatchOptions = BatchOptions(), worke
     say = log if options.log else (lambda _msg: None)
     t0 = time.perf_counter()
     try:
-        scan = load_scan(job.source, frames=options.frames)
+        scan = load_scan(job.source, frames=options.frames, outside_paths=options.outside_paths)
         row.frames, row.pixels = len(scan), scan.camera.width * scan.camera.height
         _fit_compiled(scan, config)
         resume = options.resume and (Path(job.out_dir) / CHECKPOINT).is_file()

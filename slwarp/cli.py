@@ -62,6 +62,15 @@ _VALUE_ERRORS_ARE_USER_ERRORS = {"decode"}
 # ----------------------------------------------------------------------------------------------
 
 
+OUTSIDE_PATHS_HELP = ("read the scan's files (frames, patterns, gt_depth, mask) that lie outside its folder, links "
+                      "followed (default: only when its scan.yaml says allow_outside_paths: true; "
+                      "--no-allow-outside-paths refuses them even then, for scans from others; see docs/inputs.md)")
+
+
+def _add_outside_paths(p) -> None:
+    p.add_argument("--allow-outside-paths", action=argparse.BooleanOptionalAction, default=None, help=OUTSIDE_PATHS_HELP)
+
+
 FRAMES_HELP = ("frame selection, comma-separated tokens: frame names, indices, slices (0:7), role selectors "
                "(gray:col:bit=0-6:noinv, phase:row:period=40, white, random:size=20) or name globs (gc_col_b*)")
 
@@ -69,7 +78,7 @@ FRAMES_HELP = ("frame selection, comma-separated tokens: frame names, indices, s
 def cmd_info(args) -> int:
     from .scans.scan import load_scan
 
-    scan = load_scan(args.scan, frames=args.frames)
+    scan = load_scan(args.scan, frames=args.frames, outside_paths=args.allow_outside_paths)
     print(scan.summary(each_frame=args.roles))
     _warn_problems(scan, sys.stdout)
     return 0
@@ -85,6 +94,7 @@ def _add_info(p):
     p.add_argument("scan", help="scan folder (native scan.yaml, NeSS config.ini or procam calibration_result.xml)")
     p.add_argument("--frames", help=FRAMES_HELP)
     p.add_argument("--roles", action="store_true", help="also list every frame with its role")
+    _add_outside_paths(p)
     p.set_defaults(func=cmd_info)
 
 
@@ -216,7 +226,7 @@ def cmd_decode(args) -> int:
     from .evaluation.viz import ensure_dir, save_confidence_map, save_depth_color
     from .scans.scan import load_scan
 
-    scan = load_scan(args.scan)
+    scan = load_scan(args.scan, outside_paths=args.allow_outside_paths)
     _warn_problems(scan)
     params = {"min_amplitude": args.min_amplitude}
     if args.method in ("gc", "gc-interp", "cgc", "gt"):
@@ -296,6 +306,7 @@ def _add_decode(p):
     p.add_argument("--fallback", default="extrapolate", choices=["extrapolate", "center", "nan"],
                    help="gc-interp: pixels not between two stripe transitions (default: extrapolate)")
     p.add_argument("--no-depth-range", action="store_true", help="keep points outside the scan's depth range")
+    _add_outside_paths(p)
     p.set_defaults(func=cmd_decode)
 
 
@@ -306,7 +317,7 @@ def cmd_evaluate(args) -> int:
     from .evaluation.outputs import read_confidence
     from .scans.scan import load_scan, read_depth
     pred = read_depth(args.pred, "prediction")
-    scan = load_scan(args.scan)
+    scan = load_scan(args.scan, outside_paths=args.allow_outside_paths)
     if scan.gt_depth is None:
         raise UserError(f"{args.scan}: the scan has no ground-truth depth to evaluate against")
     if pred.shape != scan.gt_depth.shape:
@@ -367,6 +378,7 @@ def _add_evaluate(p):
     p.add_argument("--confidence", metavar="FILE.npy", help="a confidence map [H, W] in [0, 1] of the prediction "
                    "(default: confidence.npy beside it, when there is one): also report the MAE of its 90%% and 75%% "
                    "most confident pixels and the AUSE")
+    _add_outside_paths(p)
     p.set_defaults(func=cmd_evaluate)
 
 
@@ -534,7 +546,7 @@ def cmd_reconstruct(args) -> int:
     if not found.single or args.per_device is not None or launched_by_torchrun():
         return _reconstruct_batch(args, found, name, cfg, dev)
     scan_path = args.scans[0]
-    scan = load_scan(scan_path, frames=args.frames)
+    scan = load_scan(scan_path, frames=args.frames, outside_paths=args.allow_outside_paths)
     timeline.mark("scan loaded")
     _warn_problems(scan)
     depth_range = _parse_range(args.depth_range)
@@ -588,7 +600,8 @@ def _reconstruct_batch(args, found, name: str, cfg, dev) -> int:
         print(f"reconstructing {len(found.scans)} scans ({how}) with preset '{name}'" + (f" + {args.config}" if args.config else "")
               + f" ({describe(cfg)}) on {dev}", flush=True)
     options = BatchOptions(frames=args.frames, depth_range=_parse_range(args.depth_range), use_mask=args.use_mask,
-                           resume=args.resume, overwrite=args.overwrite, progress=not args.quiet, log=not args.quiet)
+                           resume=args.resume, overwrite=args.overwrite, progress=not args.quiet, log=not args.quiet,
+                           outside_paths=args.allow_outside_paths)
     summary = run_batch(found.scans, cfg, args.out, options, single=found.single, per_device=args.per_device)
     if summary is None:  # a rank other than 0: rank 0 reports
         return 0
@@ -620,6 +633,7 @@ def _add_reconstruct(p, argv=None):
     p.add_argument("--use-mask", action="store_true",
                    help="also restrict the depth map to the scan's mask").help_section = "reconstruct"
     p.add_argument("--quiet", action="store_true", help="no progress output")
+    _add_outside_paths(p)
     _add_config_options(p, name, argv=argv)
     p.set_defaults(func=cmd_reconstruct)
 

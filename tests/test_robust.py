@@ -18,8 +18,8 @@ from slwarp.cli import main as cli_main
 from slwarp.evaluation.outputs import OutputError, check_output_folder, staged_outputs, write_depth
 from slwarp.neural.config import preset
 from slwarp.neural.reconstruct import reconstruct
-from slwarp.neural.train import (CheckpointError, CheckpointExists, RunMismatch, Trainer, TrainingInterrupted,
-                                 read_checkpoint)
+from slwarp.neural.checkpoint import CheckpointError, CheckpointExists, RunMismatch, read_checkpoint
+from slwarp.neural.train import Trainer, TrainingInterrupted
 from slwarp.scans.scan import Scan, ScanError, load_scan
 from slwarp.sim.simulate import SimOptions, simulate_scene
 

@@ -17,11 +17,12 @@ pushed out of the solid (`Trainer._free_space_term`: gaps and background the fie
 with `start_frames` frames and add the next one every `add_every` iterations without restarting;
 `Trainer.add_frames` lets a caller add captured frames to a running optimisation.
 
-Checkpoints (`out_dir/checkpoint.pt`) record the run's identity (`run_identity`: the frames by name and content
-digest, the depth range, a digest of the calibration and every option that is not `resumable`); `resume=True`
-refuses a checkpoint of another run (`RunMismatch`, naming each difference), and a new run refuses to replace an
-existing checkpoint unless `overwrite=True` (`CheckpointExists`). SIGINT/SIGTERM during `train()` save a checkpoint at
-the next step boundary and raise `TrainingInterrupted` (exit status 130/143 on the command line).
+Checkpoints (`out_dir/checkpoint.pt`; slwarp.neural.checkpoint: tensors and plain data, read without unpickling
+anything else) record the run's identity (`run_identity`: the frames by name and content digest, the depth range, a
+digest of the calibration and every option that is not `resumable`); `resume=True` refuses a checkpoint of another
+run (`RunMismatch`, naming each difference), and a new run refuses to replace an existing checkpoint unless
+`overwrite=True` (`CheckpointExists`). SIGINT/SIGTERM during `train()` save a checkpoint at the next step boundary and
+raise `TrainingInterrupted` (exit status 130/143 on the command line).
 
 The hash-grid field (field.kind "hashgrid"): Adam groups for its tables (grid_table_lr_factor x lr), its MLP
 and the NeuS variance (lr), all following the schedule's factor; its levels switch on coarse to fine
@@ -33,7 +34,6 @@ Repeatability: every random draw (pixel batches, ray jitter) comes from one torc
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import math
 import os
@@ -49,6 +49,8 @@ import torch
 
 from ..devices import torch_device
 from ..scans.scan import ScanError
+from .checkpoint import (CheckpointError, CheckpointExists, RunMismatch, check_field, identity_differences,
+                         make_state, read_checkpoint, restore, run_identity, write_checkpoint)
 from .config import TrainConfig
 from .field import Volume, make_field
 from .confidence import pattern_model_inputs, photometric_confidence
@@ -114,91 +116,6 @@ class TrainingInterrupted(Exception):
         where = (f"checkpoint saved at {checkpoint}; continue with --resume (Python: resume=True)" if checkpoint
                  else "no checkpoint (no output folder)")
         super().__init__(f"interrupted by {signal.Signals(signum).name} at iteration {iteration}: {where}")
-
-
-class CheckpointError(ValueError):
-    """A checkpoint that cannot be used: missing, truncated, not a slwarp checkpoint, or of another run."""
-
-
-class CheckpointExists(CheckpointError):
-    """A new run would replace an existing checkpoint (pass resume=True to continue it, overwrite=True to replace it)."""
-
-
-class RunMismatch(CheckpointError):
-    """--resume with a checkpoint written by a different run; `differences` lists (what, old, new)."""
-
-    def __init__(self, path, differences: list[tuple[str, object, object]]):
-        self.differences = differences
-        lines = "; ".join(f"{what}: {old} in the checkpoint, {new} now" for what, old, new in differences)
-        super().__init__(f"{path}: --resume with a different run ({lines}); resume with the same scan, frames and "
-                         "options, or start again with --overwrite (or another --out)")
-
-
-def _digest(*arrays) -> str:
-    h = hashlib.sha256()
-    for a in arrays:
-        a = np.ascontiguousarray(a)
-        h.update(str((a.dtype.str, a.shape)).encode())
-        h.update(a.tobytes())
-    return h.hexdigest()[:16]
-
-
-def run_identity(scan, config: TrainConfig, depth_range) -> dict:
-    """What defines a run's result, as its checkpoint records it: the frames (name and a digest of the image and
-    pattern, in order), the depth range (mm), a digest of the calibration and every option a resumed run must
-    keep (`TrainConfig.fixed_options`). Plain values (JSON-able)."""
-    calib = json.dumps({"camera": scan.camera.to_dict(), "projector": scan.projector.to_dict(),
-                        "R": np.asarray(scan.projector.R).tolist(), "T": np.asarray(scan.projector.T).tolist()},
-                       sort_keys=True)
-    return {"frames": [[name, _digest(scan.images[i], scan.patterns[i])] for i, name in enumerate(scan.names)],
-            "depth_range": [float(x) for x in depth_range],
-            "calibration": hashlib.sha256(calib.encode()).hexdigest()[:16],
-            "options": config.fixed_options()}
-
-
-def _short_list(names: list[str], limit: int = 6) -> str:
-    return ", ".join(names[:limit]) + (f", ... ({len(names)} in all)" if len(names) > limit else "")
-
-
-def identity_differences(old: dict, new: dict) -> list[tuple[str, object, object]]:
-    """(what, old value, new value) for every difference between two `run_identity` records."""
-    diffs = []
-    old_frames, new_frames = [tuple(f) for f in old["frames"]], [tuple(f) for f in new["frames"]]
-    if old_frames != new_frames:
-        old_names, new_names = [f[0] for f in old_frames], [f[0] for f in new_frames]
-        if old_names != new_names:
-            diffs.append(("frames", f"{len(old_names)} ({_short_list(old_names)})",
-                          f"{len(new_names)} ({_short_list(new_names)})"))
-        else:
-            changed = [o[0] for o, n in zip(old_frames, new_frames) if o[1] != n[1]]
-            diffs.append(("frame content", "other images or patterns", f"changed in {_short_list(changed)}"))
-    if [float(x) for x in old["depth_range"]] != [float(x) for x in new["depth_range"]]:
-        diffs.append(("depth range (mm)", tuple(old["depth_range"]), tuple(new["depth_range"])))
-    if old["calibration"] != new["calibration"]:
-        diffs.append(("calibration", "digest " + old["calibration"], "digest " + new["calibration"]))
-    for name in sorted(set(old["options"]) | set(new["options"])):
-        a, b = old["options"].get(name, "(absent)"), new["options"].get(name, "(absent)")
-        if a != b:
-            diffs.append((f"option {name}", a, b))
-    return diffs
-
-
-def read_checkpoint(path, map_location="cpu") -> dict:
-    """The checkpoint at `path`, or CheckpointError naming the path and the problem (missing, truncated, not a
-    slwarp checkpoint)."""
-    path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"{path}: no checkpoint to resume from (run without --resume to start)")
-    try:
-        ck = torch.load(path, map_location=map_location, weights_only=False)
-    except Exception as e:  # noqa: BLE001 - torch reports truncation and garbage as many types (zip, pickle, EOF)
-        raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else 'truncated?'}); "
-                              "start again with --overwrite") from None
-    needed = ("iteration", "config", "field", "variance", "optimizer", "generator", "n_frames", "history")
-    if not isinstance(ck, dict) or any(k not in ck for k in needed):
-        raise CheckpointError(f"{path}: not a slwarp training checkpoint (missing "
-                              f"{[k for k in needed if not isinstance(ck, dict) or k not in ck]}); start again with --overwrite")
-    return ck
 
 
 class _StopSignals:
@@ -548,66 +465,42 @@ class Trainer:
 
     # --- checkpoints --------------------------------------------------------------------------
     def state(self) -> dict:
-        return {
-            "iteration": self.iteration,
-            "config": self.cfg.to_dict(),
-            "field": self.field.state_dict(),
-            "variance": self.renderer.variance.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
-            "generator": self._generator_state(),
-            "n_frames": self.n_frames,
-            "volume": dataclasses.asdict(self.volume),
-            "depth_range": self.depth_range,
-            "history": dataclasses.asdict(self.history),
-            "elapsed": self.elapsed,
-            "init_depth": self.init_depth,
-            "pattern_blur": self.renderer.pattern_blur,
-            "identity": self.identity,
-        }
+        """The checkpoint's contents (slwarp.neural.checkpoint.make_state): tensors and plain data only."""
+        return make_state(iteration=self.iteration, config=self.cfg.to_dict(), field=self.field,
+                          variance=self.renderer.variance, optimizer=self.optimizer,
+                          generator_state=self._generator_state(), n_frames=self.n_frames,
+                          volume=dataclasses.asdict(self.volume), depth_range=self.depth_range,
+                          history=dataclasses.asdict(self.history), elapsed=self.elapsed, init_depth=self.init_depth,
+                          pattern_blur=self.renderer.pattern_blur, identity=self.identity)
 
     def save_checkpoint(self, path=None) -> Path | None:
-        """Atomically write the checkpoint (write to a temporary file, then rename)."""
+        """Atomically write the checkpoint (out_dir/checkpoint.pt unless `path`); None without either."""
         if self.out_dir is None and path is None:
             return None
-        path = Path(path) if path is not None else self.out_dir / "checkpoint.pt"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp")
-        try:
-            torch.save(self.state(), tmp)
-            os.replace(tmp, path)
-        except (OSError, RuntimeError) as e:  # torch reports a full disk as a RuntimeError of its zip writer
-            tmp.unlink(missing_ok=True)
-            if isinstance(e, OSError):
-                raise
-            raise OSError(f"{path}: could not write the checkpoint ({str(e).splitlines()[0]}); is the disk full?") from None
-        return path
+        return write_checkpoint(self.state(), Path(path) if path is not None else self.out_dir / "checkpoint.pt")
 
     def load_checkpoint(self, path, ck: dict | None = None):
         """Continue from the checkpoint at `path` (or its already read contents `ck`)."""
         ck = ck if ck is not None else read_checkpoint(path, map_location=self.device)
-        saved = ck["config"].get("field", ck["config"])  # flat in checkpoints written before the config had sections
-        field_now = self.cfg.field.network()
-        saved_kind = saved.get("kind", "mlp")  # written before the hash grid: the MLP
-        if saved_kind != field_now["kind"]:
-            raise CheckpointError(f"{path}: checkpoint was trained with the {saved_kind} field, the config asks for the "
-                             f"{field_now['kind']} field (--field); resume with --field {saved_kind} and the same preset")
-        differ = {k: (saved.get(k), v) for k, v in field_now.items() if saved.get(k) != v}
-        if differ:
-            raise CheckpointError(f"{path}: checkpoint was trained with a different {saved_kind} field (checkpoint, config: "
-                             + ", ".join(f"{k} {a!r} vs {b!r}" for k, (a, b) in differ.items())
-                             + "); use the same preset/options to resume")
+        check_field(ck, self.cfg.field.network(), path)
+        if not 1 <= ck["n_frames"] <= len(self.scan):
+            raise CheckpointError(f"{path}: trained on {ck['n_frames']} frames, the scan has {len(self.scan)}; "
+                                  "start again with --overwrite")
+        try:
+            history = History(**ck["history"])
+        except TypeError:
+            raise CheckpointError(f"{path}: not a slwarp training checkpoint (its history holds "
+                                  f"{sorted(ck['history'])}); start again with --overwrite") from None
         if ck["n_frames"] != self.n_frames:
             self.n_frames = ck["n_frames"]
             self.renderer.set_frames(self.scan.images[: self.n_frames], self.scan.patterns[: self.n_frames])
-        self.field.load_state_dict(ck["field"])
-        self.renderer.variance.load_state_dict(ck["variance"])
-        self.optimizer.load_state_dict(ck["optimizer"])
-        self._configure_optimizer()
         self._ahead = None  # before the generator: the draws made ahead belong to the run replaced
-        self.generator.set_state(ck["generator"])
+        restore(ck, path, field=self.field, variance=self.renderer.variance, optimizer=self.optimizer,
+                generator=self.generator, pixels=self.scan.camera.width * self.scan.camera.height)
+        self._configure_optimizer()
         self.iteration = ck["iteration"]
-        self.history = History(**ck["history"])
-        self.elapsed = ck.get("elapsed", 0.0)
+        self.history = history
+        self.elapsed = float(ck.get("elapsed", 0.0))
         self.init_depth = ck.get("init_depth")
         self.renderer.set_pattern_blur(ck.get("pattern_blur", 0.0))
 

@@ -9,6 +9,11 @@ In memory: images [N, H, W] and patterns [N, Hp, Wp] float32 in [0, 1]; gt_depth
 NaN where invalid; mask [H, W] bool. Each frame has a role (`slwarp.scans.roles`: declared in scan.yaml,
 mapped from the NeSS tags, or read from slwarp's frame names), resolved once when the Scan is built; the
 decoders read roles, never names. Bad input raises `ScanError` naming the file and the problem.
+
+Confinement: every file a scan brings (scan.yaml's frames, gt_depth and mask; an importer's files) is read from
+inside the scan folder, links followed (`inside_folder`); a path that leads out of it is refused, naming the entry,
+unless allowed: `load_scan(..., outside_paths=True)` (CLI --allow-outside-paths) or `allow_outside_paths: true` in
+scan.yaml, which `outside_paths=False` (--no-allow-outside-paths) overrides for scans from others (docs/inputs.md).
 """
 from __future__ import annotations
 
@@ -26,9 +31,10 @@ from ..evaluation.outputs import write_depth_png
 from .roles import FrameRole, RoleError, parse_role, parse_selector, resolve_roles, role_groups
 from .scanner import CalibrationError, Camera, Projector, check_rotation
 
-__all__ = ["Scan", "ScanError", "load_scan", "read_image", "read_depth"]
+__all__ = ["Scan", "ScanError", "load_scan", "read_image", "read_depth", "inside_folder"]
 
 SCAN_FILE = "scan.yaml"
+OUTSIDE_FLAG = "allow_outside_paths"  # the scan.yaml key that lets its entries name files outside the folder
 
 
 class ScanError(ValueError):
@@ -48,13 +54,28 @@ def _names(names: list[str], limit: int = 6) -> str:
     return ", ".join(names[:limit]) + (f", ... ({len(names)} in all)" if len(names) > limit else "")
 
 
+# the first bytes of the image files slwarp reads: PNG, TIFF and BigTIFF (either byte order)
+IMAGE_SIGNATURES = (b"\x89PNG", b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
+
+
+def _check_image_file(path: Path, what: str) -> None:
+    """ScanError unless `path` is a regular file that starts as a PNG or TIFF does. Why: OpenCV picks its decoder
+    from the content, whatever the name; the contract's two formats keep its other decoders (JPEG, WebP, ...) away
+    from files that others wrote."""
+    if not path.is_file():
+        raise ScanError(f"{what} not found: {path}")
+    with open(path, "rb") as f:
+        head = f.read(4)
+    if not head.startswith(IMAGE_SIGNATURES):
+        raise ScanError(f"{what} is unreadable or corrupt (not a PNG or TIFF file: slwarp reads those two formats): {path}")
+
+
 def read_image(path: str | os.PathLike, what: str = "image") -> np.ndarray:
     """Read an 8/16-bit or float PNG/TIFF as float32 gray in [0, 1] (colour converted to gray)."""
     import cv2
 
     path = Path(path)
-    if not path.is_file():
-        raise ScanError(f"{what} not found: {path}")
+    _check_image_file(path, what)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise ScanError(f"{what} is unreadable or corrupt (not a PNG/TIFF image OpenCV can decode): {path}")
@@ -99,13 +120,20 @@ def read_depth(path: str | os.PathLike, what: str = "depth") -> np.ndarray:
         raise ScanError(f"{what} not found: {path}")
     if path.suffix.lower() == ".npy":
         try:
-            d = np.load(path).astype(np.float32)
+            d = np.load(path, allow_pickle=False)  # an object array would unpickle its items: refused
         except Exception as e:  # noqa: BLE001 - any numpy failure is a corrupt file for the user
-            raise ScanError(f"{what} is not a readable .npy array ({e}): {path}") from None
+            raise ScanError(f"{what} is not a readable .npy array ({' '.join(str(e).split())}): {path}") from None
+        if not isinstance(d, np.ndarray):
+            d.close()
+            raise ScanError(f"{what} is an .npz archive, not a .npy array: {path}")
+        if d.dtype.kind not in "biuf":
+            raise ScanError(f"{what} holds {d.dtype} values, not numbers (need float, mm): {path}")
+        d = d.astype(np.float32)
         if d.ndim != 2:
             raise ScanError(f"{what} must be a 2-D array, got shape {d.shape}: {path}")
         d[~np.isfinite(d) | (d <= 0)] = np.nan
         return d
+    _check_image_file(path, what)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise ScanError(f"{what} is unreadable or corrupt: {path}")
@@ -388,10 +416,13 @@ class Scan:
 # loading
 
 
-def load_scan(path: str | os.PathLike, frames=None, capture: int | str | None = None) -> Scan:
+def load_scan(path: str | os.PathLike, frames=None, capture: int | str | None = None,
+              outside_paths: bool | None = None) -> Scan:
     """Load a scan, detecting the layout: native (scan.yaml), NeSS (config.ini) or procam
     (calibration_result.xml). `frames` selects a subset (see `Scan.frame_indices`); `capture` picks
-    capture_N in the procam layout (default: the first one)."""
+    capture_N in the procam layout (default: the first one). outside_paths: whether files outside the scan folder
+    (links followed) may be read: None: only when scan.yaml says `allow_outside_paths: true`; True: yes; False:
+    never, whatever scan.yaml says (a scan from others). ScanError naming the entry otherwise."""
     path = Path(path)
     if not path.exists():
         raise ScanError(f"scan not found: {path}")
@@ -401,19 +432,62 @@ def load_scan(path: str | os.PathLike, frames=None, capture: int | str | None = 
         else:
             raise ScanError(f"a scan is a folder (with {SCAN_FILE}, config.ini or calibration_result.xml), got a file: {path}")
     if (path / SCAN_FILE).is_file():
-        scan = _load_native(path)
+        scan = _load_native(path, outside_paths)
     elif (path / "config.ini").is_file():
-        scan = _load_ness(path)
+        scan = _load_ness(path, _Confined(path, path, bool(outside_paths)))
     elif (path / "calibration_result.xml").is_file():
-        scan = _load_procam(path, capture)
+        scan = _load_procam(path, capture, bool(outside_paths))
     elif path.name.startswith("capture_") and (path.parent / "calibration_result.xml").is_file():
-        scan = _load_procam(path.parent, path.name)
+        scan = _load_procam(path.parent, path.name, bool(outside_paths))
     else:
         raise ScanError(
             f"{path}: no scan found: missing {SCAN_FILE} (native layout), config.ini (NeSS layout) or "
             "calibration_result.xml (procam layout)"
         )
     return scan.select(frames) if frames is not None else scan
+
+
+def inside_folder(path: str | os.PathLike, folder: str | os.PathLike) -> bool:
+    """Whether `path` lies inside `folder` once every link in both is followed (a path that does not exist yet is
+    judged by the links it passes through)."""
+    real, root = os.path.realpath(path), os.path.realpath(folder)
+    try:
+        return os.path.commonpath([real, root]) == root
+    except ValueError:  # on different drives (Windows)
+        return False
+
+
+class _Confined:
+    """The files of one scan folder: `path(entry, relative)` gives folder / relative, or ScanError naming `source`
+    (the file whose entry names it), the entry and where it leads when that lies outside the folder (links
+    followed) and `allow` is off. Why: a scanning station reads folders that others wrote; a scan.yaml naming
+    /home/... or ../.. would make it read (and report on) files that are not the scan's."""
+
+    def __init__(self, folder: Path, source: Path, allow: bool, hint: str | None = None):
+        self.folder, self.source, self.allow = folder, source, allow
+        self.hint = hint or "allow it with --allow-outside-paths (Python: load_scan(..., outside_paths=True))"
+
+    def path(self, entry: str, relative) -> Path:
+        if not isinstance(relative, str) or not relative.strip():
+            raise ScanError(f"{self.source}: {entry} must be a file path relative to the scan folder, got {relative!r}")
+        p = self.folder / relative
+        if not self.allow and not inside_folder(p, self.folder):
+            named = entry if entry == relative else f"{entry} {relative!r}"  # a fixed name once (config.ini)
+            raise ScanError(f"{self.source}: {named} leads outside the scan folder (to "
+                            f"{os.path.realpath(p)}); a scan's files are read from inside its folder: copy it in, or "
+                            f"{self.hint}")
+        return p
+
+    def files(self, entry: str, paths) -> list[Path]:
+        """`paths` found in the folder (e.g. by a glob: a link there may lead out), each checked as `path` does."""
+        out = []
+        for p in paths:
+            try:
+                relative = p.relative_to(self.folder).as_posix()
+            except ValueError:  # found in a folder already allowed outside (a procam capture given by path)
+                relative = str(p)
+            out.append(self.path(entry, relative))
+        return out
 
 
 def _load_stack(files: list[tuple[Path, str]], shape: tuple[int, int], kind: str, size_name: str) -> np.ndarray:
@@ -436,10 +510,13 @@ def _wrap_calibration(where: Path, fn):
         raise ScanError(f"{where}: {e}") from None
 
 
-def _load_native(folder: Path) -> Scan:
+def _load_native(folder: Path, outside_paths: bool | None = None) -> Scan:
     import yaml
 
     f = folder / SCAN_FILE
+    if not outside_paths and not inside_folder(f, folder):  # its own flag cannot vouch for it
+        raise ScanError(f"{f}: a link to {os.path.realpath(f)}, outside the scan folder; copy it in, or allow it with "
+                        "--allow-outside-paths (Python: load_scan(..., outside_paths=True))")
     try:
         doc = yaml.safe_load(f.read_text())
     except yaml.YAMLError as e:
@@ -449,6 +526,17 @@ def _load_native(folder: Path) -> Scan:
     for key in ("camera", "projector", "extrinsics", "frames"):
         if key not in doc:
             raise ScanError(f"{f}: missing key {key!r}")
+    flag = doc.get(OUTSIDE_FLAG, False)
+    if not isinstance(flag, bool):
+        raise ScanError(f"{f}: {OUTSIDE_FLAG} must be true or false, got {flag!r}")
+    if outside_paths is None:
+        files = _Confined(folder, f, flag, hint=f"allow it with {OUTSIDE_FLAG}: true in {SCAN_FILE} or "
+                          "--allow-outside-paths (Python: load_scan(..., outside_paths=True))")
+    elif outside_paths:
+        files = _Confined(folder, f, True)
+    else:
+        files = _Confined(folder, f, False, hint="this scan is read with files outside refused "
+                          f"(--no-allow-outside-paths; Python: outside_paths=False), whatever its {OUTSIDE_FLAG} says")
     units = doc.get("units", "mm")
     if units != "mm":
         raise ScanError(f"{f}: units must be 'mm', got {units!r}")
@@ -461,8 +549,8 @@ def _load_native(folder: Path) -> Scan:
     for i, fr in enumerate(frames):
         if not isinstance(fr, dict) or "image" not in fr or "pattern" not in fr:
             raise ScanError(f"{f}: frame {i} needs 'image' and 'pattern' entries, got {fr!r}")
-        img_files.append((folder / fr["image"], f"image of frame {i}"))
-        pat_files.append((folder / fr["pattern"], f"pattern of frame {i}"))
+        img_files.append((files.path(f"frames[{i}].image", fr["image"]), f"image of frame {i}"))
+        pat_files.append((files.path(f"frames[{i}].pattern", fr["pattern"]), f"pattern of frame {i}"))
         names.append(str(fr.get("name", f"frame{i}")))
         if "role" in fr:
             if fr["role"] is None:
@@ -470,12 +558,14 @@ def _load_native(folder: Path) -> Scan:
             declared[names[-1]] = fr["role"]
     images = _load_stack(img_files, (camera.height, camera.width), "image", "camera")
     patterns = _load_stack(pat_files, (projector.height, projector.width), "pattern", "projector")
-    gt = read_depth(folder / doc["gt_depth"], "gt_depth") if doc.get("gt_depth") else None
+    gt_file = files.path("gt_depth", doc["gt_depth"]) if doc.get("gt_depth") else None
+    mask_file = files.path("mask", doc["mask"]) if doc.get("mask") else None
+    gt = read_depth(gt_file, "gt_depth") if gt_file is not None else None
     if gt is not None and gt.shape != (camera.height, camera.width):
-        raise ScanError(f"gt_depth size {gt.shape[1]}x{gt.shape[0]} != camera size {camera.width}x{camera.height}: {folder / doc['gt_depth']}")
-    mask = _read_mask(folder / doc["mask"]) if doc.get("mask") else None
+        raise ScanError(f"gt_depth size {gt.shape[1]}x{gt.shape[0]} != camera size {camera.width}x{camera.height}: {gt_file}")
+    mask = _read_mask(mask_file) if mask_file is not None else None
     if mask is not None and mask.shape != (camera.height, camera.width):
-        raise ScanError(f"mask size {mask.shape[1]}x{mask.shape[0]} != camera size: {folder / doc['mask']}")
+        raise ScanError(f"mask size {mask.shape[1]}x{mask.shape[0]} != camera size: {mask_file}")
     dr = doc.get("depth_range")
     if dr is not None and (not isinstance(dr, (list, tuple)) or len(dr) != 2):
         raise ScanError(f"{f}: depth_range must be [near, far] in mm, got {dr!r}")
@@ -553,9 +643,11 @@ def ness_order_key(tag: str):
     return (3, -level)
 
 
-def _load_ness(folder: Path) -> Scan:
-    cfg_file = folder / "config.ini"
-    cfg = configparser.ConfigParser()
+def _load_ness(folder: Path, files: _Confined) -> Scan:
+    cfg_file = files.path("config.ini", "config.ini")
+    # no %-interpolation: the values are numbers, and a stray '%' then reads as a bad number (a ScanError) instead of
+    # configparser's InterpolationSyntaxError when the value is read
+    cfg = configparser.ConfigParser(interpolation=None)
     try:
         cfg.read(cfg_file, encoding="utf-8")
     except configparser.Error as e:
@@ -575,8 +667,8 @@ def _load_ness(folder: Path) -> Scan:
     projector = _wrap_calibration(
         cfg_file, lambda: Projector(pat_w, pat_h, [[pfx, 0, pcx], [0, pfy, pcy], [0, 0, 1]], R=check_rotation(R, "ext_rot"), T=T)
     )
-    pats = {p.stem[4:]: p for p in (folder / "pat").glob("pat_*.png")}
-    imgs = {p.stem[4:]: p for p in (folder / "img").glob("img_*.png")}
+    pats = {p.stem[4:]: p for p in files.files("pattern", sorted((folder / "pat").glob("pat_*.png")))}
+    imgs = {p.stem[4:]: p for p in files.files("image", sorted((folder / "img").glob("img_*.png")))}
     if not pats:
         raise ScanError(f"{folder / 'pat'}: no pattern images pat_<tag>.png")
     missing = sorted(set(pats) - set(imgs), key=_natural_key)
@@ -585,8 +677,10 @@ def _load_ness(folder: Path) -> Scan:
     tags = sorted(pats, key=ness_order_key)
     images = _load_stack([(imgs[t], f"image img_{t}") for t in tags], (img_h, img_w), "image", "camera")
     patterns = _load_stack([(pats[t], f"pattern pat_{t}") for t in tags], (pat_h, pat_w), "pattern", "projector")
-    gt = read_depth(folder / "gt" / "depth.png", "gt/depth.png") if (folder / "gt" / "depth.png").is_file() else None
-    mask = _read_mask(folder / "gt" / "mask_occ.png") if (folder / "gt" / "mask_occ.png").is_file() else None
+    gt_file = files.path("ground truth", "gt/depth.png") if (folder / "gt" / "depth.png").is_file() else None
+    mask_file = files.path("mask", "gt/mask_occ.png") if (folder / "gt" / "mask_occ.png").is_file() else None
+    gt = read_depth(gt_file, "gt/depth.png") if gt_file is not None else None
+    mask = _read_mask(mask_file) if mask_file is not None else None
     try:
         return Scan(camera, projector, images, patterns, tags, depth_range=tuple(zr) if zr is not None else None,
                     gt_depth=gt, mask=mask, source=str(folder),
@@ -608,12 +702,13 @@ def _procam_names(width: int, height: int) -> list[str]:
     return names + ["white", "black"]
 
 
-def _load_procam(folder: Path, capture) -> Scan:
+def _load_procam(folder: Path, capture, outside_paths: bool = False) -> Scan:
     import cv2
 
-    xml = folder / "calibration_result.xml"
+    files = _Confined(folder, folder, outside_paths)
+    xml = files.path("calibration_result.xml", "calibration_result.xml")
     try:
-        return _load_procam_with(folder, capture, xml, _read_procam_calibration(xml))
+        return _load_procam_with(folder, capture, xml, _read_procam_calibration(xml), files)
     except (cv2.error, SystemError) as e:
         # OpenCV's parser reports a truncated file or a malformed matrix as cv2.error or (from its Python
         # binding) SystemError: the file is at fault, not the program
@@ -646,7 +741,7 @@ def _read_procam_calibration(xml: Path) -> dict:
     return calib
 
 
-def _load_procam_with(folder: Path, capture, xml: Path, calib: dict) -> Scan:
+def _load_procam_with(folder: Path, capture, xml: Path, calib: dict, files: _Confined) -> Scan:
     cam_K, cam_d, prj_K, prj_d, R, T = (calib[k] for k in ("cam_K", "cam_d", "prj_K", "prj_d", "R", "T"))
     caps = sorted((p for p in folder.glob("capture_*") if p.is_dir()), key=lambda p: _natural_key(p.name))
     if not caps:
@@ -654,11 +749,12 @@ def _load_procam_with(folder: Path, capture, xml: Path, calib: dict) -> Scan:
     if capture is None:
         cap = caps[0]
     else:
-        cap = folder / (capture if isinstance(capture, str) else f"capture_{capture}")
+        cap = files.path("capture", capture if isinstance(capture, str) else f"capture_{capture}")
         if not cap.is_dir():
             raise ScanError(f"{folder}: capture folder {cap.name} not found (have {[c.name for c in caps]})")
-    pat_files = sorted((folder / "graycode_pattern").glob("pattern_*.png"), key=lambda p: _natural_key(p.name))
-    img_files = sorted(cap.glob("graycode_*.png"), key=lambda p: _natural_key(p.name))
+    pat_files = files.files("pattern", sorted((folder / "graycode_pattern").glob("pattern_*.png"),
+                                              key=lambda p: _natural_key(p.name)))
+    img_files = files.files("image", sorted(cap.glob("graycode_*.png"), key=lambda p: _natural_key(p.name)))
     if not pat_files:
         raise ScanError(f"{folder / 'graycode_pattern'}: no pattern_NN.png files")
     if len(img_files) != len(pat_files):
