@@ -8,6 +8,7 @@ The process keeps what a process pays once (imports, the device's start, kernel 
 the scans' size), so each scan after the first costs its reconstruction alone. A scan folder is taken once it is
 complete: its scan.yaml parses and every file it names (frames' images and patterns, gt_depth, mask) is present,
 and no file of the folder has changed size or time for `settle_s` (a scanner still copying frames is waited for).
+A scan's files are read from inside its folder only (slwarp.scans.scan.load_scan with outside_paths=False).
 Other layouts (NeSS config.ini, procam calibration_result.xml) are taken once their folder has settled. OUT/NAME
 with complete outputs is skipped; OUT/NAME with a checkpoint continues from it. A broken scan is reported in one
 line and not retried until its folder changes. Entries of the inbox that are links leading out of it are
@@ -28,7 +29,7 @@ from pathlib import Path
 from typing import Callable
 
 from .batch import SCAN_MARKERS, BatchOptions, ScanJob, ScanResult, outputs_complete, run_scan
-from .scans.scan import SCAN_FILE
+from .scans.scan import SCAN_FILE, inside_folder
 
 DEFAULT_POLL_S = 0.5
 DEFAULT_SETTLE_S = 1.0
@@ -147,12 +148,11 @@ class Watcher:
 
     def _entries(self) -> list[Path]:
         """The inbox's folders in name order; a link leading out of the inbox is ignored (said once)."""
-        root = self.inbox.resolve()
         found = []
         for p in sorted(self.inbox.iterdir(), key=lambda p: p.name):
             if not p.is_dir() or p.name.startswith("."):
                 continue
-            if p.is_symlink() and root not in p.resolve().parents:
+            if not inside_folder(p, self.inbox):
                 if p.name not in self.ignored:
                     self.ignored.add(p.name)
                     self.say(f"{p.name}: ignored (a link leading out of {self.inbox})")
@@ -252,7 +252,9 @@ def watch(inbox, out, config, options: BatchOptions, poll_s: float = DEFAULT_POL
           settle_s: float = DEFAULT_SETTLE_S, max_scans: int | None = None, until_idle: bool = False,
           say: Callable[[str], None] = print) -> int:
     """The `slwarp watch` command's body: 0 when stopped by request or done, 130/143 when stopped by a signal."""
-    options = replace(options, resume=True, log=False)  # a station continues what it started and prints one line a scan
+    # a station continues what it started, prints one line a scan, and reads a scan's files from inside its folder
+    # only, whatever its scan.yaml says (docs/inputs.md: folders that others wrote)
+    options = replace(options, resume=True, log=False, outside_paths=False)
     watcher = Watcher(inbox, out, Station(config, options), poll_s=poll_s, settle_s=settle_s, say=say)
     say(f"watching {inbox} -> {out} ({config.runtime.device}); Ctrl-C stops")
     rows = watcher.run(max_scans=max_scans, until_idle=until_idle)
