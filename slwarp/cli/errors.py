@@ -34,6 +34,7 @@ _VALUE_ERRORS_ARE_USER_ERRORS = {"decode"}
 
 
 def _interrupted():
+    """TrainingInterrupted (a signal stopped training after its checkpoint): reported with its own exit status."""
     from ..neural.train import TrainingInterrupted
 
     return TrainingInterrupted

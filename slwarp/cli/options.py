@@ -10,6 +10,7 @@ import textwrap
 from .errors import UserError
 
 # ----------------------------------------------------------------------------------------------
+# scan options and value parsers
 
 
 OUTSIDE_PATHS_HELP = ("read the scan's files (frames, patterns, gt_depth, mask) that lie outside its folder, links "
@@ -23,7 +24,6 @@ def _add_outside_paths(p) -> None:
 
 FRAMES_HELP = ("frame selection, comma-separated tokens: frame names, indices, slices (0:7), role selectors "
                "(gray:col:bit=0-6:noinv, phase:row:period=40, white, random:size=20) or name globs (gc_col_b*)")
-
 
 
 def _positive_int(text: str) -> int:
@@ -47,7 +47,6 @@ def _parse_range(text: str | None):
     if not (math.isfinite(near) and math.isfinite(far) and 0 < near < far):
         raise UserError(f"--depth-range needs 0 < NEAR < FAR, got {near}, {far}")
     return near, far
-
 
 
 # ----------------------------------------------------------------------------------------------
@@ -168,7 +167,6 @@ def _config_from_args(args):
     cfg = cfg.with_options(**given)
     dev = torch_device(cfg.runtime.device)
     return name, cfg.with_options(device=str(dev)), dev
-
 
 
 # ----------------------------------------------------------------------------------------------

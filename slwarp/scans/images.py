@@ -101,7 +101,6 @@ def read_depth(path: str | os.PathLike, what: str = "depth") -> np.ndarray:
     return d
 
 
-
 def read_mask(path: Path) -> np.ndarray:
     """A mask image as bool [H, W]: set where brighter than half scale."""
     return read_image(path, "mask") > 0.5

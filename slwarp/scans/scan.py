@@ -362,8 +362,8 @@ def _scan_of(fields: dict, where: Path) -> Scan:
         raise ScanError(f"{where}: {e}") from None
 
 
-
 def _load_native(folder: Path, outside_paths: bool | None = None) -> Scan:
+    """The Scan of a folder in the native layout (scan.yaml); outside_paths as `load_scan` takes it."""
     import yaml
 
     f = folder / SCAN_FILE
