@@ -60,14 +60,10 @@ def run_demo(out_dir="slwarp-demo", scene: str = DEMO_SCENE, config=None, preset
     its runtime.device picks the rig: the default rig on CUDA, the small one on the CPU."""
     import torch
 
-    from .decode import reconstruct_depth
     from .devices import torch_device, warp_device
-    from .evaluation.metrics import depth_metrics, format_table
-    from .evaluation.outputs import write_depth
-    from .evaluation.viz import save_depth_color, save_error_map, save_point_cloud_render
+    from .evaluation.metrics import format_table
     from .neural.config import default_preset_name, preset
     from .neural.describe import describe
-    from .neural.extract import depth_to_points
     from .neural.reconstruct import reconstruct
     from .sim.simulate import simulate_scene
 
@@ -97,30 +93,12 @@ def run_demo(out_dir="slwarp-demo", scene: str = DEMO_SCENE, config=None, preset
 
     log("3/4 classical Gray code decoding with interpolation: GC(6) and GC(7) ...")
     results = {"ours (6 random)": {"depth": ours.depth, "metrics": ours.metrics, "patterns": 6}}
-    for bits in (6, 7):
-        frames = ",".join(f"gc_col_b{i}" for i in range(bits))
-        depth, _, _ = reconstruct_depth(scan, "gc-interp", frames=frames)
-        folder = out / f"gc{bits}-interp"
-        folder.mkdir(exist_ok=True)
-        write_depth(folder, depth)
-        m = depth_metrics(depth, scan.gt_depth, scan.mask)
-        (folder / "metrics.json").write_text(json.dumps({"method": "gc-interp", "frames": frames.split(","), "metrics": m}, indent=1))
-        results[f"GC({bits}) interp"] = {"depth": depth, "metrics": m, "patterns": bits}
+    results.update(_gray_code_baselines(scan, out))
     t_gc = time.perf_counter()
 
     log("4/4 pictures ...")
     gt = scan.gt_depth.astype(np.float64)
-    lo_hi = (np.nanpercentile(gt, 1), np.nanpercentile(gt, 99))
-    slug = {"ours (6 random)": "neural-sdf", "GC(6) interp": "gc6-interp", "GC(7) interp": "gc7-interp"}
-    for name, r in results.items():
-        folder = out / slug[name]
-        save_depth_color(folder / "depth_color.png", r["depth"], lo_hi)
-        save_error_map(folder / "error_map.png", np.where(scan.mask, r["depth"], np.nan), gt,
-                       title=f"{name}: |depth error|, MAE {r['metrics']['mae']:.3f} mm", max_mm=3.0)
-    comparison_figure(out / "comparison.png", np.where(scan.mask, gt, np.nan),
-                      {k: {"depth": np.where(scan.mask, v["depth"], np.nan), "metrics": v["metrics"]} for k, v in results.items()})
-    pts = depth_to_points(ours.depth, scan.camera)
-    save_point_cloud_render(out / "point_cloud.png", pts, title=f"neural SDF point cloud ({len(pts)} points)")
+    _save_pictures(out, scan, gt, results)
     t_end = time.perf_counter()
 
     rows = [(f"{k} [{v['patterns']} patterns]", v["metrics"]) for k, v in results.items()]
@@ -144,3 +122,45 @@ def run_demo(out_dir="slwarp-demo", scene: str = DEMO_SCENE, config=None, preset
         f"classical {t_gc - t_ours:.1f} s, pictures {t_end - t_gc:.1f} s, total {t_end - t0:.1f} s")
     log(f"wrote {out}/: comparison.png, point_cloud.png, table.md, results.json, scan/, neural-sdf/, gc6-interp/, gc7-interp/")
     return summary
+
+
+# each method's output folder in the demo's
+_FOLDERS = {"ours (6 random)": "neural-sdf", "GC(6) interp": "gc6-interp", "GC(7) interp": "gc7-interp"}
+
+
+def _gray_code_baselines(scan, out: Path) -> dict:
+    """GC(6) and GC(7) with interpolation from the scan's column Gray code frames, each written (depth, metrics.json)
+    into out/gc{bits}-interp/: {method: {"depth", "metrics", "patterns"}}."""
+    from .decode import reconstruct_depth
+    from .evaluation.metrics import depth_metrics
+    from .evaluation.outputs import write_depth
+
+    results = {}
+    for bits in (6, 7):
+        frames = ",".join(f"gc_col_b{i}" for i in range(bits))
+        depth, _, _ = reconstruct_depth(scan, "gc-interp", frames=frames)
+        folder = out / f"gc{bits}-interp"
+        folder.mkdir(exist_ok=True)
+        write_depth(folder, depth)
+        m = depth_metrics(depth, scan.gt_depth, scan.mask)
+        (folder / "metrics.json").write_text(json.dumps({"method": "gc-interp", "frames": frames.split(","), "metrics": m}, indent=1))
+        results[f"GC({bits}) interp"] = {"depth": depth, "metrics": m, "patterns": bits}
+    return results
+
+
+def _save_pictures(out: Path, scan, gt: np.ndarray, results: dict) -> None:
+    """Each method's depth colour picture and error map in its folder, comparison.png and the neural SDF's
+    point_cloud.png."""
+    from .evaluation.viz import save_depth_color, save_error_map, save_point_cloud_render
+    from .neural.extract import depth_to_points
+
+    lo_hi = (np.nanpercentile(gt, 1), np.nanpercentile(gt, 99))
+    for name, r in results.items():
+        folder = out / _FOLDERS[name]
+        save_depth_color(folder / "depth_color.png", r["depth"], lo_hi)
+        save_error_map(folder / "error_map.png", np.where(scan.mask, r["depth"], np.nan), gt,
+                       title=f"{name}: |depth error|, MAE {r['metrics']['mae']:.3f} mm", max_mm=3.0)
+    comparison_figure(out / "comparison.png", np.where(scan.mask, gt, np.nan),
+                      {k: {"depth": np.where(scan.mask, v["depth"], np.nan), "metrics": v["metrics"]} for k, v in results.items()})
+    pts = depth_to_points(results["ours (6 random)"]["depth"], scan.camera)
+    save_point_cloud_render(out / "point_cloud.png", pts, title=f"neural SDF point cloud ({len(pts)} points)")

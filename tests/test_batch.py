@@ -109,7 +109,7 @@ def test_worker_cores_are_disjoint_contiguous_shares_of_the_allowed_cores():
 def test_a_worker_process_is_pinned_to_its_share_of_the_cores():
     """In a process of its own (pinning would bind the test runner): worker 1 of 2 keeps the second share."""
     allowed = sorted(os.sched_getaffinity(0))
-    code = ("import os, torch; from slwarp.batch import _enter_worker; _enter_worker('cpu', 1, 2); "
+    code = ("import os, torch; from slwarp.batch.launch import _enter_worker; _enter_worker('cpu', 1, 2); "
             "print(sorted(os.sched_getaffinity(0)), torch.get_num_threads())")
     env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True).stdout
@@ -232,7 +232,7 @@ def test_compiled_graphs_are_kept_for_scans_of_the_same_sizes(monkeypatch):
 
     import torch._dynamo
 
-    from slwarp import batch
+    from slwarp.batch import jobs as batch
 
     resets = []
     monkeypatch.setattr(torch._dynamo, "reset", lambda: resets.append(1))

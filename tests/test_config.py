@@ -240,7 +240,7 @@ def test_cli_bad_options_and_internal_errors(tmp_path, capsys, monkeypatch):
     def broken(args):
         raise ValueError("an internal bug")
 
-    monkeypatch.setattr(cli, "cmd_evaluate", broken)
+    monkeypatch.setattr(cli.decode, "cmd_evaluate", broken)
     with pytest.raises(ValueError, match="an internal bug"):  # a bug keeps its traceback
         cli.main(["evaluate", "pred.npy", "scan"])
 

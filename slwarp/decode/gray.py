@@ -14,6 +14,7 @@ and the one starting at a lies at a - 0.5.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -183,7 +184,33 @@ def interpolate_transitions(stripe: np.ndarray, signal: np.ndarray, table: GrayT
     H, W = stripe.shape
     s = stripe
     valid = s >= 0
-    # transitions between pixel x and x + 1 of a row
+    runs = _stripe_runs(s, *_transition_crossings(s, signal, table))
+    both = runs.has_left & runs.has_right
+    fold = both & (runs.bl == runs.br)
+    inter = both & (~fold | (runs.x1 - runs.x0 + 1 < max_fold))
+    slope = np.where(inter & ~fold, (runs.br - runs.bl) / np.maximum(runs.xr - runs.xl, 1e-6), np.nan)
+
+    rid = runs.rid
+    x = np.tile(np.arange(W, dtype=np.float64), H)
+    center = np.where(valid, table.center[np.maximum(s, 0)], np.nan).ravel()
+    pos = np.where(inter[rid], runs.bl[rid] + np.nan_to_num(slope[rid]) * (x - runs.xl[rid]), np.nan)
+    how = np.where(valid.ravel(), HOW_CENTER, HOW_INVALID).astype(np.int8)
+    how[inter[rid]] = HOW_INTERPOLATED
+    if fallback == "extrapolate":
+        _extrapolate_one_sided(pos, how, runs, inter, slope, x, s, table)
+    rest = how == HOW_CENTER
+    pos[rest] = center[rest] if fallback != "nan" else np.nan
+    if fallback == "nan":
+        how[rest] = HOW_INVALID
+    return pos.reshape(H, W), how.reshape(H, W)
+
+
+def _transition_crossings(s: np.ndarray, signal: np.ndarray, table: GrayTable
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The transitions of `interpolate_transitions` between pixel x and x + 1 of each row of s [H, W] (the stripe
+    changes by exactly one between two valid pixels): (trans [H, W - 1] bool; boundary: the projector position of
+    the stripe boundary there; cross: the camera x of the crossing of the flipping bit; NaN where no transition)."""
+    valid = s >= 0
     trans = valid[:, :-1] & valid[:, 1:] & (np.abs(s[:, 1:] - s[:, :-1]) == 1)
     ty, tx = np.nonzero(trans)
     hi = np.maximum(s[ty, tx], s[ty, tx + 1])
@@ -198,8 +225,30 @@ def interpolate_transitions(stripe: np.ndarray, signal: np.ndarray, table: GrayT
     t = (t * fl).sum(0) / np.maximum(fl.sum(0), 1)
     cross = np.full(trans.shape, np.nan)
     cross[ty, tx] = tx + t
+    return trans, boundary, cross
 
-    # runs of equal stripe along each row (rows always start a new run); run r + 1 follows run r
+
+class _Runs(NamedTuple):
+    """Runs of equal stripe along each row (rows always start a new run; run r + 1 follows run r).
+
+    rid [H * W]: the run of each pixel; per run [R]: x0, x1 its first and last column; has_left, has_right: a
+    transition at that end; xl, bl (xr, br): the crossing's camera x and the boundary's projector position at the
+    left (right) end, NaN without a transition there."""
+
+    rid: np.ndarray
+    x0: np.ndarray
+    x1: np.ndarray
+    has_left: np.ndarray
+    has_right: np.ndarray
+    xl: np.ndarray
+    bl: np.ndarray
+    xr: np.ndarray
+    br: np.ndarray
+
+
+def _stripe_runs(s: np.ndarray, trans: np.ndarray, boundary: np.ndarray, cross: np.ndarray) -> _Runs:
+    """The runs of s [H, W] with the transitions at their ends (`_transition_crossings`)."""
+    H, W = s.shape
     new_run = np.ones((H, W), bool)
     new_run[:, 1:] = s[:, 1:] != s[:, :-1]
     flat_start = np.flatnonzero(new_run.ravel())
@@ -216,36 +265,27 @@ def interpolate_transitions(stripe: np.ndarray, signal: np.ndarray, table: GrayT
     xl, bl, xr, br = nan.copy(), nan.copy(), nan.copy(), nan.copy()
     xl[has_left], bl[has_left] = cross[ry[has_left], rx0[has_left] - 1], boundary[ry[has_left], rx0[has_left] - 1]
     xr[has_right], br[has_right] = cross[ry[has_right], rx1[has_right]], boundary[ry[has_right], rx1[has_right]]
-    both = has_left & has_right
-    fold = both & (bl == br)
-    inter = both & (~fold | (rx1 - rx0 + 1 < max_fold))
-    slope = np.where(inter & ~fold, (br - bl) / np.maximum(xr - xl, 1e-6), np.nan)
+    return _Runs(rid, rx0, rx1, has_left, has_right, xl, bl, xr, br)
 
-    x = np.tile(np.arange(W, dtype=np.float64), H)
-    center = np.where(valid, table.center[np.maximum(s, 0)], np.nan).ravel()
-    pos = np.where(inter[rid], bl[rid] + np.nan_to_num(slope[rid]) * (x - xl[rid]), np.nan)
-    how = np.where(valid.ravel(), HOW_CENTER, HOW_INVALID).astype(np.int8)
-    how[inter[rid]] = HOW_INTERPOLATED
-    if fallback == "extrapolate":
-        # one-sided runs borrow the slope of the interpolated run across their one transition
-        k_left = np.full_like(slope, np.nan)
-        k_left[1:] = slope[:-1]
-        k_right = np.full_like(slope, np.nan)
-        k_right[:-1] = slope[1:]
-        from_left = has_left & ~inter & np.isfinite(k_left)
-        from_right = has_right & ~inter & ~from_left & np.isfinite(k_right)
-        ext = np.where(from_left[rid], bl[rid] + k_left[rid] * (x - xl[rid]),
-                       br[rid] + k_right[rid] * (x - xr[rid]))
-        lo = table.start[np.maximum(s, 0)].ravel() - 0.5
-        hi_ = table.end[np.maximum(s, 0)].ravel() + 0.5
-        use = (from_left | from_right)[rid]
-        pos[use] = np.clip(ext[use], lo[use], hi_[use])
-        how[use] = HOW_EXTRAPOLATED
-    rest = how == HOW_CENTER
-    pos[rest] = center[rest] if fallback != "nan" else np.nan
-    if fallback == "nan":
-        how[rest] = HOW_INVALID
-    return pos.reshape(H, W), how.reshape(H, W)
+
+def _extrapolate_one_sided(pos: np.ndarray, how: np.ndarray, runs: _Runs, inter: np.ndarray, slope: np.ndarray,
+                           x: np.ndarray, s: np.ndarray, table: GrayTable) -> None:
+    """The 'extrapolate' fallback, in place on pos and how [H * W]: one-sided runs borrow the slope of the
+    interpolated run across their one transition, clipped to their stripe."""
+    rid = runs.rid
+    k_left = np.full_like(slope, np.nan)
+    k_left[1:] = slope[:-1]
+    k_right = np.full_like(slope, np.nan)
+    k_right[:-1] = slope[1:]
+    from_left = runs.has_left & ~inter & np.isfinite(k_left)
+    from_right = runs.has_right & ~inter & ~from_left & np.isfinite(k_right)
+    ext = np.where(from_left[rid], runs.bl[rid] + k_left[rid] * (x - runs.xl[rid]),
+                   runs.br[rid] + k_right[rid] * (x - runs.xr[rid]))
+    lo = table.start[np.maximum(s, 0)].ravel() - 0.5
+    hi = table.end[np.maximum(s, 0)].ravel() + 0.5
+    use = (from_left | from_right)[rid]
+    pos[use] = np.clip(ext[use], lo[use], hi[use])
+    how[use] = HOW_EXTRAPOLATED
 
 
 def _box_sum(a: np.ndarray, radius: int) -> np.ndarray:

@@ -14,10 +14,12 @@ Confinement: every file a scan brings (scan.yaml's frames, gt_depth and mask; an
 inside the scan folder, links followed (`inside_folder`); a path that leads out of it is refused, naming the entry,
 unless allowed: `load_scan(..., outside_paths=True)` (CLI --allow-outside-paths) or `allow_outside_paths: true` in
 scan.yaml, which `outside_paths=False` (--no-allow-outside-paths) overrides for scans from others (docs/inputs.md).
+
+Modules: the Scan and its native layout here; `importers` (NeSS, procam), `images` (image and depth files),
+`confinement` (a scan's files from inside its folder), `errors` (ScanError).
 """
 from __future__ import annotations
 
-import configparser
 import fnmatch
 import math
 import os
@@ -28,8 +30,12 @@ from pathlib import Path
 import numpy as np
 
 from ..evaluation.outputs import write_depth_png
-from .roles import FrameRole, RoleError, parse_role, parse_selector, resolve_roles, role_groups
-from .scanner import CalibrationError, Camera, Projector, check_rotation
+from .confinement import ConfinedFiles, inside_folder
+from .errors import ScanError, calibration_from
+from .images import read_depth, read_image, read_image_stack, read_mask, write_image
+from .importers import read_ness, read_procam
+from .roles import RoleError, parse_selector, resolve_roles, role_groups
+from .scanner import Camera, Projector
 
 __all__ = ["Scan", "ScanError", "load_scan", "read_image", "read_depth", "inside_folder"]
 
@@ -37,13 +43,8 @@ SCAN_FILE = "scan.yaml"
 OUTSIDE_FLAG = "allow_outside_paths"  # the scan.yaml key that lets its entries name files outside the folder
 
 
-class ScanError(ValueError):
-    """A scan on disk (or in memory) that cannot be used: the message names the file and the problem."""
-
-
 # ----------------------------------------------------------------------------------------------
-# image I/O
-
+# what Scan.problems calls black, saturated and weak
 
 BLACK_LEVEL = 0.02  # full scale: a pixel below it counts as black
 SATURATED_LEVEL = 0.99  # full scale: a pixel at or above it counts as saturated
@@ -52,100 +53,6 @@ WEAK_PATTERN_SPAN = 0.75  # a non-constant pattern spanning less (max - min, ful
 
 def _names(names: list[str], limit: int = 6) -> str:
     return ", ".join(names[:limit]) + (f", ... ({len(names)} in all)" if len(names) > limit else "")
-
-
-# the first bytes of the image files slwarp reads: PNG, TIFF and BigTIFF (either byte order)
-IMAGE_SIGNATURES = (b"\x89PNG", b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
-
-
-def _check_image_file(path: Path, what: str) -> None:
-    """ScanError unless `path` is a regular file that starts as a PNG or TIFF does. Why: OpenCV picks its decoder
-    from the content, whatever the name; the contract's two formats keep its other decoders (JPEG, WebP, ...) away
-    from files that others wrote."""
-    if not path.is_file():
-        raise ScanError(f"{what} not found: {path}")
-    with open(path, "rb") as f:
-        head = f.read(4)
-    if not head.startswith(IMAGE_SIGNATURES):
-        raise ScanError(f"{what} is unreadable or corrupt (not a PNG or TIFF file: slwarp reads those two formats): {path}")
-
-
-def read_image(path: str | os.PathLike, what: str = "image") -> np.ndarray:
-    """Read an 8/16-bit or float PNG/TIFF as float32 gray in [0, 1] (colour converted to gray)."""
-    import cv2
-
-    path = Path(path)
-    _check_image_file(path, what)
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ScanError(f"{what} is unreadable or corrupt (not a PNG/TIFF image OpenCV can decode): {path}")
-    if img.ndim == 3:
-        if img.shape[2] == 4:
-            img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY)
-        elif img.shape[2] == 3:
-            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-        elif img.shape[2] == 1:
-            img = img[..., 0]
-        else:
-            raise ScanError(f"{what} has {img.shape[2]} channels (need gray, BGR or BGRA): {path}")
-    if img.dtype == np.uint8:
-        return img.astype(np.float32) / 255.0
-    if img.dtype == np.uint16:
-        return img.astype(np.float32) / 65535.0
-    if img.dtype in (np.float32, np.float64):
-        out = img.astype(np.float32)
-        if not np.all(np.isfinite(out)):
-            raise ScanError(f"{what} holds non-finite values: {path}")
-        return out
-    raise ScanError(f"{what} has unsupported pixel type {img.dtype} (need 8- or 16-bit or float): {path}")
-
-
-def write_image(path: Path, img: np.ndarray, bits: int = 8) -> None:
-    """Write float [0, 1] gray as an 8- or 16-bit PNG."""
-    import cv2
-
-    scale = 255 if bits == 8 else 65535
-    dtype = np.uint8 if bits == 8 else np.uint16
-    q = np.clip(np.rint(np.asarray(img, np.float64) * scale), 0, scale).astype(dtype)
-    if not cv2.imwrite(str(path), q):
-        raise ScanError(f"could not write image: {path}")
-
-
-def read_depth(path: str | os.PathLike, what: str = "depth") -> np.ndarray:
-    """Depth map in mm, float32, NaN invalid: a .npy (float, mm) or 16-bit PNG (0.1 mm, 0 invalid)."""
-    import cv2
-
-    path = Path(path)
-    if not path.is_file():
-        raise ScanError(f"{what} not found: {path}")
-    if path.suffix.lower() == ".npy":
-        try:
-            d = np.load(path, allow_pickle=False)  # an object array would unpickle its items: refused
-        except Exception as e:  # noqa: BLE001 - any numpy failure is a corrupt file for the user
-            raise ScanError(f"{what} is not a readable .npy array ({' '.join(str(e).split())}): {path}") from None
-        if not isinstance(d, np.ndarray):
-            d.close()
-            raise ScanError(f"{what} is an .npz archive, not a .npy array: {path}")
-        if d.dtype.kind not in "biuf":
-            raise ScanError(f"{what} holds {d.dtype} values, not numbers (need float, mm): {path}")
-        d = d.astype(np.float32)
-        if d.ndim != 2:
-            raise ScanError(f"{what} must be a 2-D array, got shape {d.shape}: {path}")
-        d[~np.isfinite(d) | (d <= 0)] = np.nan
-        return d
-    _check_image_file(path, what)
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ScanError(f"{what} is unreadable or corrupt: {path}")
-    if img.ndim != 2 or img.dtype != np.uint16:
-        raise ScanError(f"{what} PNG must be single-channel 16-bit (depth in 0.1 mm), got {img.dtype} {img.shape}: {path}")
-    d = img.astype(np.float32) / 10.0
-    d[img == 0] = np.nan
-    return d
-
-
-def _read_mask(path: Path) -> np.ndarray:
-    return read_image(path, "mask") > 0.5
 
 
 # ----------------------------------------------------------------------------------------------
@@ -434,11 +341,11 @@ def load_scan(path: str | os.PathLike, frames=None, capture: int | str | None = 
     if (path / SCAN_FILE).is_file():
         scan = _load_native(path, outside_paths)
     elif (path / "config.ini").is_file():
-        scan = _load_ness(path, _Confined(path, path, bool(outside_paths)))
+        scan = _scan_of(read_ness(path, ConfinedFiles(path, path, bool(outside_paths))), where=path)
     elif (path / "calibration_result.xml").is_file():
-        scan = _load_procam(path, capture, bool(outside_paths))
+        scan = Scan(**read_procam(path, capture, bool(outside_paths)))
     elif path.name.startswith("capture_") and (path.parent / "calibration_result.xml").is_file():
-        scan = _load_procam(path.parent, path.name, bool(outside_paths))
+        scan = Scan(**read_procam(path.parent, path.name, bool(outside_paths)))
     else:
         raise ScanError(
             f"{path}: no scan found: missing {SCAN_FILE} (native layout), config.ini (NeSS layout) or "
@@ -447,70 +354,16 @@ def load_scan(path: str | os.PathLike, frames=None, capture: int | str | None = 
     return scan.select(frames) if frames is not None else scan
 
 
-def inside_folder(path: str | os.PathLike, folder: str | os.PathLike) -> bool:
-    """Whether `path` lies inside `folder` once every link in both is followed (a path that does not exist yet is
-    judged by the links it passes through)."""
-    real, root = os.path.realpath(path), os.path.realpath(folder)
+def _scan_of(fields: dict, where: Path) -> Scan:
+    """The Scan of an importer's fields; its ScanError (sizes, roles) names the scan folder `where`."""
     try:
-        return os.path.commonpath([real, root]) == root
-    except ValueError:  # on different drives (Windows)
-        return False
-
-
-class _Confined:
-    """The files of one scan folder: `path(entry, relative)` gives folder / relative, or ScanError naming `source`
-    (the file whose entry names it), the entry and where it leads when that lies outside the folder (links
-    followed) and `allow` is off. Why: a scanning station reads folders that others wrote; a scan.yaml naming
-    /home/... or ../.. would make it read (and report on) files that are not the scan's."""
-
-    def __init__(self, folder: Path, source: Path, allow: bool, hint: str | None = None):
-        self.folder, self.source, self.allow = folder, source, allow
-        self.hint = hint or "allow it with --allow-outside-paths (Python: load_scan(..., outside_paths=True))"
-
-    def path(self, entry: str, relative) -> Path:
-        if not isinstance(relative, str) or not relative.strip():
-            raise ScanError(f"{self.source}: {entry} must be a file path relative to the scan folder, got {relative!r}")
-        p = self.folder / relative
-        if not self.allow and not inside_folder(p, self.folder):
-            named = entry if entry == relative else f"{entry} {relative!r}"  # a fixed name once (config.ini)
-            raise ScanError(f"{self.source}: {named} leads outside the scan folder (to "
-                            f"{os.path.realpath(p)}); a scan's files are read from inside its folder: copy it in, or "
-                            f"{self.hint}")
-        return p
-
-    def files(self, entry: str, paths) -> list[Path]:
-        """`paths` found in the folder (e.g. by a glob: a link there may lead out), each checked as `path` does."""
-        out = []
-        for p in paths:
-            try:
-                relative = p.relative_to(self.folder).as_posix()
-            except ValueError:  # found in a folder already allowed outside (a procam capture given by path)
-                relative = str(p)
-            out.append(self.path(entry, relative))
-        return out
-
-
-def _load_stack(files: list[tuple[Path, str]], shape: tuple[int, int], kind: str, size_name: str) -> np.ndarray:
-    """Read images of one kind and check their size against `shape` (height, width)."""
-    out = np.empty((len(files), *shape), np.float32)
-    for i, (f, what) in enumerate(files):
-        img = read_image(f, what)
-        if img.shape != shape:
-            raise ScanError(
-                f"{kind} size {img.shape[1]}x{img.shape[0]} != {size_name} size {shape[1]}x{shape[0]}: {f}"
-            )
-        out[i] = img
-    return out
-
-
-def _wrap_calibration(where: Path, fn):
-    try:
-        return fn()
-    except CalibrationError as e:
+        return Scan(**fields)
+    except ScanError as e:
         raise ScanError(f"{where}: {e}") from None
 
 
 def _load_native(folder: Path, outside_paths: bool | None = None) -> Scan:
+    """The Scan of a folder in the native layout (scan.yaml); outside_paths as `load_scan` takes it."""
     import yaml
 
     f = folder / SCAN_FILE
@@ -530,18 +383,18 @@ def _load_native(folder: Path, outside_paths: bool | None = None) -> Scan:
     if not isinstance(flag, bool):
         raise ScanError(f"{f}: {OUTSIDE_FLAG} must be true or false, got {flag!r}")
     if outside_paths is None:
-        files = _Confined(folder, f, flag, hint=f"allow it with {OUTSIDE_FLAG}: true in {SCAN_FILE} or "
+        files = ConfinedFiles(folder, f, flag, hint=f"allow it with {OUTSIDE_FLAG}: true in {SCAN_FILE} or "
                           "--allow-outside-paths (Python: load_scan(..., outside_paths=True))")
     elif outside_paths:
-        files = _Confined(folder, f, True)
+        files = ConfinedFiles(folder, f, True)
     else:
-        files = _Confined(folder, f, False, hint="this scan is read with files outside refused "
+        files = ConfinedFiles(folder, f, False, hint="this scan is read with files outside refused "
                           f"(--no-allow-outside-paths; Python: outside_paths=False), whatever its {OUTSIDE_FLAG} says")
     units = doc.get("units", "mm")
     if units != "mm":
         raise ScanError(f"{f}: units must be 'mm', got {units!r}")
-    camera = _wrap_calibration(f, lambda: Camera.from_dict(doc["camera"], "camera"))
-    projector = _wrap_calibration(f, lambda: Projector.from_dicts(doc["projector"], doc["extrinsics"]))
+    camera = calibration_from(f, lambda: Camera.from_dict(doc["camera"], "camera"))
+    projector = calibration_from(f, lambda: Projector.from_dicts(doc["projector"], doc["extrinsics"]))
     frames = doc["frames"]
     if not isinstance(frames, list) or not frames:
         raise ScanError(f"{f}: the frame list is empty")
@@ -556,14 +409,14 @@ def _load_native(folder: Path, outside_paths: bool | None = None) -> Scan:
             if fr["role"] is None:
                 raise ScanError(f"{f}: frame {i} ({names[-1]!r}) has an empty role (give a role or leave the key out)")
             declared[names[-1]] = fr["role"]
-    images = _load_stack(img_files, (camera.height, camera.width), "image", "camera")
-    patterns = _load_stack(pat_files, (projector.height, projector.width), "pattern", "projector")
+    images = read_image_stack(img_files, (camera.height, camera.width), "image", "camera")
+    patterns = read_image_stack(pat_files, (projector.height, projector.width), "pattern", "projector")
     gt_file = files.path("gt_depth", doc["gt_depth"]) if doc.get("gt_depth") else None
     mask_file = files.path("mask", doc["mask"]) if doc.get("mask") else None
     gt = read_depth(gt_file, "gt_depth") if gt_file is not None else None
     if gt is not None and gt.shape != (camera.height, camera.width):
         raise ScanError(f"gt_depth size {gt.shape[1]}x{gt.shape[0]} != camera size {camera.width}x{camera.height}: {gt_file}")
-    mask = _read_mask(mask_file) if mask_file is not None else None
+    mask = read_mask(mask_file) if mask_file is not None else None
     if mask is not None and mask.shape != (camera.height, camera.width):
         raise ScanError(f"mask size {mask.shape[1]}x{mask.shape[0]} != camera size: {mask_file}")
     dr = doc.get("depth_range")
@@ -575,199 +428,3 @@ def _load_native(folder: Path, outside_paths: bool | None = None) -> Scan:
     except ScanError as e:
         raise ScanError(f"{f}: {e}") from None
 
-
-# --- NeSS layout (the authors' data): config.ini [RawCalib] + img/ + pat/ + gt/ -------------------
-
-
-def _floats(cfg_file: Path, section, key: str, count: int | None) -> np.ndarray:
-    if key not in section:
-        raise ScanError(f"{cfg_file}: [{section.name}] is missing {key!r}")
-    try:
-        vals = np.array([float(x) for x in re.split(r"[,\s]+", section[key].strip()) if x], np.float64)
-    except ValueError:
-        raise ScanError(f"{cfg_file}: [{section.name}] {key} is not a list of numbers: {section[key]!r}") from None
-    if count is not None and vals.size != count:
-        raise ScanError(f"{cfg_file}: [{section.name}] {key} needs {count} numbers, got {vals.size}")
-    return vals
-
-
-def _natural_key(s: str):
-    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", s)]
-
-
-# The authors' frame tags (pat/pat_<tag>.png, img/img_<tag>.png; grammar from their experiment scripts):
-#   arr{size}r{i}[inv]      i-th random pattern of size-px squares (and its inverse)
-#   gc{k}[inv]              Gray code bit k over the projector columns, 0 = most significant (and its inverse)
-#   pm{P}n{N}i{k}           step k of an N-step phase shift over the columns with period P px
-#   uni{L}                  uniform frame at level L of 255 (uni255: white, uni0: black)
-_NESS_TAGS = [
-    (re.compile(r"arr(\d+(?:\.\d+)?)r(\d+)(inv)?"),
-     lambda m: FrameRole("random", size=float(m[1]), index=int(m[2]), inverse=bool(m[3]))),
-    (re.compile(r"gc(\d+)(inv)?"), lambda m: FrameRole("gray", axis="col", bit=int(m[1]), inverse=bool(m[2]))),
-    (re.compile(r"pm(\d+(?:\.\d+)?)n(\d+)i(\d+)"),
-     lambda m: FrameRole("phase", axis="col", period=float(m[1]), steps=int(m[2]), step=int(m[3]))),
-    (re.compile(r"uni(\d+)"),
-     lambda m: FrameRole("white") if int(m[1]) == 255 else FrameRole("black") if int(m[1]) == 0
-     else FrameRole("uniform", level=int(m[1]) / 255.0)),
-]
-
-
-def ness_role(tag: str) -> FrameRole | None:
-    """The role of a NeSS frame tag (see the grammar above), or None for a tag outside it (kept, no role).
-    A tag that fits the grammar with impossible values (pm40n3i5) is a ScanError naming it."""
-    for pattern, make in _NESS_TAGS:
-        m = pattern.fullmatch(tag)
-        if m:
-            try:
-                return parse_role(make(m))
-            except RoleError as e:
-                raise ScanError(f"NeSS frame tag {tag!r}: {e}") from None
-    return None
-
-
-def ness_order_key(tag: str):
-    """Sort key giving the authors' frame order (as their experiment scripts list the frames): random patterns
-    coarse to fine (arr20r0, arr20r1, ..., arr10r0, ..., arr5r0), each inverse right after its pattern; then
-    the Gray code bits, most significant first, each inverse after its bit; the phase-shift sets, the longest
-    period first, steps in order; uniform frames, brightest first; other tags last, in natural order."""
-    r = ness_role(tag)
-    if r is None:
-        return (5, _natural_key(tag))
-    if r.kind == "random":
-        return (0, -r.size, r.index, r.inverse)
-    if r.kind == "gray":
-        return (1, r.bit, r.inverse)
-    if r.kind == "phase":
-        return (2, -r.period, r.steps, r.step)
-    level = {"white": 1.0, "black": 0.0}.get(r.kind, r.level)
-    return (3, -level)
-
-
-def _load_ness(folder: Path, files: _Confined) -> Scan:
-    cfg_file = files.path("config.ini", "config.ini")
-    # no %-interpolation: the values are numbers, and a stray '%' then reads as a bad number (a ScanError) instead of
-    # configparser's InterpolationSyntaxError when the value is read
-    cfg = configparser.ConfigParser(interpolation=None)
-    try:
-        cfg.read(cfg_file, encoding="utf-8")
-    except configparser.Error as e:
-        raise ScanError(f"{cfg_file}: not a valid INI file ({e})") from None
-    sec_name = next((s for s in ("RawCalib", "Calibration") if s in cfg), None)
-    if sec_name is None:
-        raise ScanError(f"{cfg_file}: missing section [RawCalib]")
-    sec = cfg[sec_name]
-    img_w, img_h = _floats(cfg_file, sec, "img_size", 2).astype(int)
-    pat_w, pat_h = _floats(cfg_file, sec, "pat_size", 2).astype(int)
-    fx, fy, cx, cy = _floats(cfg_file, sec, "img_intrin", 4)
-    pfx, pfy, pcx, pcy = _floats(cfg_file, sec, "pat_intrin", 4)
-    R = _floats(cfg_file, sec, "ext_rot", 9).reshape(3, 3)
-    T = _floats(cfg_file, sec, "ext_tran", 3)
-    zr = _floats(cfg_file, sec, "z_range", 2) if "z_range" in sec else None
-    camera = _wrap_calibration(cfg_file, lambda: Camera(img_w, img_h, [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]))
-    projector = _wrap_calibration(
-        cfg_file, lambda: Projector(pat_w, pat_h, [[pfx, 0, pcx], [0, pfy, pcy], [0, 0, 1]], R=check_rotation(R, "ext_rot"), T=T)
-    )
-    pats = {p.stem[4:]: p for p in files.files("pattern", sorted((folder / "pat").glob("pat_*.png")))}
-    imgs = {p.stem[4:]: p for p in files.files("image", sorted((folder / "img").glob("img_*.png")))}
-    if not pats:
-        raise ScanError(f"{folder / 'pat'}: no pattern images pat_<tag>.png")
-    missing = sorted(set(pats) - set(imgs), key=_natural_key)
-    if missing:
-        raise ScanError(f"{folder / 'img'}: image count != pattern count: no img_<tag>.png for tags {missing}")
-    tags = sorted(pats, key=ness_order_key)
-    images = _load_stack([(imgs[t], f"image img_{t}") for t in tags], (img_h, img_w), "image", "camera")
-    patterns = _load_stack([(pats[t], f"pattern pat_{t}") for t in tags], (pat_h, pat_w), "pattern", "projector")
-    gt_file = files.path("ground truth", "gt/depth.png") if (folder / "gt" / "depth.png").is_file() else None
-    mask_file = files.path("mask", "gt/mask_occ.png") if (folder / "gt" / "mask_occ.png").is_file() else None
-    gt = read_depth(gt_file, "gt/depth.png") if gt_file is not None else None
-    mask = _read_mask(mask_file) if mask_file is not None else None
-    try:
-        return Scan(camera, projector, images, patterns, tags, depth_range=tuple(zr) if zr is not None else None,
-                    gt_depth=gt, mask=mask, source=str(folder),
-                    declared_roles={t: r for t in tags if (r := ness_role(t)) is not None})
-    except ScanError as e:
-        raise ScanError(f"{folder}: {e}") from None
-
-
-# --- procam-calibration layout (OpenCV structured_light.GrayCodePattern captures) ------------------
-
-
-def _procam_names(width: int, height: int) -> list[str]:
-    """Frame order of OpenCV's GrayCodePattern: column bits (MSB first, each + inverse), row bits, white, black."""
-    ncol, nrow = math.ceil(math.log2(width)), math.ceil(math.log2(height))
-    names = []
-    for axis, n in (("col", ncol), ("row", nrow)):
-        for k in range(n):
-            names += [f"gc_{axis}_b{k}", f"gc_{axis}_b{k}_inv"]
-    return names + ["white", "black"]
-
-
-def _load_procam(folder: Path, capture, outside_paths: bool = False) -> Scan:
-    import cv2
-
-    files = _Confined(folder, folder, outside_paths)
-    xml = files.path("calibration_result.xml", "calibration_result.xml")
-    try:
-        return _load_procam_with(folder, capture, xml, _read_procam_calibration(xml), files)
-    except (cv2.error, SystemError) as e:
-        # OpenCV's parser reports a truncated file or a malformed matrix as cv2.error or (from its Python
-        # binding) SystemError: the file is at fault, not the program
-        detail = ("OpenCV cannot parse it" if isinstance(e, SystemError) or not str(e).strip()
-                  else str(e).strip().splitlines()[-1])
-        raise ScanError(f"{xml}: truncated or malformed calibration XML ({detail})") from None
-
-
-def _read_procam_calibration(xml: Path) -> dict:
-    """{key: float64 matrix} of a procam calibration_result.xml (cv2.FileStorage); ScanError when missing."""
-    import cv2
-
-    fs = cv2.FileStorage(str(xml), cv2.FILE_STORAGE_READ)
-    if not fs.isOpened():
-        raise ScanError(f"{xml}: not a readable OpenCV FileStorage file")
-
-    def mat(*keys):
-        for k in keys:
-            node = fs.getNode(k)
-            if not node.empty():
-                m = node.mat()
-                if m is None:
-                    raise ScanError(f"{xml}: {k} is not a matrix")
-                return np.asarray(m, np.float64)
-        raise ScanError(f"{xml}: missing {' or '.join(keys)}")
-
-    calib = {"cam_K": mat("cam_int"), "cam_d": mat("cam_dist"), "prj_K": mat("proj_int"), "prj_d": mat("proj_dist"),
-             "R": mat("rotation", "roration"), "T": mat("translation")}
-    fs.release()
-    return calib
-
-
-def _load_procam_with(folder: Path, capture, xml: Path, calib: dict, files: _Confined) -> Scan:
-    cam_K, cam_d, prj_K, prj_d, R, T = (calib[k] for k in ("cam_K", "cam_d", "prj_K", "prj_d", "R", "T"))
-    caps = sorted((p for p in folder.glob("capture_*") if p.is_dir()), key=lambda p: _natural_key(p.name))
-    if not caps:
-        raise ScanError(f"{folder}: no capture_N folder")
-    if capture is None:
-        cap = caps[0]
-    else:
-        cap = files.path("capture", capture if isinstance(capture, str) else f"capture_{capture}")
-        if not cap.is_dir():
-            raise ScanError(f"{folder}: capture folder {cap.name} not found (have {[c.name for c in caps]})")
-    pat_files = files.files("pattern", sorted((folder / "graycode_pattern").glob("pattern_*.png"),
-                                              key=lambda p: _natural_key(p.name)))
-    img_files = files.files("image", sorted(cap.glob("graycode_*.png"), key=lambda p: _natural_key(p.name)))
-    if not pat_files:
-        raise ScanError(f"{folder / 'graycode_pattern'}: no pattern_NN.png files")
-    if len(img_files) != len(pat_files):
-        raise ScanError(f"{cap}: image count ({len(img_files)}) != pattern count ({len(pat_files)})")
-    first = read_image(img_files[0], "image")
-    first_pat = read_image(pat_files[0], "pattern")
-    camera = _wrap_calibration(xml, lambda: Camera(first.shape[1], first.shape[0], cam_K, cam_d))
-    projector = _wrap_calibration(
-        xml, lambda: Projector(first_pat.shape[1], first_pat.shape[0], prj_K, prj_d, R=check_rotation(R, "rotation"), T=T.ravel())
-    )
-    names = _procam_names(projector.width, projector.height)
-    if len(names) != len(pat_files):
-        names = [f"frame{i:02d}" for i in range(len(pat_files))]  # not OpenCV's Gray code order: keep generic names
-    images = _load_stack([(f, "image") for f in img_files], (camera.height, camera.width), "image", "camera")
-    patterns = _load_stack([(f, "pattern") for f in pat_files], (projector.height, projector.width), "pattern", "projector")
-    return Scan(camera, projector, images, patterns, names, source=str(cap))

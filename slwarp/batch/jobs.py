@@ -1,0 +1,191 @@
+"""One scan of a batch: what it runs with (`BatchOptions`), what it is (`ScanJob`), its line of the summary
+(`ScanResult`), and `run_scan`, the same per-scan work under every launcher (slwarp.batch.launch) and the scanning
+station (slwarp.watch)."""
+from __future__ import annotations
+
+import gc
+import json
+import math
+import os
+import sys
+import time
+import traceback
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Callable
+
+__all__ = ["COMPLETE_OUTPUTS", "CHECKPOINT", "BatchOptions", "ScanJob", "ScanResult", "outputs_complete",
+           "result_from_outputs", "error_line", "run_scan"]
+
+# Outputs `reconstruct` writes, config.yaml last: a folder holding all of them holds a finished run.
+COMPLETE_OUTPUTS = ("depth.npy", "timings.json", "config.yaml")
+# Where `reconstruct` keeps the resumable training state, relative to its output folder.
+CHECKPOINT = Path("train") / "checkpoint.pt"
+
+
+@dataclass(frozen=True)
+class BatchOptions:
+    """What every scan of a batch is reconstructed with besides the TrainConfig (see `reconstruct`): frames
+    (a selection, see `Scan.frame_indices`), depth_range (near, far) mm for scans that declare none, use_mask,
+    resume (see the docstring of slwarp.batch), overwrite (start each scan afresh over a checkpoint in its folder),
+    progress (training progress of each scan; only when one process runs the batch), log (per-scan start and
+    end lines), outside_paths (files outside a scan's folder: see `load_scan`)."""
+
+    frames: str | None = None
+    depth_range: tuple[float, float] | None = None
+    use_mask: bool = False
+    resume: bool = False
+    overwrite: bool = False
+    progress: bool = False
+    log: bool = True
+    outside_paths: bool | None = None
+
+
+@dataclass(frozen=True)
+class ScanJob:
+    """A scan to reconstruct: its name, source folder, output folder and estimated cost (`scan_cost`)."""
+
+    name: str
+    source: str
+    out_dir: str
+    cost: float | None = None
+
+
+@dataclass
+class ScanResult:
+    """One scan's line of the summary.
+
+    status: done (reconstructed now), skipped (its outputs were complete: numbers from them), failed.
+    seconds: wall time of the scan (skipped: of the run that wrote its outputs); valid_share: pixels with a
+    depth / all pixels; mae (mm) and completeness when the scan has ground truth; error: one line;
+    traceback: of a failure.
+    """
+
+    name: str
+    source: str
+    out_dir: str
+    status: str
+    worker: str = ""
+    device: str = ""
+    seconds: float | None = None
+    frames: int | None = None
+    pixels: int | None = None
+    iterations: int | None = None
+    valid_share: float | None = None
+    mae: float | None = None
+    completeness: float | None = None
+    error: str | None = None
+    traceback: str | None = None
+
+    def to_dict(self) -> dict:
+        return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, doc: dict) -> "ScanResult":
+        return cls(**{f.name: doc.get(f.name) for f in fields(cls)})
+
+
+def outputs_complete(out_dir: str | os.PathLike) -> bool:
+    """Whether `out_dir` holds a finished reconstruction (every file of COMPLETE_OUTPUTS)."""
+    return all((Path(out_dir) / f).is_file() for f in COMPLETE_OUTPUTS)
+
+
+def result_from_outputs(job: ScanJob) -> ScanResult:
+    """The summary line of a scan whose outputs are complete, read from them."""
+    import numpy as np
+
+    out = Path(job.out_dir)
+    row = ScanResult(job.name, job.source, job.out_dir, "skipped")
+    try:
+        timings = json.loads((out / "timings.json").read_text())
+        row.seconds, row.iterations = timings.get("total_s"), timings.get("iterations")
+        depth = np.load(out / "depth.npy", allow_pickle=False)
+        row.valid_share, row.pixels = float(np.isfinite(depth).mean()), int(depth.size)
+        if (out / "metrics.json").is_file():
+            m = json.loads((out / "metrics.json").read_text())["metrics"]
+            row.mae, row.completeness = m.get("mae"), m.get("completeness")
+    except (OSError, ValueError, KeyError) as e:  # outputs present but unreadable: say so, numbers stay empty
+        row.error = f"outputs unreadable: {' '.join(str(e).split())}"
+    return row
+
+
+def error_line(error: BaseException) -> str:
+    """An error as one line: its type and its message with the whitespace collapsed."""
+    text = " ".join(str(error).split())
+    return f"{type(error).__name__}: {text}" if text else type(error).__name__
+
+
+def _release_memory() -> None:
+    """Free what a finished scan left behind before the next one starts in this process (the CUDA cache)."""
+    import torch
+
+    gc.collect()
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        torch.cuda.empty_cache()
+
+
+# the sizes and settings of the scan whose training graphs torch.compile holds in this process (see _fit_compiled)
+_compiled_for: tuple | None = None
+
+
+def _fit_compiled(scan, config) -> None:
+    """Keep torch.compile's graphs for a scan of the sizes and settings they were compiled for, else drop them.
+
+    The compiled graphs depend on the settings and the scan's image size and frame count only (the working volume
+    reaches them as tensors: field.register_volume_buffers), so the scans of one rig after the first compile
+    nothing (one H100, 8 `fast` scans one after another: 22.9 -> 8.0 s a scan, bench/results/
+    batch-throughput-cuda-h100x2-before.md and -cold.md). Each other size adds
+    compiled versions, and past torch._dynamo's recompile limit (8) the field would run uncompiled: a new size
+    starts from empty caches."""
+    global _compiled_for
+    import torch
+
+    key = (scan.camera.height, scan.camera.width, len(scan), json.dumps(config.to_dict(), sort_keys=True, default=str))
+    if _compiled_for is not None and key != _compiled_for and "torch._dynamo" in sys.modules:
+        torch._dynamo.reset()
+    _compiled_for = key
+
+
+def run_scan(job: ScanJob, config, options: BatchOptions = BatchOptions(), worker: str = "main",
+             log: Callable[[str], None] = print) -> ScanResult:
+    """Reconstruct one scan into job.out_dir with `config` (whose runtime.device it runs on) and return its
+    summary line; any error of the scan (loading, training, writing) is caught and reported in the line; a stop
+    asked for (KeyboardInterrupt, SystemExit, TrainingInterrupted: Ctrl-C or SIGTERM during training, after its
+    checkpoint) passes, so that the batch stops instead of going on with the next scan."""
+    from ..neural.reconstruct import reconstruct
+    from ..neural.train import TrainingInterrupted
+    from ..scans.scan import load_scan
+
+    import numpy as np
+
+    device = config.runtime.device
+    row = ScanResult(job.name, job.source, job.out_dir, "failed", worker=worker, device=device)
+    say = log if options.log else (lambda _msg: None)
+    t0 = time.perf_counter()
+    try:
+        scan = load_scan(job.source, frames=options.frames, outside_paths=options.outside_paths)
+        row.frames, row.pixels = len(scan), scan.camera.width * scan.camera.height
+        _fit_compiled(scan, config)
+        resume = options.resume and (Path(job.out_dir) / CHECKPOINT).is_file()
+        say(f"[{worker} {device}] {job.name}: {'resuming' if resume else 'starting'} ({len(scan)} frames) -> {job.out_dir}")
+        res = reconstruct(scan, config, out_dir=job.out_dir, resume=resume, depth_range=options.depth_range,
+                          use_mask=options.use_mask, progress=options.progress, overwrite=options.overwrite and not resume)
+        row.status = "done"
+        row.iterations = res.timings.get("iterations")
+        row.valid_share = float(np.isfinite(res.depth).mean())
+        if res.metrics is not None:
+            row.mae, row.completeness = res.metrics.get("mae"), res.metrics.get("completeness")
+        del res, scan
+    except TrainingInterrupted:
+        raise
+    except Exception as e:  # one scan's failure, whatever it is, must not stop the others
+        row.error, row.traceback = error_line(e), traceback.format_exc()
+    row.seconds = time.perf_counter() - t0
+    _release_memory()
+    if row.status == "done":
+        say(f"[{worker} {device}] {job.name}: done in {row.seconds:.1f} s, valid {row.valid_share:.1%}"
+            + (f", MAE {row.mae:.3f} mm" if row.mae is not None and math.isfinite(row.mae) else ""))
+    else:
+        say(f"[{worker} {device}] {job.name}: failed after {row.seconds:.1f} s: {row.error}")
+    return row
+

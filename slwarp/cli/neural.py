@@ -1,0 +1,182 @@
+"""The commands of the neural SDF method: `slwarp reconstruct` (one scan, or a batch: slwarp.batch), `slwarp watch`
+(a scanning station: slwarp.watch) and `slwarp demo` (the paper's comparison: slwarp.demo)."""
+from __future__ import annotations
+
+import os
+import sys
+
+from .. import timeline
+from .errors import UserError
+from .options import (_add_config_options, _add_outside_paths, _chosen_preset, _config_from_args, _parse_range,
+                      _positive_int)
+from .scans import _warn_problems
+
+
+def cmd_reconstruct(args) -> int:
+    """One scan folder: reconstructed here into --out. Several scans (or a folder of them, or a glob), under
+    torchrun, or with --per-device: a batch (_reconstruct_batch)."""
+    import numpy as np
+    import torch
+
+    from ..batch import find_scans, launched_by_torchrun
+    from ..evaluation.metrics import format_table
+    from ..neural.describe import describe
+    from ..neural.reconstruct import reconstruct
+    from ..scans.scan import load_scan
+
+    timeline.mark("imports")
+    name, cfg, dev = _config_from_args(args)
+    if args.per_device is not None and launched_by_torchrun():
+        raise UserError("--per-device starts its own worker processes: under torchrun use --nproc-per-node "
+                        "(K x GPUs for K scans per GPU) instead")
+    found = find_scans(args.scans)
+    if not found.single or args.per_device is not None or launched_by_torchrun():
+        return _reconstruct_batch(args, found, name, cfg, dev)
+    scan_path = args.scans[0]
+    scan = load_scan(scan_path, frames=args.frames, outside_paths=args.allow_outside_paths)
+    timeline.mark("scan loaded")
+    _warn_problems(scan)
+    depth_range = _parse_range(args.depth_range)
+    if depth_range is None and scan.depth_range is None:
+        raise UserError(f"{scan_path}: the scan declares no depth range: pass --depth-range NEAR,FAR (mm)")
+    print(f"reconstructing {scan.source} ({len(scan)} frames: {', '.join(scan.names)}) with preset '{name}'"
+          + (f" + {args.config}" if args.config else "")
+          + f" ({describe(cfg)}) on {dev}" + (f" ({torch.cuda.get_device_name(dev)})" if dev.type == "cuda" else ""))
+    timeline.mark("reconstruct")
+    res = reconstruct(scan, cfg, out_dir=args.out, resume=args.resume, depth_range=depth_range, use_mask=args.use_mask,
+                      progress=not args.quiet, overwrite=args.overwrite)
+    timeline.mark("reconstructed")
+    t = res.timings
+    valid = np.isfinite(res.depth)
+    print(f"trained {t['iterations']} iterations in {t['train_wall_s_total']:.1f} s; marching cubes {t['marching_cubes_s']:.1f} s; "
+          f"depth {t['depth_s']:.1f} s; confidence {t['confidence_s']:.1f} s; valid depth on {valid.mean():.1%} of pixels")
+    print("pixels: " + ", ".join(f"{k.replace('_', ' ')} {v / valid.size:.1%}" for k, v in t["pixels"].items() if v)
+          + " (pixel_fate.png)")
+    if t.get("refine_misfit") is not None and not t["refined"] and t.get("refine_check") is None:
+        print("photometric refinement skipped: the pattern model's misfit at the field's depth is "
+              f"{t['refine_misfit']:.4f}, above --refine-max-misfit {cfg.extraction.refine_max_misfit} (optics the model lacks, e.g. a real "
+              "lens or a camera response: refining would fit those; --refine-max-misfit 0 refines regardless)")
+    check = t.get("refine_check")
+    if check and check["before"]:
+        before, after = np.mean(check["before"]), np.mean(check["after"])
+        print(f"photometric refinement {'kept' if check['keep'] else 'not kept'}: held-out frames' median residual "
+              f"{before:.4f} -> {after:.4f} ({len(check['before'])} frames held out in turn; without --refine-check it is kept "
+              "regardless)")
+    if res.metrics is not None:
+        print(format_table([("neural SDF", res.metrics)]))
+    print(f"wrote {args.out}/: depth.npy, depth.png, depth_color.png, confidence.npy, confidence.png, pixel_fate.png, "
+          "mesh.ply, "
+          "points.ply, loss.png, history.json, "
+          "config.yaml" + (", metrics.json, error_map.png" if res.metrics is not None else "")
+          + "; train/checkpoint.pt (--resume continues)")
+    return 0
+
+
+def _reconstruct_batch(args, found, name: str, cfg, dev) -> int:
+    """The scans `found` (slwarp.batch.find_scans) as a batch: each into --out/<name>/ (--out for a lone scan
+    folder), a summary printed by the process that gathers it; exit status 1 when a scan failed."""
+    from ..batch import BatchOptions, run_batch
+    from ..neural.describe import describe
+
+    rank = int(os.environ.get("RANK", 0))
+    if rank == 0:
+        for folder in found.ignored:
+            print(f"note: {folder} holds no scan: passed over", file=sys.stderr)
+        how = (f"{args.per_device} per device" if args.per_device is not None else
+               f"torchrun, {os.environ['WORLD_SIZE']} processes" if "WORLD_SIZE" in os.environ else "one after another")
+        print(f"reconstructing {len(found.scans)} scans ({how}) with preset '{name}'" + (f" + {args.config}" if args.config else "")
+              + f" ({describe(cfg)}) on {dev}", flush=True)
+    options = BatchOptions(frames=args.frames, depth_range=_parse_range(args.depth_range), use_mask=args.use_mask,
+                           resume=args.resume, overwrite=args.overwrite, progress=not args.quiet, log=not args.quiet,
+                           outside_paths=args.allow_outside_paths)
+    summary = run_batch(found.scans, cfg, args.out, options, single=found.single, per_device=args.per_device)
+    if summary is None:  # a rank other than 0: rank 0 reports
+        return 0
+    print(summary.report())
+    print(f"wrote {args.out}/summary.json and summary.md" + ("" if found.single else "; each scan's outputs in its folder"))
+    return 1 if summary.failed else 0
+
+
+def _add_reconstruct(p, argv=None):
+    name = _chosen_preset(argv)
+    p.description = ("Train the neural SDF on a scan, then write its depth map, mesh, point cloud and config.yaml. "
+                     f"The defaults shown are preset {name}'s (--preset P --help shows P's).")
+    p.add_argument("scans", nargs="+", metavar="SCAN",
+                   help="a scan folder, a folder of scan folders, or a quoted glob; several scans (or a folder of "
+                        "them, or a glob) write each scan's outputs into OUT/<scan name>/ and a summary "
+                        "(OUT/summary.json, summary.md), and exit with status 1 when a scan failed; a lone scan "
+                        "folder writes into OUT itself. Under torchrun the scans are shared over its processes "
+                        "(GPU LOCAL_RANK %% device count)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--frames", help="use only these frames (names, globs, indices, slices; comma-separated)")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/train/checkpoint.pt: the same scan, frames, "
+                   "depth range and options, except those marked 'may change on resume' below; with several scans: "
+                   "skip the scans whose outputs are complete, continue those with a checkpoint, start the others")
+    p.add_argument("--overwrite", action="store_true", help="start again, replacing the checkpoint in OUT (without it a "
+                   "run into a folder with a checkpoint is refused)")
+    p.add_argument("--per-device", type=_positive_int, metavar="K", help="run K scans at a time on each device (every visible "
+                   "GPU for --device cuda or auto, the CPU for cpu) in worker processes started here, without torchrun")
+    p.add_argument("--depth-range", help="NEAR,FAR camera depth in mm (default: the scan's)")
+    p.add_argument("--use-mask", action="store_true",
+                   help="also restrict the depth map to the scan's mask").help_section = "reconstruct"
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    _add_outside_paths(p)
+    _add_config_options(p, name, argv=argv)
+    p.set_defaults(func=cmd_reconstruct)
+
+
+def cmd_watch(args) -> int:
+    """A scanning station (slwarp.watch): each complete scan folder that appears in DIR, reconstructed into OUT/<name>/
+    by this one process; stops on Ctrl-C / SIGTERM (exit status 130 / 143) or as --max-scans / --until-idle say."""
+    from ..batch import BatchOptions
+    from ..watch import watch
+
+    _name, cfg, _dev = _config_from_args(args)
+    options = BatchOptions(frames=args.frames, depth_range=_parse_range(args.depth_range), use_mask=args.use_mask)
+    return watch(args.inbox, args.out, cfg, options, poll_s=args.poll, settle_s=args.settle, max_scans=args.max_scans,
+                 until_idle=args.until_idle, say=lambda text: print(text, flush=True))
+
+
+def _add_watch(p, argv=None):
+    name = _chosen_preset(argv)
+    p.description = ("Watch DIR and reconstruct each scan folder that appears in it, once complete (its "
+                     "scan.yaml and every file it names present, nothing still growing), into OUT/<name>/ as "
+                     "`reconstruct` does, in this one warm process: one line per scan. Scans done before are "
+                     "skipped, a scan with a checkpoint continues, a broken scan is reported and the station goes "
+                     "on; links leading out of DIR are ignored. Ctrl-C or SIGTERM stops it without losing a "
+                     f"finished scan. The defaults shown are preset {name}'s.")
+    p.add_argument("inbox", metavar="DIR", help="the folder scans arrive in (one sub-folder per scan)")
+    p.add_argument("--out", required=True, help="output folder: OUT/<scan folder name>/ per scan")
+    p.add_argument("--frames", help="use only these frames of each scan (names, globs, indices, slices)")
+    p.add_argument("--depth-range", help="NEAR,FAR camera depth in mm for scans that declare none")
+    p.add_argument("--use-mask", action="store_true", help="also restrict each depth map to its scan's mask")
+    p.add_argument("--poll", type=float, default=0.5, metavar="S", help="seconds between looks at DIR (default 0.5)")
+    p.add_argument("--settle", type=float, default=1.0, metavar="S",
+                   help="a scan folder is taken once no file in it changed for S seconds (default 1)")
+    p.add_argument("--max-scans", type=_positive_int, metavar="N", help="stop after N scans")
+    p.add_argument("--until-idle", action="store_true", help="stop once every scan in DIR is done or failed")
+    _add_config_options(p, name, argv=argv)
+    p.set_defaults(func=cmd_watch)
+
+
+def cmd_demo(args) -> int:
+    from ..demo import run_demo
+
+    name, cfg, _ = _config_from_args(args)
+    run_demo(args.out, scene=args.scene, config=cfg, preset_name=name, progress=not args.quiet)
+    return 0
+
+
+def _add_demo(p, argv=None):
+    from ..demo import DEMO_SCENE
+    from ..sim.scenes import SCENE_NAMES
+
+    name = _chosen_preset(argv)
+    p.description = ("The paper's comparison on a simulated scene (the default rig on CUDA, the small rig on the CPU). "
+                     f"The defaults shown are preset {name}'s (--preset P --help shows P's).")
+    p.add_argument("--out", default="slwarp-demo", help="output folder (default: ./slwarp-demo)")
+    p.add_argument("--scene", default=DEMO_SCENE, choices=list(SCENE_NAMES), help=f"built-in scene (default: {DEMO_SCENE})")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    _add_config_options(p, name, training=False, argv=argv)
+    p.set_defaults(func=cmd_demo)
+
