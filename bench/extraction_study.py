@@ -78,7 +78,7 @@ def rendered_depth(trainer, valid: np.ndarray, chunk: int = 2048) -> np.ndarray:
 
 def study_field(trainer, scan, cfg) -> dict:
     """Stage drops and depth-extraction comparison for one trained field (see module docstring)."""
-    from slwarp.neural.extract import extract_mesh, flying_pixel_filter, mesh_depth, sphere_trace_depth
+    from slwarp.neural.extraction.surface import extract_mesh, flying_pixel_filter, mesh_depth, sphere_trace_depth
     from slwarp.neural.pattern_model import photometric_filter
 
     cam, prj = scan.camera, scan.projector
@@ -166,7 +166,7 @@ def filter_sweep(raw: np.ndarray, scan, trainer) -> list[dict]:
     of the grids above (0 = off). The field is the one trained with the preset's contrast threshold; a lower
     threshold here only keeps more pixels at extraction."""
     from slwarp.evaluation.metrics import depth_metrics
-    from slwarp.neural.extract import flying_pixel_filter
+    from slwarp.neural.extraction.surface import flying_pixel_filter
     from slwarp.neural.pattern_model import photometric_filter
 
     cam, prj = scan.camera, scan.projector

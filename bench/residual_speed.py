@@ -49,7 +49,7 @@ def median3_nanmedian(x: np.ndarray) -> np.ndarray:
     """The 3x3 outlier median as np.nanmedian takes it (the reference for search._median3)."""
     import warnings
 
-    from slwarp.neural.extract import neighbour_stack
+    from slwarp.neural.extraction.surface import neighbour_stack
 
     stack = np.concatenate([neighbour_stack(x), x[None]]).astype(x.dtype)  # [9, H, W]
     with warnings.catch_warnings():

@@ -84,7 +84,7 @@ def pixel_cost(scan, depth: np.ndarray, sigma_fn) -> np.ndarray:
 
 def main(argv=None) -> int:
     from slwarp.evaluation.metrics import depth_metrics
-    from slwarp.neural.extract import extract_mesh, flying_pixel_filter, mesh_depth
+    from slwarp.neural.extraction.surface import extract_mesh, flying_pixel_filter, mesh_depth
     from slwarp.neural.pattern_model import photometric_filter
     from slwarp.neural.pattern_model import blur_patterns
     from slwarp.neural.search import search_depth

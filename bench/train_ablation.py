@@ -200,7 +200,7 @@ def variant_photometric_filter(depth, trainer, threshold: float) -> np.ndarray:
 def extract(trainer, cfg, flags: set[str]) -> dict:
     """Depth maps of the trained field: raw (mesh or sphere), after the flying-pixel filter, after the
     variant's photometric filter."""
-    from slwarp.neural.extract import extract_mesh, flying_pixel_filter, mesh_depth, sphere_trace_depth
+    from slwarp.neural.extraction.surface import extract_mesh, flying_pixel_filter, mesh_depth, sphere_trace_depth
     from slwarp.neural.pattern_model import photometric_filter
 
     cam = trainer.scan.camera

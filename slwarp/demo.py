@@ -65,7 +65,7 @@ def run_demo(out_dir="slwarp-demo", scene: str = DEMO_SCENE, config=None, preset
     from .evaluation.outputs import write_depth
     from .evaluation.viz import save_depth_color, save_error_map, save_point_cloud_render
     from .neural.config import default_preset_name, preset
-    from .neural.extract import depth_to_points
+    from .neural.extraction.surface import depth_to_points
     from .neural.reconstruct import reconstruct
     from .sim.simulate import simulate_scene
 

@@ -5,7 +5,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from slwarp.neural.config import ExtractionConfig
-from slwarp.neural.extract import denoise_depth, flying_pixel_filter, neighbour_stack, readmit_edge_pixels
+from slwarp.neural.extraction.surface import denoise_depth, flying_pixel_filter, neighbour_stack, readmit_edge_pixels
 
 CAMERA = SimpleNamespace(fx=500.0, fy=500.0)  # a pixel footprint of 1 mm at 500 mm
 # the edge readmission's default bars (the options edge_readmit_support and edge_readmit_confidence)
@@ -113,7 +113,7 @@ def test_extract_mesh_leaves_out_the_volume_outside_the_depth_range():
     plane inside the range stays whole, and the inside behind it is not capped at the far plane."""
     import torch
 
-    from slwarp.neural.extract import extract_mesh
+    from slwarp.neural.extraction.surface import extract_mesh
     from slwarp.neural.field import Volume
 
     vol = Volume((-100.0, -100.0, 400.0), (100.0, 100.0, 1000.0))
@@ -275,7 +275,7 @@ def test_extract_mesh_winds_faces_and_normals_outward():
     """The mesh's faces are wound towards positive SDF (a positive volume) and its vertex normals agree."""
     import torch
 
-    from slwarp.neural.extract import extract_mesh
+    from slwarp.neural.extraction.surface import extract_mesh
     from slwarp.neural.field import Volume
 
     centre = torch.tensor([0.0, 0.0, 460.0])
@@ -293,7 +293,7 @@ def test_warp_marching_cubes_matches_scikit_image():
     import trimesh
     from skimage.measure import marching_cubes
 
-    from slwarp.neural.extract import _marching_cubes_warp, mesh_depth
+    from slwarp.neural.extraction.surface import _marching_cubes_warp, mesh_depth
     from slwarp.scans.scanner import Camera
 
     values, origin, h = _ball_grid()

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from slwarp.neural.extract import neighbour_stack
+from slwarp.neural.extraction.surface import neighbour_stack
 from slwarp.neural.pattern_model import blur_patterns, lit_with_contrast, offset_and_modulation
 from slwarp.neural.search import (component_sizes, doubt_by_search, grow_repair, neighbours_within, repair_by_search,
                                   search_depth)

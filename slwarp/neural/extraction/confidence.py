@@ -31,9 +31,9 @@ import math
 import numpy as np
 import torch
 
-from ..decode.triangulate import camera_rays
-from . import ops
-from .pattern_model import MIN_MODULATION, offset_and_modulation, photometric_residual
+from ...decode.triangulate import camera_rays
+from .. import ops
+from ..pattern_model import MIN_MODULATION, offset_and_modulation, photometric_residual
 
 __all__ = [
     "CONFIDENCE_KINDS",
@@ -130,7 +130,7 @@ def uniqueness_confidence(depth: np.ndarray, camera, projector, images, patterns
     epipolar line), `step_px` projector px apart at the pixel that moves most. images [N, H, W], patterns
     [N, Hp, Wp] as rendered (blurred). Computed with the torch twin's projection and bilinear sampling on `device`.
     """
-    from .twin import bilinear_patterns, project_to_projector
+    from ..twin import bilinear_patterns, project_to_projector
 
     device = torch.device(device)
     H, W = depth.shape
