@@ -29,7 +29,8 @@ from ..evaluation.outputs import (check_output_folder, staged_outputs, write_con
                                   write_points_ply)
 from .extraction.surface import (denoise_depth, depth_to_points, extract_mesh, flying_pixel_filter, mesh_depth, readmit_edge_pixels,
                       sphere_trace_depth)
-from .extraction.confidence import depth_confidence, pattern_model_inputs
+from .confidence import pattern_model_inputs
+from .extraction.confidence import depth_confidence
 from .pattern_model import fill_uniform_codes, refine_where_model_fits, refinement_generalises
 from .search import doubt_by_search, grow_repair, repair_by_search
 from .config import TrainConfig, save_config

@@ -19,7 +19,7 @@ import torch
 
 from ..decode.triangulate import camera_rays
 from ..devices import torch_device, warp_device
-from .extraction.confidence import photometric_confidence
+from .confidence import photometric_confidence
 from .extraction.surface import neighbour_stack, neighbours_at
 from .pattern_model import lit_with_contrast, offset_and_modulation
 from slwarp.kernels import runtime

@@ -51,7 +51,7 @@ from ..devices import torch_device
 from ..scans.scan import ScanError
 from .config import TrainConfig
 from .field import Volume, make_field
-from .extraction.confidence import pattern_model_inputs, photometric_confidence
+from .confidence import pattern_model_inputs, photometric_confidence
 from .pattern_model import blur_patterns, estimate_pattern_blur, lit_with_contrast, offset_and_modulation
 from .progress import Progress
 from . import ops

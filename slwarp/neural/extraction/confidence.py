@@ -22,7 +22,8 @@ random patterns another depth a few projector px away fits the codes as well eve
 right) and pulls any product down. As a filter at min_confidence 0.6, photometric is better (combined's values
 sit higher), so photometric stays the extraction's default.
 
-`depth_confidence(trainer, depth, kind)` is the one entry point the extraction uses.
+`photometric_confidence` is slwarp.neural.confidence's (the training uses it too). `depth_confidence(trainer, depth, kind)`
+is the one entry point the extraction uses.
 """
 from __future__ import annotations
 
@@ -33,18 +34,17 @@ import torch
 
 from ...decode.triangulate import camera_rays
 from .. import ops
-from ..pattern_model import MIN_MODULATION, offset_and_modulation, photometric_residual
+from ..confidence import on_depth, pattern_model_inputs, photometric_confidence
+from ..pattern_model import MIN_MODULATION, offset_and_modulation
 
 __all__ = [
     "CONFIDENCE_KINDS",
     "COMBINED_TERMS",
-    "photometric_confidence",
     "ray_confidence",
     "uniqueness_confidence",
     "combine",
     "depth_confidence",
     "confidence_terms",
-    "pattern_model_inputs",
 ]
 
 CONFIDENCE_KINDS = ("photometric", "peak", "agreement", "uniqueness", "combined")
@@ -57,18 +57,6 @@ AGREEMENT_SCALE_MM = 1.0
 UNIQUE_EXCLUDE_PX = 3.0
 # spacing of the hypotheses along the ray, in projector px (uniform in inverse depth)
 UNIQUE_STEP_PX = 0.5
-
-
-def _on_depth(values: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    """values as float32 in [0, 1], NaN where depth is NaN."""
-    return np.where(np.isfinite(depth), np.clip(values, 0.0, 1.0), np.nan).astype(np.float32)
-
-
-def photometric_confidence(depth: np.ndarray, camera, projector, images, patterns) -> np.ndarray:
-    """[H, W]: 1 - relative RMS residual of the pattern model at depth (mm; NaN invalid). images [N, H, W],
-    patterns [N, Hp, Wp] as rendered (blurred): numpy, or tensors on the device to compute on
-    (`pattern_model.photometric_residual`)."""
-    return _on_depth(1.0 - photometric_residual(depth, camera, projector, images, patterns), depth)
 
 
 def _pixel_index(depth: np.ndarray, device) -> torch.Tensor:
@@ -109,7 +97,7 @@ def ray_confidence(renderer, depth: np.ndarray, rays_per_chunk: int = 4096, wind
         a = torch.where(torch.isfinite(a), a, torch.zeros_like(a))
         peak[idx[:n].cpu().numpy()] = p[:n].float().cpu().numpy()
         agree[idx[:n].cpu().numpy()] = a[:n].float().cpu().numpy()
-    return _on_depth(peak.reshape(H, W), depth), _on_depth(agree.reshape(H, W), depth)
+    return on_depth(peak.reshape(H, W), depth), on_depth(agree.reshape(H, W), depth)
 
 
 def _residual_torch(observed, a, b, pred):
@@ -169,7 +157,7 @@ def uniqueness_confidence(depth: np.ndarray, camera, projector, images, patterns
         conf = torch.where(rival > 0, 1.0 - res0 / rival, torch.zeros_like(res0))  # rival 0: a perfect other fit
         conf = torch.where(torch.isfinite(rival), conf, torch.ones_like(conf))  # no other depth on the ray
         out[index[sl]] = conf.clamp(0.0, 1.0).cpu().numpy()
-    return _on_depth(out.reshape(H, W), depth)
+    return on_depth(out.reshape(H, W), depth)
 
 
 def combine(terms: dict, names=COMBINED_TERMS) -> np.ndarray:
@@ -179,17 +167,6 @@ def combine(terms: dict, names=COMBINED_TERMS) -> np.ndarray:
     with np.errstate(divide="ignore"):
         g = np.exp(np.mean(np.log(np.clip(stack, 0.0, 1.0)), axis=0))
     return np.where(np.isfinite(stack).all(0), g, np.nan).astype(np.float32)
-
-
-def pattern_model_inputs(trainer) -> tuple:
-    """(images [N, H, W], patterns as rendered [N, Hp, Wp]) of a trainer's frames for the pattern model
-    (photometric_confidence, the depth searches): on a GPU the renderer's own tensors, so that the model runs
-    there (pattern_model._residual_on_device); else numpy, on the host."""
-    patterns = trainer.renderer.rendered_patterns.detach()
-    if trainer.device.type == "cuda":
-        cam = trainer.scan.camera
-        return trainer.renderer.images_flat.t().reshape(-1, cam.height, cam.width), patterns
-    return trainer.scan.images[: trainer.n_frames], patterns.cpu().numpy()
 
 
 def confidence_terms(trainer, depth: np.ndarray, kinds=CONFIDENCE_KINDS) -> dict[str, np.ndarray]:
