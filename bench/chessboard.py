@@ -77,7 +77,7 @@ def main(argv=None):
         record(name, d, time.perf_counter() - t, len(dec.frames), dec.extra["triangulation"])
     if not args.skip_neural:
         from accuracy_sweep import parse_overrides
-        from slwarp.neural.reconstruct import extract_depth
+        from slwarp.neural.extraction import extract_depth
 
         seven = scan.select(SEVEN_ROWS)
         for label in (args.preset or default_preset_name(torch_device("auto"))).split(","):

@@ -58,7 +58,7 @@ def trained(scan, config, work: Path, progress: bool):
 def neural_maps(trainer, kinds) -> tuple[np.ndarray, dict, float]:
     """(depth with no confidence filter, {kind: confidence}, seconds for the confidence maps)."""
     from slwarp.neural.extraction.confidence import confidence_terms
-    from slwarp.neural.reconstruct import extract_depth
+    from slwarp.neural.extraction import extract_depth
 
     t = trainer
     keep = t.cfg

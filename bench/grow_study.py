@@ -46,8 +46,9 @@ def grow_run(path: Path, supports: list[int], margin: float) -> dict:
 
     from accuracy_sweep import _scan
     from slwarp.neural.pattern_model import blur_patterns, estimate_pattern_blur
-    from slwarp.neural.reconstruct import FATE, PIXEL_FATES
-    from slwarp.neural.search import grow_repair
+    from slwarp.neural.extraction import FATE, PIXEL_FATES
+    from slwarp.neural.extraction.repair import grow_repair
+    from slwarp.neural.extraction.state import ModelInputs
 
     run = parse_run(path)
     kept = np.load(path)
@@ -74,8 +75,8 @@ def grow_run(path: Path, supports: list[int], margin: float) -> dict:
            "supports": {}}
     for support in supports:
         t0 = time.perf_counter()
-        new, grown = grow_repair(depth, seeds, rand.camera, rand.projector, images, rendered, support=support,
-                                 margin=margin)
+        new, grown = grow_repair(depth, seeds, ModelInputs(rand.camera, rand.projector, images, rendered, scan.depth_range),
+                                 support=support, margin=margin)
         e = new - gt
         out["supports"][str(support)] = {
             "grown": int(grown.sum()), "right": int((grown & (np.abs(e) < RIGHT_MM)).sum()),

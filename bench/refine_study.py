@@ -45,7 +45,7 @@ KEYS = (("mae", "MAE mm", "{:.3f}"), ("median", "median mm", "{:.3f}"), ("over_5
 
 def main(argv=None) -> int:
     from slwarp.evaluation.metrics import depth_metrics
-    from slwarp.neural.reconstruct import extract_depth
+    from slwarp.neural.extraction import extract_depth
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scenes", default="bunny,torus,checker,rods")

@@ -38,7 +38,7 @@ COLUMNS = (("mae", "MAE mm", "{:.3f}"), ("mae_within_5mm", "MAE <= 5 mm", "{:.3f
 def main(argv=None) -> int:
     from slwarp.decode import reconstruct_depth
     from slwarp.evaluation.metrics import depth_metrics
-    from slwarp.neural.reconstruct import extract_depth
+    from slwarp.neural.extraction import extract_depth
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scenes", default="rods,torus,steps,bunny")

@@ -1,5 +1,5 @@
 """Time of the photometric residual (`slwarp.neural.pattern_model.photometric_residual`), of the repair's growth
-(`slwarp.neural.search.grow_repair`) and of the depth grouping (`slwarp.neural.search.component_sizes`) on one
+(`slwarp.neural.extraction.repair.grow_repair`) and of the depth grouping (`slwarp.neural.search.component_sizes`) on one
 simulated scan. The residual per share of pixels with depth and per way of computing it:
 
 - "dense, ray grid per call": every pixel, the camera's ray grid undistorted again each call (as before it was
@@ -65,7 +65,9 @@ def measure(rig: str, scene: str, repeat: int) -> dict:
     import importlib
 
     from slwarp.neural import pattern_model as pm
-    from slwarp.neural.search import AGREE_MM, _median3, component_sizes, grow_repair
+    from slwarp.neural.extraction.repair import grow_repair
+    from slwarp.neural.extraction.state import ModelInputs
+    from slwarp.neural.search import AGREE_MM, _median3, component_sizes
     from slwarp.sim.simulate import SimOptions, simulate_scene
 
     scan = simulate_scene(scene, "random6", rig=rig, options=SimOptions(seed=0), device="cpu")
@@ -112,10 +114,12 @@ def measure(rig: str, scene: str, repeat: int) -> dict:
     depth = np.where(valid, scan.gt_depth, np.nan).astype(np.float32)
     depth[wrong] += 40.0
 
+    inputs = ModelInputs(cam, prj, images, patterns, scan.depth_range)
+
     def grow(share):
         pm.SPARSE_SHARE = share
         try:
-            return grow_repair(depth, seeds, cam, prj, images, patterns)
+            return grow_repair(depth, seeds, inputs)
         finally:
             pm.SPARSE_SHARE = sparse_share
 

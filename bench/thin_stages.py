@@ -56,7 +56,7 @@ def sdf_at_surface(trainer, scan, part) -> dict:
 def run(scene: str, rig: str, preset_name: str, overrides: dict, device: str) -> dict:
     from slwarp.neural.config import preset
     from slwarp.neural.extraction.surface import extract_mesh, mesh_depth, sphere_trace_depth
-    from slwarp.neural.reconstruct import extract_depth
+    from slwarp.neural.extraction import extract_depth
     from slwarp.neural.train import Trainer
     from slwarp.sim.simulate import SimOptions, simulate_scene
 

@@ -19,7 +19,7 @@ def load(name):
 
 def test_grow_study_on_a_kept_map(tmp_path):
     from slwarp.neural.pattern_model import lit_with_contrast, offset_and_modulation
-    from slwarp.neural.reconstruct import FATE, PIXEL_FATES
+    from slwarp.neural.extraction import FATE, PIXEL_FATES
 
     study = load("grow_study")
     sweep = load("accuracy_sweep")

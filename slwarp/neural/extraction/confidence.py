@@ -22,8 +22,9 @@ random patterns another depth a few projector px away fits the codes as well eve
 right) and pulls any product down. As a filter at min_confidence 0.6, photometric is better (combined's values
 sit higher), so photometric stays the extraction's default.
 
-`photometric_confidence` is slwarp.neural.confidence's (the training uses it too). `depth_confidence(trainer, depth, kind)`
-is the one entry point the extraction uses.
+`photometric_confidence` is slwarp.neural.confidence's (the training uses it too). `depth_confidence(inputs, depth,
+kind, field)` is the one entry point the extraction uses: the pattern model's inputs (`state.ModelInputs`) and the
+trained field where a term renders it (`state.TrainedField`), not the trainer.
 """
 from __future__ import annotations
 
@@ -34,8 +35,9 @@ import torch
 
 from ...decode.triangulate import camera_rays
 from .. import ops
-from ..confidence import on_depth, pattern_model_inputs, photometric_confidence
+from ..confidence import on_depth, photometric_confidence
 from ..pattern_model import MIN_MODULATION, offset_and_modulation
+from .state import ModelInputs, TrainedField, evaluating
 
 __all__ = [
     "CONFIDENCE_KINDS",
@@ -169,36 +171,35 @@ def combine(terms: dict, names=COMBINED_TERMS) -> np.ndarray:
     return np.where(np.isfinite(stack).all(0), g, np.nan).astype(np.float32)
 
 
-def confidence_terms(trainer, depth: np.ndarray, kinds=CONFIDENCE_KINDS) -> dict[str, np.ndarray]:
-    """{kind: [H, W] confidence} of a depth map extracted from `trainer`'s field, for the kinds asked
-    (see the module docstring; 'combined' computes the terms it needs)."""
+def confidence_terms(inputs: ModelInputs, depth: np.ndarray, kinds=CONFIDENCE_KINDS,
+                     field: TrainedField | None = None) -> dict[str, np.ndarray]:
+    """{kind: [H, W] confidence} of a depth map [H, W] (mm, NaN: none) for the kinds asked (see the module docstring;
+    'combined' computes the terms it needs), from the pattern model's inputs and, for peak and agreement, the
+    trained field they render."""
     kinds = tuple(kinds)
     unknown = [k for k in kinds if k not in CONFIDENCE_KINDS]
     if unknown:
         raise ValueError(f"unknown confidence kind(s) {unknown}; kinds: {', '.join(CONFIDENCE_KINDS)}")
     need = set(kinds) | (set(COMBINED_TERMS) if "combined" in kinds else set())
-    cam, prj = trainer.scan.camera, trainer.scan.projector
     terms = {}
     if "photometric" in need:
-        terms["photometric"] = photometric_confidence(depth, cam, prj, *pattern_model_inputs(trainer))
+        terms["photometric"] = photometric_confidence(depth, *inputs.model)
     if need & {"peak", "agreement"}:
-        field = trainer.field
-        was_training = field.training
-        field.eval()
-        try:
-            terms["peak"], terms["agreement"] = ray_confidence(trainer.renderer, depth, trainer.cfg.sampling.rays)
-        finally:
-            field.train(was_training)
+        if field is None:
+            raise ValueError("confidence kinds peak and agreement render the trained field: give `field`")
+        with evaluating(field.sdf):
+            terms["peak"], terms["agreement"] = ray_confidence(field.renderer, depth, field.rays)
     if "uniqueness" in need:
         # the host's arrays (uniqueness_confidence uploads what it needs itself)
-        images, patterns = trainer.scan.images[: trainer.n_frames], trainer.renderer.rendered_patterns.detach().cpu().numpy()
-        terms["uniqueness"] = uniqueness_confidence(depth, cam, prj, images, patterns, trainer.depth_range,
-                                                    device=trainer.device)
+        terms["uniqueness"] = uniqueness_confidence(depth, inputs.camera, inputs.projector, inputs.host_images,
+                                                    inputs.host_patterns, inputs.depth_range, device=inputs.device)
     if "combined" in kinds:
         terms["combined"] = combine(terms)
     return {k: terms[k] for k in kinds}
 
 
-def depth_confidence(trainer, depth: np.ndarray, kind: str = "combined") -> np.ndarray:
-    """[H, W] float32 confidence in [0, 1] of `depth` (NaN where depth is NaN): the term `kind`."""
-    return confidence_terms(trainer, depth, (kind,))[kind]
+def depth_confidence(inputs: ModelInputs, depth: np.ndarray, kind: str = "combined",
+                     field: TrainedField | None = None) -> np.ndarray:
+    """[H, W] float32 confidence in [0, 1] of `depth` (NaN where depth is NaN): the term `kind`
+    (`confidence_terms`)."""
+    return confidence_terms(inputs, depth, (kind,), field)[kind]
