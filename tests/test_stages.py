@@ -253,6 +253,24 @@ def test_a_stage_inserted_into_a_presets_list_runs_timed_and_recorded_in_the_fat
     assert got.timings["dropped"]["low_confidence"] == int((got.fate == FATE["low_confidence"]).sum())
 
 
+def test_the_confidence_map_is_that_of_the_final_depth(tiny_rods_field):
+    """The runner scores every depth a stage moves, the refined and the denoised ones too: the map written beside
+    the depth is the photometric confidence of the final depth map at every pixel with depth."""
+    from slwarp.neural.confidence import photometric_confidence
+    from slwarp.neural.extraction import extract_depth
+
+    _, cfg, trainer = tiny_rods_field
+    lit = trainer.renderer.valid_map.cpu().numpy()
+    try:
+        trainer.cfg = cfg.with_options(refine_range=1.0, denoise_radius=2)
+        got = extract_depth(trainer, lit)
+    finally:
+        trainer.cfg = cfg
+    assert got.timings["refined"] and list(got.timings)[-1] == "denoise_s"
+    want = photometric_confidence(got.depth, *ModelInputs.from_trainer(trainer, lit).model)
+    np.testing.assert_array_equal(got.confidence, want)
+
+
 # --- the config's list and the switches of old -----------------------------------------------------------------
 
 

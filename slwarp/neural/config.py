@@ -682,8 +682,8 @@ _preset("paper", "the paper's recipe, unchanged: 4000 iterations, 2048 rays, 32+
 # the extraction of both defaults (tuned, cpu-hashgrid): refinement, then the search repair in groups (its doubt
 # rule stays on by itself when a run turns the repair off)
 # and the refinement only where the pattern model explains the images (REFINE_MAX_MISFIT)
-# and the repair's growth (extraction.repair.grow_repair) into the pixels beside it that kept the background's depth by a chance
-# fit: full-resolution rods, tuned's maps of 4 rigs grown offline (bench/results/grow-study.md) 0.183 / 0.285 / 0.183
+# and the repair's growth (extraction.repair.grow_repair) into the pixels beside it that kept the background's depth
+# by a chance fit: full-resolution rods, tuned's maps of 4 rigs grown offline (bench/results/grow-study.md) 0.183 / 0.285 / 0.183
 # / 0.305 -> 0.178 / 0.236 / 0.168 / 0.275 mm (default / vertical / oblique / rolled), no pixel gained or lost; no
 # change on the 4 checker maps (no repair there) nor, grown in the extraction, on vertical-rig steps
 # (accuracy-cuda-grow-check.md, which also has vertical rods 0.264 -> 0.231 mm with the growth in the extraction);

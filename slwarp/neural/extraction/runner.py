@@ -1,6 +1,11 @@
 """The extraction runner: a config's stages built in order (`build_stages`), run on one state (`run_stages`: each
 timed, its pixels' fates recorded and the confidence of the depths it changed scored the same way for every stage),
-and `extract_depth`, a trained field's depth map as its config's extraction section says."""
+and `extract_depth`, a trained field's depth map as its config's extraction section says.
+
+Because every stage's new depths are scored, the confidence map is that of the final depth map: the refined and
+the denoised depths are scored at their own depth (before stages, the map kept the confidence of the depth before
+the refinement and the denoising). Only a stage that scores its depths itself (`Stage.scores`: the confidence
+stage, the uniform-code fill with its neighbours' fit) is not scored again."""
 from __future__ import annotations
 
 import functools
@@ -73,7 +78,7 @@ def _settle(stage: Stage, before: State, after: State, score) -> State:
         fate[new if stage.marks is not None else gained] = register_fate(stage.marks or stage.name)
     confidence = after.confidence
     if confidence is not None:
-        if not stage.scores and stage.rescore and new.any():
+        if not stage.scores and new.any():
             fresh = score(np.where(new, after.depth, np.nan).astype(np.float32))
             confidence = np.where(new, fresh, confidence).astype(np.float32)
         confidence = np.where(has, confidence, np.nan).astype(np.float32)

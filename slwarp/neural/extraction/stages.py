@@ -36,15 +36,13 @@ class Stage:
     """The base of an extraction stage (see the module docstring). Class attributes: name (what a config's `stages`
     calls it), drops / marks (the fate of the pixels it leaves without depth / gives a depth of its own; None: it
     does not), scores (it sets the confidence of the depths it changes itself; else the runner scores them), after
-    (the stages that must run before it), rescore (the runner scores the depths it changes)."""
+    (the stages that must run before it)."""
 
     name: ClassVar[str]
     drops: ClassVar[str | None] = None
     marks: ClassVar[str | None] = None
     scores: ClassVar[bool] = False
     after: ClassVar[tuple[str, ...]] = ("depth",)
-    # the refinement and the denoising leave the confidence of the depth before them (as the extraction always did)
-    rescore: ClassVar[bool] = True
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -229,7 +227,6 @@ class Refine(Stage):
     info: refine_misfit, refined, refine_check."""
 
     name = "refine"
-    rescore: ClassVar[bool] = False
     refine_range: float
     refine_max_misfit: float
     refine_check: bool
@@ -291,7 +288,6 @@ class Denoise(Stage):
     added or lost."""
 
     name = "denoise"
-    rescore: ClassVar[bool] = False
     denoise_radius: int
     denoise_footprints: float
 
