@@ -57,8 +57,8 @@ def trained(scan, config, work: Path, progress: bool):
 
 def neural_maps(trainer, kinds) -> tuple[np.ndarray, dict, float]:
     """(depth with no confidence filter, {kind: confidence}, seconds for the confidence maps)."""
+    from slwarp.neural.extraction import ModelInputs, TrainedField, extract_depth
     from slwarp.neural.extraction.confidence import confidence_terms
-    from slwarp.neural.extraction import extract_depth
 
     t = trainer
     keep = t.cfg
@@ -68,7 +68,7 @@ def neural_maps(trainer, kinds) -> tuple[np.ndarray, dict, float]:
     finally:
         t.cfg = keep
     t0 = time.perf_counter()
-    terms = confidence_terms(t, depth, kinds)
+    terms = confidence_terms(ModelInputs.from_trainer(t), depth, kinds, TrainedField.from_trainer(t))
     return depth, terms, time.perf_counter() - t0
 
 
