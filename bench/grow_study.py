@@ -73,10 +73,10 @@ def grow_run(path: Path, supports: list[int], margin: float) -> dict:
     out = {**run, "blur_px": float(sigma), "seeds": int(seeds.sum()), "pixels": int(has.sum()),
            "mae_before": float(np.abs(error[has]).mean()), "wrong_before": int((np.abs(error[has]) > WRONG_MM).sum()),
            "supports": {}}
+    inputs = ModelInputs(rand.camera, rand.projector, images, rendered, scan.depth_range)
     for support in supports:
         t0 = time.perf_counter()
-        new, grown = grow_repair(depth, seeds, ModelInputs(rand.camera, rand.projector, images, rendered, scan.depth_range),
-                                 support=support, margin=margin)
+        new, grown = grow_repair(depth, seeds, inputs, support=support, margin=margin)
         e = new - gt
         out["supports"][str(support)] = {
             "grown": int(grown.sum()), "right": int((grown & (np.abs(e) < RIGHT_MM)).sum()),

@@ -10,10 +10,10 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from slwarp.neural.config import (DEFAULT_STAGES, OPTIONS, PRESETS, STAGE_ORDER, STAGE_SWITCHES, ConfigError, TrainConfig,
-                                  load_config, parse_assignments, preset, save_config)
-from slwarp.neural.extraction import (FATE, PIXEL_FATES, STAGES, ModelInputs, Stage, State, TrainedField, build_stages,
-                                      pixel_fates, run_stages)
+from slwarp.neural.config import (DEFAULT_STAGES, OPTIONS, PRESETS, STAGE_ORDER, STAGE_SWITCHES, ConfigError,
+                                  TrainConfig, load_config, parse_assignments, preset, save_config)
+from slwarp.neural.extraction import (FATE, PIXEL_FATES, STAGES, ModelInputs, Stage, State, TrainedField,
+                                      build_stages, pixel_fates, run_stages)
 from slwarp.neural.extraction.stages import unregister_stage
 from slwarp.neural.extraction.state import forget_fate
 
@@ -186,8 +186,8 @@ def test_stage_lists_are_checked_when_built(toy_stages):
         with pytest.raises(ConfigError, match=match):
             build_stages(dataclasses.replace(ex, stages=names))
     # sphere tracing needs no mesh
-    assert [s.name for s in build_stages(dataclasses.replace(ex, stages=("depth", "confidence"), depth_method="sphere"))] \
-        == ["depth", "confidence"]
+    sphere = dataclasses.replace(ex, stages=("depth", "confidence"), depth_method="sphere")
+    assert [s.name for s in build_stages(sphere)] == ["depth", "confidence"]
 
 
 def test_every_setting_of_a_stage_is_an_extraction_option():
@@ -327,8 +327,8 @@ def test_stage_lists_in_files_and_on_the_command_line(tmp_path):
     save_config(tmp_path / "tuned.yaml", PRESETS["tuned"])
     assert load_config(tmp_path / "tuned.yaml", base=PRESETS["cpu"]) == PRESETS["tuned"]
     old = tmp_path / "old.yaml"
-    old.write_text("extraction:\n  edge_filter: 0.0\n  edge_readmit: false\n  search_repair: false\n  repair_grow: false\n"
-                   "  uniform_fill: false\n")
+    old.write_text("extraction:\n  edge_filter: 0.0\n  edge_readmit: false\n  search_repair: false\n"
+                   "  repair_grow: false\n  uniform_fill: false\n")
     ex = load_config(old, base=PRESETS["tuned"]).extraction
     assert ex.stages == ("marching_cubes", "depth", "depth_range", "confidence", "search_doubt", "refine", "denoise")
     assert parse_assignments(["stages=marching_cubes, depth,confidence"]) == {

@@ -26,7 +26,8 @@ from .confidence import depth_confidence
 from .fill import fill_uniform_codes
 from .repair import doubt_by_search, grow_repair, repair_by_search
 from .state import FATE, State, evaluating, register_fate
-from .surface import denoise_depth, extract_mesh, flying_pixel_filter, mesh_depth, readmit_edge_pixels, sphere_trace_depth
+from .surface import (denoise_depth, extract_mesh, flying_pixel_filter, mesh_depth, readmit_edge_pixels,
+                      sphere_trace_depth)
 
 # the stages by name: every subclass of Stage with a name, as it is defined
 STAGES: dict[str, type["Stage"]] = {}
@@ -233,7 +234,8 @@ class Refine(Stage):
 
     def __call__(self, state: State) -> State:
         i = state.inputs
-        # the images as the model holds them (on a GPU the renderer's tensors: no upload per use), the patterns unblurred
+        # the images as the model holds them (on a GPU the renderer's tensors: no upload per use), the patterns
+        # unblurred (the refinement fits its own blur)
         model = (i.camera, i.projector, i.images, i.raw_patterns, self.refine_range)
         refined, misfit = refine_where_model_fits(state.depth, *model, self.refine_max_misfit, device=i.device)
         info = {"refine_misfit": misfit, "refined": False, "refine_check": None}

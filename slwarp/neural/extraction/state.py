@@ -155,7 +155,8 @@ class State:
 
     @classmethod
     def start(cls, inputs: ModelInputs, field: TrainedField, progress: bool = False) -> "State":
-        """The state before the first stage: no depth yet, fate "measured" inside inputs.valid, "no_contrast" outside."""
+        """The state before the first stage: no depth yet; fate "measured" inside inputs.valid, "no_contrast"
+        outside."""
         H, W = inputs.camera.height, inputs.camera.width
         fate = np.full((H, W), FATE["measured"], np.uint8)
         if inputs.valid is not None:
