@@ -116,7 +116,7 @@ def keep_error_map(job: dict, label: str, depth: np.ndarray, scan, fate: np.ndar
                    title=f"{label}: {job['scene']} on {job['rig']}")
     arrays = {"error": np.where(scan.mask, depth - scan.gt_depth, np.nan).astype(np.float16)}
     if fate is not None:
-        from slwarp.neural.reconstruct import PIXEL_FATES
+        from slwarp.neural.extraction import PIXEL_FATES
 
         arrays.update(fate=fate.astype(np.uint8), fates=np.array(PIXEL_FATES))
     np.savez_compressed(Path(keep) / f"{name}.npz", **arrays)
@@ -143,7 +143,8 @@ def run_job(job: dict) -> dict:
         else:
             from slwarp.evaluation.metrics import depth_metrics
             from slwarp.neural.config import preset
-            from slwarp.neural.reconstruct import extract_depth, reconstruct
+            from slwarp.neural.extraction import extract_depth
+            from slwarp.neural.reconstruct import reconstruct
 
             cfg = preset(job["preset"], device=_DEVICE, **job["overrides"])
             rec = reconstruct(scan.select("rand*"), cfg, progress=False)

@@ -39,7 +39,7 @@ def main(argv=None):
 
     from slwarp.decode import reconstruct_depth
     from slwarp.evaluation.metrics import chessboard_region, plane_rms, quadric_rms
-    from slwarp.neural.extract import depth_to_points
+    from slwarp.neural.extraction.surface import depth_to_points
     from slwarp.neural.reconstruct import reconstruct
     from slwarp.devices import torch_device
     from slwarp.neural.config import default_preset_name, preset
@@ -78,7 +78,7 @@ def main(argv=None):
         record(name, d, time.perf_counter() - t, len(dec.frames), dec.extra["triangulation"])
     if not args.skip_neural:
         from bench.accuracy_sweep import parse_overrides
-        from slwarp.neural.reconstruct import extract_depth
+        from slwarp.neural.extraction import extract_depth
 
         seven = scan.select(SEVEN_ROWS)
         for label in (args.preset or default_preset_name(torch_device("auto"))).split(","):

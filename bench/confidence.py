@@ -57,8 +57,8 @@ def trained(scan, config, work: Path, progress: bool):
 
 def neural_maps(trainer, kinds) -> tuple[np.ndarray, dict, float]:
     """(depth with no confidence filter, {kind: confidence}, seconds for the confidence maps)."""
-    from slwarp.neural.confidence import confidence_terms
-    from slwarp.neural.reconstruct import extract_depth
+    from slwarp.neural.extraction import ModelInputs, TrainedField, extract_depth
+    from slwarp.neural.extraction.confidence import confidence_terms
 
     t = trainer
     keep = t.cfg
@@ -68,7 +68,7 @@ def neural_maps(trainer, kinds) -> tuple[np.ndarray, dict, float]:
     finally:
         t.cfg = keep
     t0 = time.perf_counter()
-    terms = confidence_terms(t, depth, kinds)
+    terms = confidence_terms(ModelInputs.from_trainer(t), depth, kinds, TrainedField.from_trainer(t))
     return depth, terms, time.perf_counter() - t0
 
 
@@ -113,7 +113,7 @@ def run_scene(scene: str, args, results: dict) -> None:
     scan = simulate_scene(scene, PATTERNS, args.rig, SimOptions(seed=0), device=torch_device)
     res = results.setdefault(scene, {})
     if scene in args.neural_scenes:
-        from slwarp.neural.confidence import CONFIDENCE_KINDS, combine
+        from slwarp.neural.extraction.confidence import CONFIDENCE_KINDS, combine
 
         trainer = trained(scan, preset(args.preset, device=torch_device), Path(args.work) / scene, args.progress)
         depth, terms, conf_s = neural_maps(trainer, CONFIDENCE_KINDS)

@@ -70,7 +70,7 @@ def test_keep_writes_the_error_picture_and_the_signed_error_and_fates(tmp_path, 
     import numpy as np
     from types import SimpleNamespace
 
-    from slwarp.neural.reconstruct import FATE, PIXEL_FATES
+    from slwarp.neural.extraction import FATE, PIXEL_FATES
 
     monkeypatch.setattr(accuracy_sweep, "_KEEP", str(tmp_path))
     gt = np.full((6, 8), 700.0, np.float32)

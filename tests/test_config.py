@@ -23,7 +23,10 @@ FLAT_DEFAULTS = dict(iters=4000, rays=2048, n_samples=32, n_importance=32, up_sa
                      uniform_fill=False, refine_check=False, refine_max_misfit=0.0, denoise_radius=0, denoise_footprints=4.0, surface_weight=0.0, surface_after=0.0, surface_in_front=False, free_space=0.0, surface_band_mm=0.5,
                      field="mlp", grid_levels=16, grid_log2_table=19, grid_base=16, grid_finest="auto",
                      grid_hidden=64, grid_layers=1, grid_activation="softplus", grid_gradient="finite_difference",
-                     grid_table_lr_factor=10.0, grid_start_levels=2, grid_level_every=150)
+                     grid_table_lr_factor=10.0, grid_start_levels=2, grid_level_every=150,
+                     stages=("marching_cubes", "depth", "depth_range", "flying_pixel", "confidence"))
+# the extraction stages of tuned, fast, accurate and cpu-hashgrid, in order
+SEARCH_STAGES = (*FLAT_DEFAULTS["stages"], "search_repair", "refine", "uniform_fill", "repair_grow", "denoise")
 HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, grid_table_lr_factor=10.0)
 FLAT_PRESETS = {
     "paper": dict(matmul="tf32"),
@@ -31,7 +34,7 @@ FLAT_PRESETS = {
                   edge_readmit=True,
                   search_doubt=True,
                   search_repair=True, repair_min_component=100, repair_grow=True, surface_weight=1.0, surface_after=1.0,
-                  uniform_fill=True, denoise_radius=4, denoise_footprints=8.0),
+                  uniform_fill=True, denoise_radius=4, denoise_footprints=8.0, stages=SEARCH_STAGES),
     "cpu": dict(iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, lr=5e-4, lr_decay="cosine",
                 lambda_sc=0.0, hidden=64, layers=4, skip=2, n_freqs=6, search_step_mm=2.0, mc_resolution=192,
                 checkpoint_every=250, log_every=25),
@@ -43,13 +46,13 @@ FLAT_PRESETS = {
                  grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, refine_range=3.0,
                  refine_max_misfit=0.024, search_doubt=True, search_repair=True, repair_min_component=100, repair_grow=True,
                  surface_weight=1.0, surface_after=1.0, surface_in_front=True, free_space=0.5, variance_lr_factor=2.0, uniform_fill=True, denoise_radius=4,
-                 denoise_footprints=8.0, **HASHGRID),
+                 denoise_footprints=8.0, stages=SEARCH_STAGES, **HASHGRID),
     "accurate": dict(matmul="tf32", iters=2000, grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2, grid_level_every=100, variance_lr_factor=4.0, refine_range=3.0,
                      refine_max_misfit=0.024, search_doubt=True, search_repair=True, repair_min_component=100, repair_grow=True,
                      surface_weight=1.0, surface_after=1.0, free_space=1.0, uniform_fill=True, denoise_radius=4,
-                     denoise_footprints=8.0, **HASHGRID),
+                     denoise_footprints=8.0, stages=SEARCH_STAGES, **HASHGRID),
     "cpu-hashgrid": dict(refine_range=3.0, refine_max_misfit=0.024, search_doubt=True, search_repair=True, repair_min_component=100, repair_grow=True, uniform_fill=True,
-                         denoise_radius=2, denoise_footprints=4.0,
+                         denoise_radius=2, denoise_footprints=4.0, stages=SEARCH_STAGES,
                          grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, search_step_mm=2.0,
                          mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
                          **HASHGRID),
@@ -196,6 +199,9 @@ def test_cli_flags_are_generated_for_every_option():
             argv = [flag, expect]
         elif name == "device":
             argv, expect = [flag, "cpu"], "cpu"
+        elif opt.is_list:  # the extraction's stages, comma-separated
+            expect = ("marching_cubes", "depth", "confidence")
+            argv = [flag, ",".join(expect)]
         else:  # a value that differs from tiny's and satisfies the rules between options
             expect = {"grid_start_levels": 3, "grid_finest": 64, "grid_log2_table": 12,
                       "surface_band_mm": 1.0}.get(name, {int: 2, float: 0.5}[opt._numeric()])

@@ -203,15 +203,18 @@ def test_model_misfit_separates_a_linear_camera_from_a_gamma_camera_and_grows_of
 
 def test_refine_where_model_fits_refines_as_refine_depth_or_leaves_the_depth(blurred_scan):
     """One model fit for both: under the limit (or with no limit) the result is refine_depth's exactly, with
-    model_misfit's value (None without a limit); over it the depth comes back unchanged."""
+    model_misfit's value (None without a limit); over it no refinement (None) comes back, with the misfit."""
     s = blurred_scan
     start = _smooth_error_start(s)
     args = (s.camera, s.projector, s.images, s.patterns)
     refined = refine_depth(start, *args, 1.5)
     misfit = model_misfit(start, *args)
-    for limit, want, want_misfit in ((1.0, refined, misfit), (0.0, refined, None), (misfit / 2, start, misfit)):
+    for limit, want, want_misfit in ((1.0, refined, misfit), (0.0, refined, None), (misfit / 2, None, misfit)):
         got, got_misfit = refine_where_model_fits(start, *args, 1.5, limit)
-        np.testing.assert_array_equal(got, want)
+        if want is None:
+            assert got is None
+        else:
+            np.testing.assert_array_equal(got, want)
         assert got_misfit == want_misfit
     with pytest.raises(ValueError, match="half_range_mm and step_mm must be > 0"):
         refine_where_model_fits(start, *args, 0.0, 1.0)
@@ -383,7 +386,8 @@ def test_fill_uniform_codes_gives_the_field_depth_to_lit_pixels_without_contrast
     """Pixels lit by a projector square that is black or white in all 6 patterns have no contrast: they take the
     field's depth where the codes predicted there are uniform and explain the images; a field 30 mm off predicts
     other codes there and fills far fewer; nothing is filled outside `region` or where the pixel has depth."""
-    from slwarp.neural.pattern_model import fill_uniform_codes
+    from slwarp.neural.extraction.fill import fill_uniform_codes
+    from slwarp.neural.extraction.state import ModelInputs
 
     s = blurred_scan
     pats = blur_patterns(torch.as_tensor(s.patterns), 1.0).numpy()
@@ -392,8 +396,8 @@ def test_fill_uniform_codes_gives_the_field_depth_to_lit_pixels_without_contrast
     gt = np.where(s.mask, s.gt_depth, np.nan).astype(np.float32)
     field = np.nan_to_num(s.gt_depth, nan=np.inf).astype(np.float32)  # the field's depth: exact where it hits
     depth = np.where(lit, gt, np.nan).astype(np.float32)
-    args = (s.camera, s.projector, s.images, pats, s.depth_range, 0.6)
-    out, conf, filled = fill_uniform_codes(depth, field, lit, *args)
+    inputs = ModelInputs(s.camera, s.projector, s.images, pats, s.depth_range, lit=lit)
+    out, conf, filled = fill_uniform_codes(depth, field, inputs, 0.6)
     dark = s.mask & ~lit  # lit by the projector (GT mask) but without contrast
     assert dark.sum() > 50
     assert filled.sum() > 0.5 * dark.sum()
@@ -403,15 +407,17 @@ def test_fill_uniform_codes_gives_the_field_depth_to_lit_pixels_without_contrast
     np.testing.assert_allclose(out[filled], s.gt_depth[filled], atol=0.05)  # exact neighbours: no correction
     np.testing.assert_array_equal(out[~filled], depth[~filled])
     assert np.isfinite(conf[filled]).all() and (conf[filled] >= 0.6).all() and np.isnan(conf[~filled]).all()
-    _, _, off = fill_uniform_codes(depth, field + 30.0, lit, *args)
+    _, _, off = fill_uniform_codes(depth, field + 30.0, inputs, 0.6)
     assert off.sum() < 0.2 * filled.sum()
-    assert not fill_uniform_codes(depth, field, lit, *args, region=np.zeros_like(lit))[2].any()
+    nowhere = ModelInputs(s.camera, s.projector, s.images, pats, s.depth_range, lit=lit, region=np.zeros_like(lit))
+    assert not fill_uniform_codes(depth, field, nowhere, 0.6)[2].any()
 
 
 def test_fill_uniform_codes_corrects_by_the_refinement_offset_and_ignores_repairs(blurred_scan):
     """A field 1 mm behind the surface: the fills take its depth shifted by the neighbours' depth - field_depth
     (here -1 mm), and neighbours that a search repair moved far off (-80 mm) do not enter that mean."""
-    from slwarp.neural.pattern_model import fill_uniform_codes
+    from slwarp.neural.extraction.fill import fill_uniform_codes
+    from slwarp.neural.extraction.state import ModelInputs
 
     s = blurred_scan
     pats = blur_patterns(torch.as_tensor(s.patterns), 1.0).numpy()
@@ -422,8 +428,8 @@ def test_fill_uniform_codes_corrects_by_the_refinement_offset_and_ignores_repair
     depth = np.where(lit, gt, np.nan).astype(np.float32)
     repaired = lit & (np.arange(lit.shape[1])[None, :] % 5 == 0)
     depth[repaired] -= 80.0
-    args = (s.camera, s.projector, s.images, pats, s.depth_range, 0.6)
-    out, _, filled = fill_uniform_codes(depth, field, lit, *args)
+    inputs = ModelInputs(s.camera, s.projector, s.images, pats, s.depth_range, lit=lit)
+    out, _, filled = fill_uniform_codes(depth, field, inputs, 0.6)
     on = filled & s.mask
     assert on.sum() > 50
     assert np.nanmedian(np.abs(out[on] - s.gt_depth[on])) < 0.05

@@ -205,13 +205,41 @@ class RuntimeConfig:
     log_every: int = option(50, "iterations between logged losses", min=1, resumable=True)
 
 
+# the extraction's stages (slwarp.neural.extraction.stages) in the order a preset lists them: an option that switches
+# a stage on (STAGE_SWITCHES) puts it at its place in this order, after the stages that come before it here
+STAGE_ORDER = ("marching_cubes", "depth", "depth_range", "flying_pixel", "confidence", "search_repair", "search_doubt",
+               "refine", "uniform_fill", "repair_grow", "denoise")
+# the stages of an extraction that names none: the mesh, its depth, the depth range, the flying-pixel filter and the
+# confidence map with its filter
+DEFAULT_STAGES = ("marching_cubes", "depth", "depth_range", "flying_pixel", "confidence")
+# the options that switch a stage on (true, or a number above 0) and off (false, 0), by their flat names of old:
+# `stages` and they always agree. search_repair and search_doubt share one place (the repair includes the doubt
+# rule; while it runs, search_doubt says whether the doubt rule stays when the repair is switched off: _sync_stages)
+STAGE_SWITCHES = {"edge_filter": "flying_pixel", "search_repair": "search_repair", "search_doubt": "search_doubt",
+                  "refine_range": "refine", "uniform_fill": "uniform_fill", "repair_grow": "repair_grow",
+                  "denoise_radius": "denoise"}
+_SEARCH_STAGES = ("search_repair", "search_doubt")
+
+
+class StageList(tuple):
+    """The extraction's stage names in order (a tuple; written comma-separated, as the command line takes them)."""
+
+    def __str__(self) -> str:
+        return ",".join(self)
+
+
 @dataclass
 class ExtractionConfig:
     """From the trained field to a depth map.
 
-    Every extraction option acts after training: a resumed run may change it (e.g. extract again at another
-    resolution)."""
+    `stages` lists what runs, in order (slwarp.neural.extraction: each stage reads its own options below); the
+    options of STAGE_SWITCHES add or remove their stage. Every extraction option acts after training: a resumed run
+    may change it (e.g. extract again at another resolution)."""
 
+    stages: tuple[str, ...] = option(StageList(DEFAULT_STAGES), "the extraction's stages in the order they run, "
+                                     "comma-separated (slwarp.neural.extraction.STAGES); edge_filter, search_repair, "
+                                     "search_doubt, refine_range, uniform_fill, repair_grow and denoise_radius add or "
+                                     "remove theirs", resumable=True)
     # below 16 cells a cell spans more than 1/16 of the working volume: no scene's surface survives it
     mc_resolution: int = option(384, "marching-cubes cells along the volume's longest side", min=16, resumable=True)
     depth_method: Literal["mesh", "sphere"] = option("mesh", "depth by ray casting the marching-cubes mesh, or by "
@@ -299,6 +327,11 @@ class Option:
     def is_bool(self) -> bool:
         return self.type is bool
 
+    @property
+    def is_list(self) -> bool:
+        """A list of names (the extraction's stages): comma-separated on the command line, a list in YAML."""
+        return typing.get_origin(self.type) is tuple
+
     def _alternatives(self) -> tuple:
         return typing.get_args(self.type) if typing.get_origin(self.type) in (typing.Union, _UnionType) else (self.type,)
 
@@ -311,6 +344,8 @@ class Option:
 
     def allowed(self) -> str:
         """What the option takes, in words."""
+        if self.is_list:
+            return "a comma-separated list of names"
         parts = []
         num = self._numeric()
         if num is not None:
@@ -335,6 +370,8 @@ class Option:
     def metavar(self) -> str:
         """How --help shows the value: {a,b} for a choice of words, N (an integer) or X (a number) with the
         words it also takes, the key in capitals for text."""
+        if self.is_list:
+            return "NAME,..."
         if self.choices and self._numeric() is None:
             return "{" + ",".join(self.choices) + "}"
         word = {int: "N", float: "X"}.get(self._numeric(), self.key.upper())
@@ -347,6 +384,11 @@ class Option:
         """Raise ConfigError unless `value` is of the option's type and in its range."""
         if value is None:
             if type(None) not in self._alternatives():
+                self._fail(value)
+            return
+        if self.is_list:
+            if not (isinstance(value, (list, tuple)) and value and all(isinstance(v, str) and v.isidentifier()
+                                                                      for v in value)):
                 self._fail(value)
             return
         if self.choices and value in self.choices and not isinstance(value, bool):
@@ -370,6 +412,10 @@ class Option:
     def parse(self, text: str):
         """The value of `text` (a command-line word, a key=value spec, a YAML string), checked."""
         word = text.strip()
+        if self.is_list:
+            value = StageList(w.strip() for w in word.split(","))
+            self.check(value)
+            return value
         if self.is_bool:
             low = word.lower()
             if low not in ("true", "false", "1", "0", "yes", "no", "on", "off"):
@@ -394,6 +440,8 @@ class Option:
         integer is accepted for a number; checked."""
         if isinstance(value, str):
             return self.parse(value)
+        if self.is_list and isinstance(value, (list, tuple)):
+            value = StageList(value)
         if isinstance(value, int) and not isinstance(value, bool) and self._numeric() is float:
             value = float(value)
         self.check(value)
@@ -438,7 +486,9 @@ class TrainConfig:
         sections = {name: dataclasses.replace(getattr(self, name)) for name in SECTIONS}
         for name, value in options.items():
             opt = _option(name)
+            opt.check(value)
             setattr(sections[opt.section], opt.key, value)
+        _sync_stages(sections["extraction"], options)
         return TrainConfig(**sections).validate()
 
     def validate(self) -> "TrainConfig":
@@ -460,6 +510,7 @@ class TrainConfig:
                               f"({f.grid_levels})")
         if f.grid_finest != "auto" and f.grid_finest < f.grid_base:
             raise ConfigError(f"option grid_finest: {f.grid_finest} must not be below grid_base ({f.grid_base}), or auto")
+        _check_stages(self.extraction)
         if self.extraction.edge_readmit and not self.extraction.edge_filter > 0:
             raise ConfigError("option edge_readmit: true needs edge_filter > 0 (it gives back what that filter dropped)")
         if self.extraction.repair_grow and not self.extraction.search_repair:
@@ -471,8 +522,10 @@ class TrainConfig:
         return {name: self.get(name) for name, opt in OPTIONS.items() if not opt.resumable}
 
     def to_dict(self) -> dict:
-        """{section: {key: value}}: plain values, as YAML and checkpoints hold them."""
-        return dataclasses.asdict(self)
+        """{section: {key: value}}: plain values, as YAML and checkpoints hold them (the stages as a list)."""
+        doc = dataclasses.asdict(self)
+        doc["extraction"]["stages"] = list(self.extraction.stages)
+        return doc
 
     @classmethod
     def from_dict(cls, doc: dict, base: "TrainConfig | None" = None, source: str = "config") -> "TrainConfig":
@@ -500,7 +553,78 @@ class TrainConfig:
                     setattr(sections[name], key, opt.coerce(value))
                 except ConfigError as e:
                     raise ConfigError(f"{source}: {e}") from None
+        try:
+            # a file of before `stages` (or one that sets a switch) has its switches add or remove their stages
+            _sync_stages(sections["extraction"], doc.get("extraction") or {})
+        except ConfigError as e:
+            raise ConfigError(f"{source}: {e}") from None
         return cls(**sections).validate()
+
+
+def _place(stages: list[str], name: str) -> None:
+    """Insert stage `name` into `stages` after the last of them that STAGE_ORDER puts before it (stages it does not
+    know are passed over)."""
+    rank = STAGE_ORDER.index(name)
+    at = max((i + 1 for i, s in enumerate(stages) if s in STAGE_ORDER and STAGE_ORDER.index(s) < rank), default=0)
+    stages.insert(at, name)
+
+
+def _sync_stages(ex: ExtractionConfig, given) -> None:
+    """Make `stages` and the stage switches agree, in place: each switch in `given` (the options set just now) adds
+    or removes its stage, then every switch reads from the list (a number switch keeps its value while its stage
+    runs, 0 when it does not).
+
+    search_repair and search_doubt share one place in the list: the repair (which includes the doubt rule), else the
+    doubt rule alone, else neither. While the repair runs, search_doubt keeps its own value: whether the doubt rule
+    stays when the repair is switched off (as the two options always behaved)."""
+    stages = list(ex.stages)
+    on = {opt: bool(getattr(ex, opt)) if opt in given else stage in stages for opt, stage in STAGE_SWITCHES.items()}
+    if "search_doubt" not in given and "search_repair" in stages:
+        on["search_doubt"] = bool(ex.search_doubt)
+    if "search_doubt" not in given and "search_doubt" in stages:
+        on["search_doubt"] = True
+    if {"search_repair", "search_doubt"} & set(given):
+        slot = "search_repair" if on["search_repair"] else "search_doubt" if on["search_doubt"] else None
+        stages = [s for s in stages if s not in _SEARCH_STAGES or s == slot]
+        if slot is not None and slot not in stages:
+            _place(stages, slot)
+    for opt in set(given) & STAGE_SWITCHES.keys() - {"search_repair", "search_doubt"}:
+        stage = STAGE_SWITCHES[opt]
+        if on[opt] and stage not in stages:
+            _place(stages, stage)
+        elif not on[opt] and stage in stages:
+            stages.remove(stage)
+    for opt, stage in STAGE_SWITCHES.items():
+        value = getattr(ex, opt)
+        if opt == "search_doubt":
+            setattr(ex, opt, on[opt] if "search_repair" in stages else "search_doubt" in stages)
+        elif isinstance(value, bool):
+            setattr(ex, opt, stage in stages)
+        elif stage not in stages:
+            setattr(ex, opt, type(value)(0))
+        elif not value > 0:
+            raise ConfigError(f"option stages: {stage} runs with {opt} above 0, got {value}: give {opt} (or leave "
+                              f"{stage} out)")
+    ex.stages = StageList(stages)
+
+
+def _check_stages(ex: ExtractionConfig) -> None:
+    """ConfigError unless `stages` names each stage once, at most one of the search repair and its doubt rule, and
+    agrees with the stage switches (which with_options, presets and config files keep in step with it)."""
+    stages = list(ex.stages)
+    twice = sorted({s for s in stages if stages.count(s) > 1})
+    if twice:
+        raise ConfigError(f"option stages: {', '.join(twice)} named more than once in {StageList(stages)}")
+    if set(_SEARCH_STAGES) <= set(stages):
+        raise ConfigError("option stages: names both search_repair and search_doubt; the repair includes the doubt "
+                          "rule, so name one")
+    for opt, stage in STAGE_SWITCHES.items():
+        if opt == "search_doubt" and "search_repair" in stages:
+            continue  # the repair's own setting: whether the doubt rule stays without it
+        if bool(getattr(ex, opt)) != (stage in stages):
+            raise ConfigError(f"option {opt}: {getattr(ex, opt)!r} disagrees with stages ({StageList(stages)}), "
+                              f"which {'names' if stage in stages else 'does not name'} {stage}; set options through "
+                              "with_options, a preset or a config file, which keep them in step")
 
 
 OPTIONS: dict[str, Option] = _collect_options()
@@ -558,15 +682,20 @@ _preset("paper", "the paper's recipe, unchanged: 4000 iterations, 2048 rays, 32+
 # the extraction of both defaults (tuned, cpu-hashgrid): refinement, then the search repair in groups (its doubt
 # rule stays on by itself when a run turns the repair off)
 # and the refinement only where the pattern model explains the images (REFINE_MAX_MISFIT)
-# and the repair's growth (search.grow_repair) into the pixels beside it that kept the background's depth by a chance
-# fit: full-resolution rods, tuned's maps of 4 rigs grown offline (bench/results/grow-study.md) 0.183 / 0.285 / 0.183
+# and the repair's growth (extraction.repair.grow_repair) into the pixels beside it that kept the background's depth
+# by a chance fit: full-resolution rods, tuned's maps of 4 rigs grown offline (bench/results/grow-study.md) 0.183 / 0.285 / 0.183
 # / 0.305 -> 0.178 / 0.236 / 0.168 / 0.275 mm (default / vertical / oblique / rolled), no pixel gained or lost; no
 # change on the 4 checker maps (no repair there) nor, grown in the extraction, on vertical-rig steps
 # (accuracy-cuda-grow-check.md, which also has vertical rods 0.264 -> 0.231 mm with the growth in the extraction);
 # on the small rig with cpu-hashgrid nothing grows on any of the 8 scenes (accuracy-cpu-grow.md)
-_DEFAULT_EXTRACTION = dict(refine_range=3.0, refine_max_misfit=REFINE_MAX_MISFIT, search_doubt=True, search_repair=True,
-                           repair_min_component=100, repair_grow=True)
-# the GPU presets' last stage, the edge-aware plane fit of 9x9 windows within 8 footprints (extract.denoise_depth):
+# the stages in order: the default ones, the search repair, the refinement, the uniform-code fill (measured with the
+# surface term below), the repair's growth (after the refinement, so that the repaired depths it spreads are
+# refined) and last the denoising (each preset gives its window: _GPU_DENOISE, cpu-hashgrid's); search_doubt keeps
+# the doubt rule when a run switches the repair off
+_DEFAULT_EXTRACTION = dict(stages=(*DEFAULT_STAGES, "search_repair", "refine", "uniform_fill", "repair_grow", "denoise"),
+                           refine_range=3.0, refine_max_misfit=REFINE_MAX_MISFIT, repair_min_component=100,
+                           search_doubt=True)
+# the GPU presets' last stage, the edge-aware plane fit of 9x9 windows within 8 footprints (extraction.surface.denoise_depth):
 # one H100, 8 scenes x default / vertical rig, the same trained fields extracted again
 # (bench/results/accuracy-cuda-denoise.md): mean MAE tuned 0.134 / 0.137 -> 0.094 / 0.096 mm, accurate 0.152 / 0.153
 # -> 0.098 / 0.099, fast 0.174 / 0.162 -> 0.124 / 0.113; better on each of the 48 scans (rods included: tuned 0.196 /
@@ -591,7 +720,7 @@ _preset("tuned", "paper with lr 5e-4, cosine decay, no surface-colour loss, an S
         "fill, the edge readmission and the edge-aware denoising: the most accurate measured on the virtual scanner (GPU "
         "default)",
         matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0, surface_weight=1.0, surface_after=1.0,
-        uniform_fill=True, edge_readmit=True, **_DEFAULT_EXTRACTION, **_GPU_DENOISE)
+        edge_readmit=True, **_DEFAULT_EXTRACTION, **_GPU_DENOISE)
 # CPU: the tuned recipe with a smaller field and batch, minutes on two cores (small rig)
 _preset("cpu", "tuned with a 4x64 field, 384 rays, 1500 iterations: minutes on two CPU cores (small rig)",
         iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, lr=5e-4, lr_decay="cosine",
@@ -646,8 +775,7 @@ _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 800 iteration
         matmul="tf32", iters=800, init_iters=200, rays=1024, up_sample_steps=2, grid_levels=8,
         grid_gradient="finite_difference_4",
         grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, surface_weight=1.0,
-        surface_after=1.0, surface_in_front=True, free_space=0.5, variance_lr_factor=2.0, uniform_fill=True,
-        **_DEFAULT_EXTRACTION,
+        surface_after=1.0, surface_in_front=True, free_space=0.5, variance_lr_factor=2.0, **_DEFAULT_EXTRACTION,
         **_GPU_DENOISE, **_HASHGRID)
 # the accurate hash-grid recipe: 8 levels (growth 2), the 4-tap gradient, and tuned's surface term and extraction.
 # Default and vertical rigs, 8 scenes each, H200 (bench/results/accuracy-cuda-hashgrid.md): 8 levels gave a mean
@@ -677,7 +805,7 @@ _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations
         "coarse to fine, NeuS's variance at 4x the rate, with tuned's surface term and extraction and a free-space "
         "term: several times faster than tuned, as accurate on the default rig (GPU)",
         matmul="tf32", iters=2000, grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2,
-        grid_level_every=100, variance_lr_factor=4.0, surface_weight=1.0, surface_after=1.0, free_space=1.0, uniform_fill=True,
+        grid_level_every=100, variance_lr_factor=4.0, surface_weight=1.0, surface_after=1.0, free_space=1.0,
         **_DEFAULT_EXTRACTION, **_GPU_DENOISE, **_HASHGRID)
 # CPU: the cpu preset's step on a small hash grid (8 levels of 2^15 entries; finer tables are cache-bound on
 # one thread): small rig, bunny/vase/boxes mean MAE 0.575 mm against 0.749 for cpu at about its time per step
@@ -699,7 +827,7 @@ _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4
         "uniform-code fill and the edge-aware denoising (5x5 windows): better MAE in less time than cpu (small rig)",
         grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2,
         search_step_mm=2.0, mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
-        uniform_fill=True, denoise_radius=2, denoise_footprints=4.0, **_DEFAULT_EXTRACTION, **_HASHGRID)
+        denoise_radius=2, denoise_footprints=4.0, **_DEFAULT_EXTRACTION, **_HASHGRID)
 
 # the preset a run gets when it names none, per device type. CPU: cpu-hashgrid, measured on the small rig with the
 # trainer (bunny MAE 0.479 mm against 0.606 for cpu; mean of bunny, vase, boxes 0.575 against 0.749 mm at 0.95x cpu's

@@ -18,10 +18,10 @@ import contextlib
 import numpy as np
 import torch
 
-from ..decode.triangulate import camera_rays
-from ..devices import warp_device
-from .field import Volume
-from .progress import Progress
+from ...decode.triangulate import camera_rays
+from ...devices import warp_device
+from ..field import Volume
+from ..progress import Progress
 from slwarp.kernels import runtime
 from slwarp.kernels.simulate import first_hit_depth, mesh_hits
 
