@@ -99,7 +99,7 @@ def render(doc: dict) -> str:
 
 
 def main(argv=None) -> int:
-    from slwarp.neural.pattern_model import REFINE_MAX_MISFIT
+    from slwarp.neural.config import REFINE_MAX_MISFIT
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -6,14 +6,11 @@
 """
 from __future__ import annotations
 
-import re
-
 import torch
 
-__all__ = ["DeviceError", "torch_device", "warp_device", "DEVICE_PATTERN"]
+from .neural.config import DEVICE_PATTERN  # the device names a user may give: the config checks them too
 
-# the device names a user may give (CLI --device, TrainConfig.runtime.device)
-DEVICE_PATTERN = re.compile(r"auto|cpu|cuda(:\d+)?")
+__all__ = ["DeviceError", "torch_device", "warp_device", "DEVICE_PATTERN"]
 
 
 class DeviceError(ValueError):

@@ -2,6 +2,8 @@
 the CLI options generated from it."""
 import dataclasses
 import math
+import subprocess
+import sys
 import warnings
 
 import pytest
@@ -315,3 +317,21 @@ def test_make_field_builds_each_kind():
     assert float(far(torch.tensor([[0.0, 0.0, 600.0]])).detach()) == pytest.approx(500.0, abs=1.0)
     with pytest.raises(ValueError, match="needs the pixel footprint"):
         make_field(cfg, volume)
+
+
+def test_the_config_imports_no_implementation_module_nor_torch():
+    # the config holds the defaults (CONTRAST_THRESHOLD, REFINE_MAX_MISFIT, DEVICE_PATTERN) that the implementation
+    # imports from it; the other way round would be an import cycle and would load torch for `--help`
+    code = ("import sys, slwarp.neural.config\n"
+            "print(' '.join(sorted(m for m in sys.modules if m.split('.')[0] in ('slwarp', 'torch', 'warp', 'numpy'))))")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    loaded = set(run.stdout.split())
+    assert {"slwarp.neural.config", "slwarp.neural.config.presets"} <= loaded
+    assert loaded <= {"slwarp", "slwarp.neural"} | {m for m in loaded if m.startswith("slwarp.neural.config")}, loaded
+    from slwarp.neural import pattern_model
+    from slwarp.neural.config import CONTRAST_THRESHOLD, REFINE_MAX_MISFIT
+
+    assert pattern_model.CONTRAST_THRESHOLD is CONTRAST_THRESHOLD == TrainConfig().sampling.contrast_threshold
+    assert {preset(name).extraction.refine_max_misfit for name in ("tuned", "fast", "accurate", "cpu-hashgrid")} == {
+        REFINE_MAX_MISFIT}

@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 import torch
 
+from slwarp.neural.config import REFINE_MAX_MISFIT
 from slwarp.neural.pattern_model import (BLUR_BINS, BLUR_LADDER, BLUR_LADDER_STEP, MIN_MODULATION, blur_patterns,
                                         estimate_pattern_blur, fit_blur_by_projector_depth, least_squares_residual,
                                         lit_with_contrast, offset_and_modulation, photometric_filter,
                                         photometric_residual, projector_coords, refine_depth, sample_patterns,
-                                        refinement_generalises, model_misfit, refine_where_model_fits, REFINE_MAX_MISFIT, REFINE_RADIUS,
+                                        refinement_generalises, model_misfit, refine_where_model_fits, REFINE_RADIUS,
                                         REFINE_STEP_MM, _BlurLadder)
 from slwarp.sim.simulate import SimOptions, simulate_scene
 

@@ -25,6 +25,7 @@ import torch
 
 from ..decode.triangulate import camera_rays
 from ..scans.scanner import bounded_cache
+from .config import CONTRAST_THRESHOLD  # the config holds the default; re-exported for the renderer
 from .twin import bilinear_patterns
 
 __all__ = [
@@ -43,8 +44,6 @@ __all__ = [
     "refine_depth",
 ]
 
-# minimum modulation b (full-scale units, images in [0, 1]) of a pixel lit with usable contrast
-CONTRAST_THRESHOLD = 0.05
 # projector pixel given to pixels without depth: off the image, so every pattern samples 0 there
 OFF_IMAGE_PX = -10.0
 # floor of the modulation b that the photometric residual is divided by (unlit pixels stay finite)
@@ -59,10 +58,6 @@ BLUR_LADDER = np.round(np.arange(0.0, 2.4 + 1e-9, BLUR_LADDER_STEP), 6)
 BLUR_BINS = 6
 REFINE_RADIUS = 3
 REFINE_STEP_MM = 0.05
-# the defaults' limit on `model_misfit` for refining: above every simulated linear-camera scan at its true depth
-# (0.023 at most, the checker albedo, also with camera optics), below the real capture (0.026) and the gamma-2.2 and
-# sRGB cameras (0.040 to 0.043), where the refinement makes the depth worse
-REFINE_MAX_MISFIT = 0.024
 
 
 def offset_and_modulation(images):

@@ -1,0 +1,85 @@
+"""The presets: named TrainConfigs, each its options and a one-line summary of what it is for, and the preset a
+run gets when it names none (`DEFAULT_PRESET`, per device type). Why each preset holds the values it does, with
+the measurements, their dates and results files: docs/presets.md."""
+from __future__ import annotations
+
+from .options import ConfigError
+from .switches import DEFAULT_STAGES
+from .train_config import TrainConfig
+
+__all__ = ["DEFAULT_PRESET", "PRESETS", "PRESET_SUMMARIES", "REFINE_MAX_MISFIT", "default_preset_name", "preset"]
+
+PRESETS: dict[str, TrainConfig] = {}
+PRESET_SUMMARIES: dict[str, str] = {}
+
+# the presets' limit on the pattern model's misfit (refine_max_misfit, pattern_model.model_misfit): above it the
+# refinement makes depths worse (docs/presets.md, "The shared extraction")
+REFINE_MAX_MISFIT = 0.024
+
+
+def _preset(name: str, summary: str, **options) -> None:
+    PRESETS[name] = TrainConfig().with_options(**options)
+    PRESET_SUMMARIES[name] = summary
+
+
+# the extraction of tuned, fast, accurate and cpu-hashgrid; each gives its own denoising window
+_DEFAULT_EXTRACTION = dict(stages=(*DEFAULT_STAGES, "search_repair", "refine", "uniform_fill", "repair_grow", "denoise"),
+                           refine_range=3.0, refine_max_misfit=REFINE_MAX_MISFIT, repair_min_component=100,
+                           search_doubt=True)
+# the GPU presets' denoising window
+_GPU_DENOISE = dict(denoise_radius=4, denoise_footprints=8.0)
+# what the hash-grid presets share
+_HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, grid_table_lr_factor=10.0)
+
+_preset("paper", "the paper's recipe, unchanged: 4000 iterations, 2048 rays, 32+32 samples, MLP 8x256, Adam 1e-4 (GPU)",
+        matmul="tf32")
+_preset("tuned", "paper with lr 5e-4, cosine decay, no surface-colour loss, an SDF term at the depths the codes "
+        "confirm, photometric depth refinement (+-3 mm, where the pattern model fits the images), the search repair "
+        "(changes in groups of >= 100 pixels, grown into the neighbours that kept another surface), the uniform-code "
+        "fill, the edge readmission and the edge-aware denoising: the most accurate measured on the virtual scanner (GPU "
+        "default)",
+        matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0, surface_weight=1.0, surface_after=1.0,
+        edge_readmit=True, **_DEFAULT_EXTRACTION, **_GPU_DENOISE)
+_preset("cpu", "tuned with a 4x64 field, 384 rays, 1500 iterations: minutes on two CPU cores (small rig)",
+        iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, lr=5e-4, lr_decay="cosine",
+        lambda_sc=0.0, hidden=64, layers=4, skip=2, n_freqs=6, search_step_mm=2.0, mc_resolution=192,
+        checkpoint_every=250, log_every=25)
+_preset("tiny", "a 3x48 field for 300 iterations: tests", iters=300, rays=256, n_samples=16, n_importance=8,
+        up_sample_steps=1, lr=5e-4, lr_decay="cosine", sc_start=100, hidden=48, layers=3, skip=None, n_freqs=4,
+        init_iters=100, search_step_mm=2.0, search_stride=3, mc_resolution=128, checkpoint_every=100, log_every=25)
+_preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 800 iterations of 1024 rays, levels switched on "
+        "quickly, two up-sampling steps, NeuS's variance at 2x the rate, with tuned's surface term (on both sides of "
+        "the map) and extraction and a free-space term: a depth map as soon as possible (GPU)",
+        matmul="tf32", iters=800, init_iters=200, rays=1024, up_sample_steps=2, grid_levels=8,
+        grid_gradient="finite_difference_4",
+        grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, surface_weight=1.0,
+        surface_after=1.0, surface_in_front=True, free_space=0.5, variance_lr_factor=2.0, **_DEFAULT_EXTRACTION,
+        **_GPU_DENOISE, **_HASHGRID)
+_preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations of the paper's batch, levels "
+        "coarse to fine, NeuS's variance at 4x the rate, with tuned's surface term and extraction and a free-space "
+        "term: several times faster than tuned, as accurate on the default rig (GPU)",
+        matmul="tf32", iters=2000, grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2,
+        grid_level_every=100, variance_lr_factor=4.0, surface_weight=1.0, surface_after=1.0, free_space=1.0,
+        **_DEFAULT_EXTRACTION, **_GPU_DENOISE, **_HASHGRID)
+_preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4-tap gradient), photometric depth "
+        "refinement (+-3 mm, where the pattern model fits the images), the search repair in groups (grown), the "
+        "uniform-code fill and the edge-aware denoising (5x5 windows): better MAE in less time than cpu (small rig)",
+        grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2,
+        search_step_mm=2.0, mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
+        denoise_radius=2, denoise_footprints=4.0, **_DEFAULT_EXTRACTION, **_HASHGRID)
+
+# the preset a run gets when it names none, per device type
+DEFAULT_PRESET = {"cuda": "tuned", "cpu": "cpu-hashgrid"}
+
+
+def preset(name: str, **options) -> TrainConfig:
+    """A copy of preset `name` with options set by flat name (see OPTIONS), validated."""
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; presets: {', '.join(PRESETS)}")
+    return PRESETS[name].with_options(**options)
+
+
+def default_preset_name(device) -> str:
+    """The default preset of a device (a torch.device or its type as a string): DEFAULT_PRESET's entry for
+    CUDA, the CPU's for any other device."""
+    return DEFAULT_PRESET["cuda" if getattr(device, "type", device) == "cuda" else "cpu"]
