@@ -162,8 +162,11 @@ def main(argv=None) -> None:
         bytecode_s = compile_bytecode(work / "pycache")
     scan = work / f"scan-{args.scene}-{args.rig}"
     if not (scan / "scan.yaml").is_file():
+        # the simulator's kernels in a cache of their own: the command's caches stay as --cold left them (the smoke
+        # test keeps the user's kernel cache for both)
+        sim_env = {**env, "SLWARP_KERNEL_CACHE": str(work / "simulator-kernels")} if not args.smoke else env
         made = subprocess.run([sys.executable, "-m", "slwarp", "simulate", "--scene", args.scene, "--rig", args.rig,
-                               "--patterns", "random6", "--out", str(scan)], cwd=REPO, env=env, capture_output=True,
+                               "--patterns", "random6", "--out", str(scan)], cwd=REPO, env=sim_env, capture_output=True,
                               text=True)
         if made.returncode:
             raise SystemExit(f"could not simulate the scan into {scan}:\n{made.stdout[-800:]}{made.stderr[-800:]}")
