@@ -17,7 +17,7 @@ def _devices():
     try:
         import torch
 
-        torch.set_flush_denormal(True)  # CPU speed: see slwarp.neural.train
+        torch.set_flush_denormal(True)  # CPU speed: see slwarp.neural.start.set_process_flags
         if torch.cuda.is_available():
             devs.append("cuda:0")
     except ImportError:  # pragma: no cover

@@ -316,17 +316,17 @@ def test_surface_term_by_hand(small_scan):
     w = torch.ones(16)
     n = torch.tensor(16.0)
     on = torch.full((16,), 700.0)
-    assert tr._surface_term(d, on / d[:, 2], w, n).item() == pytest.approx(0.0, abs=1e-5)
+    assert tr.terms.surface_term(d, on / d[:, 2], w, n).item() == pytest.approx(0.0, abs=1e-5)
     expected = float((20.0 - band * d[:, 2]).mean()) / tr.volume.scale
     for offset in (10.0, -10.0):
-        got = tr._surface_term(d, (on + offset) / d[:, 2], w, n)
+        got = tr.terms.surface_term(d, (on + offset) / d[:, 2], w, n)
         assert got.item() == pytest.approx(expected, rel=1e-4)
     # a pixel of weight 0 counts nothing; its gradient reaches the field where the rendered depth's would not
     half = torch.where(torch.arange(16) < 8, 1.0, 0.0)
-    assert tr._surface_term(d, (on + 10.0) / d[:, 2], half, n).item() == pytest.approx(
+    assert tr.terms.surface_term(d, (on + 10.0) / d[:, 2], half, n).item() == pytest.approx(
         float((20.0 - band * d[:8, 2]).sum()) / 16 / tr.volume.scale, rel=1e-4)
     tr.field.zero_grad()
-    tr._surface_term(d, (on - 300.0) / d[:, 2], w, n).backward()
+    tr.terms.surface_term(d, (on - 300.0) / d[:, 2], w, n).backward()
     assert float(tr.field.z0.grad) > 0  # a surface 300 mm in front: the plane is pulled toward the camera
 
 
@@ -346,7 +346,7 @@ def test_surface_term_in_front_pulls_back_a_surface_the_field_carried_over_the_m
         batch = tr.renderer.sample_pixels(16, torch.Generator().manual_seed(0))
         _, d, _, _ = ops.camera_rays(batch.uv, scan.camera, tr.depth_range, backend="torch")
         z_vals = torch.linspace(650.0, 750.0, 8).expand(16, 8)
-        loss = tr._map_terms(d, batch.index, torch.full((16,), 700.0), torch.ones(16), z_vals, torch.zeros(16, 8), 0.0)
+        loss = tr.terms.loss(d, batch.index, torch.full((16,), 700.0), torch.ones(16), z_vals, torch.zeros(16, 8), 0.0)
         tr.field.zero_grad()
         loss.backward()
         grads[in_front] = float(tr.field.z0.grad) if tr.field.z0.grad is not None else 0.0
@@ -355,7 +355,7 @@ def test_surface_term_in_front_pulls_back_a_surface_the_field_carried_over_the_m
 
 
 def test_surface_term_weights_warm_up_and_after():
-    from slwarp.neural.train import MISSED_MM, surface_term_weights
+    from slwarp.neural.terms import MISSED_MM, surface_term_weights
 
     target = torch.tensor([600.0, 600.0, 600.0, float("nan")])
     rendered = torch.tensor([600.5, 600.0 + MISSED_MM + 1.0, 590.0, 900.0])
@@ -374,7 +374,7 @@ def test_surface_term_weights_warm_up_and_after():
 
 
 def test_free_space_weights_only_where_the_field_lies_in_front():
-    from slwarp.neural.train import MISSED_MM, free_space_weights
+    from slwarp.neural.terms import MISSED_MM, free_space_weights
 
     target = torch.tensor([900.0, 900.0, 900.0, float("nan")])
     rendered = torch.tensor([900.0 - MISSED_MM - 1.0, 899.0, 950.0, 600.0])
@@ -389,7 +389,7 @@ def test_free_space_term_by_hand(small_scan):
     and behind the plane are inside (f < 0) and the term is the sum of their -f; its gradient moves the plane away
     from the camera. With the map's depth on the plane the term is 0."""
     from slwarp.neural import ops
-    from slwarp.neural.train import MISSED_MM
+    from slwarp.neural.terms import MISSED_MM
 
     tr = Trainer(small_scan.select("0:6"), tiny(init="sphere"), sdf=PlaneSDF(700.0), progress=False)
     batch = tr.renderer.sample_pixels(16, torch.Generator().manual_seed(0))
@@ -402,10 +402,10 @@ def test_free_space_term_by_hand(small_scan):
     before = z < (t - MISSED_MM)[:, None]
     expected = (torch.relu(-sdf) * before).sum().item() / 16 / tr.volume.scale
     assert expected > 0
-    assert tr._free_space_term(t, w, z, sdf, n).item() == pytest.approx(expected, rel=1e-5)
-    assert tr._free_space_term(torch.full((16,), 700.0) / d[:, 2], w, z, sdf, n).item() == pytest.approx(0.0, abs=1e-6)
+    assert tr.terms.free_space_term(t, w, z, sdf, n).item() == pytest.approx(expected, rel=1e-5)
+    assert tr.terms.free_space_term(torch.full((16,), 700.0) / d[:, 2], w, z, sdf, n).item() == pytest.approx(0.0, abs=1e-6)
     tr.field.zero_grad()
-    tr._free_space_term(t, w, z, sdf, n).backward()
+    tr.terms.free_space_term(t, w, z, sdf, n).backward()
     assert float(tr.field.z0.grad) < 0  # descending moves z0 up: the plane recedes toward the map's depth
 
 
@@ -435,7 +435,7 @@ def test_surface_term_drops_small_groups_of_depths(small_scan):
     """A chance match of the codes may fit them but comes in small scattered groups: the surface term keeps a
     map depth only inside a connected group of SURFACE_MIN_GROUP confirmed pixels, so a 3x3 island of depths is
     dropped even where the depths are right, and a 20x20 block of them is kept."""
-    from slwarp.neural.train import SURFACE_MIN_GROUP
+    from slwarp.neural.start import SURFACE_MIN_GROUP
 
     assert 9 < SURFACE_MIN_GROUP <= 400
     scan = small_scan.select("0:6")
@@ -457,7 +457,7 @@ def test_draw_ahead_gives_the_step_by_step_draws_and_generator_state():
     """DrawAhead (the CUDA-graph trainer's draws, here on the CPU): the same draws in the same order as drawing
     step by step, the generator's state after the steps taken (a checkpoint's), and a change of key mid-block
     rewinds to the steps taken before drawing anew."""
-    from slwarp.neural.train import DrawAhead
+    from slwarp.neural.graph_step import DrawAhead
 
     def draw(g, n=7):
         return torch.randint(0, n, (5,), generator=g), torch.rand(5, generator=g)
@@ -513,12 +513,12 @@ def test_map_terms_compile_as_one_graph_with_the_same_values(small_scan):
     _, d, _, _ = ops.camera_rays(batch.uv, scan.camera, tr.depth_range, backend="torch")
     counter = CompileCounterWithBackend("aot_eager")
     torch._dynamo.reset()
-    compiled = torch.compile(tr._map_terms, backend=counter, dynamic=False)
+    compiled = torch.compile(tr.terms.loss, backend=counter, dynamic=False)
     params = [p for p in tr.field.parameters() if p.requires_grad]
     for warm in (1.0, 0.0):
         out, z, sdf = tr.renderer.render(batch, jitter=torch.zeros(64))
         args = (d, batch.index, out.depth, out.weight_sum, z, sdf, torch.tensor(warm))
-        eager = tr._map_terms(*args)
+        eager = tr.terms.loss(*args)
         got = compiled(*args)
         assert float(eager.detach()) > 0
         torch.testing.assert_close(got, eager, rtol=1e-5, atol=1e-7)
@@ -530,14 +530,14 @@ def test_map_terms_compile_as_one_graph_with_the_same_values(small_scan):
             else:
                 torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-7)
         # the float weights of plain CPU steps give the same terms
-        torch.testing.assert_close(tr._map_terms(*args[:-1], warm), eager, rtol=1e-6, atol=1e-7)
+        torch.testing.assert_close(tr.terms.loss(*args[:-1], warm), eager, rtol=1e-6, atol=1e-7)
     assert counter.frame_count == 1  # one graph, compiled once for both weights
     torch._dynamo.reset()
 
 
 def test_compiled_graphs_serve_the_next_scan(small_scan, monkeypatch):
     """The compiled field and map terms read the working volume as tensors (field.register_volume_buffers,
-    Trainer._scale_mm), not as constants: a trainer on a scan with another volume runs on the graphs compiled for the
+    MapTerms.scale_mm), not as constants: a trainer on a scan with another volume runs on the graphs compiled for the
     one before, compiling nothing (slwarp.batch keeps them between the scans of a batch). Counted with torch.compile
     replaced by an eager counting backend, as the trainer compiles only on CUDA."""
     from torch._dynamo.testing import CompileCounterWithBackend

@@ -1,0 +1,165 @@
+"""The start of a training run: what the trainer starts from, from the scan, the config and the depth range.
+
+    set_process_flags(device, config.runtime.matmul)        # torch's process-wide flags, once per trainer
+    depth_range = checked_depth_range(scan, depth_range)     # ScanError without a usable one
+    n_frames = frames_at_start(scan, config)                  # ScanError with fewer than two frames
+    lit, volume = working_volume(scan, config, n_frames, depth_range)    # ScanError when no pixel is lit
+    field = start_field(config, volume, depth_range, scan.camera)
+    renderer = start_renderer(field, scan, config, n_frames, volume, depth_range, device)
+    if searches(config): init_depth, info = search_start(scan, config, n_frames, depth_range, lit, images, device)
+    sigma, fit = fit_blur(scan, config, n_frames, init_depth, device)   # ScanError when it cannot be fitted
+    if surface_terms_on(config.init): targets = surface_depth(init_depth, cam, prj, images, patterns, device)
+
+The pixels lit with contrast in the frames in use give the working volume (the frustum box of those pixels between
+near and far), which sizes the field; the depth search (slwarp.neural.search) gives the warm-up's starting map, at
+whose depths the pattern blur is fitted (pattern_model.estimate_pattern_blur); the surface term pulls the field onto
+the map's depths that the pixels' own codes confirm, in connected groups (`surface_depth`).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from ..scans.scan import ScanError
+from .confidence import photometric_confidence
+from .field import Volume, make_field
+from .pattern_model import blur_patterns, estimate_pattern_blur, lit_with_contrast, offset_and_modulation
+from .render import StructuredLightRenderer
+from .search import AGREE_MM, component_sizes, search_depth
+
+__all__ = ["SURFACE_CONFIDENCE", "SURFACE_MIN_GROUP", "set_process_flags", "checked_depth_range", "frames_at_start",
+           "working_volume", "start_field", "start_renderer", "searches", "search_start", "fit_blur",
+           "surface_terms_on", "surface_depth"]
+
+SURFACE_CONFIDENCE = 0.8  # the surface term's depths: the map's where the pixel's own codes fit this well ...
+SURFACE_MIN_GROUP = 50  # ... inside a connected group of at least this many such pixels (search.AGREE_MM apart)
+
+
+def set_process_flags(device: torch.device, matmul: str) -> None:
+    """Set torch's process-wide flags for training on `device`: on the CPU flush denormal floats to zero; with
+    matmul "tf32" allow TF32 in CUDA matmuls and cuDNN. They stay set for the process."""
+    if device.type == "cpu":
+        # transmittance products and sigmoids of a sharpening SDF underflow into denormal floats, which
+        # x86 CPUs process ~100x slower (measured: 50 iterations in 46 s instead of 1.4 s)
+        torch.set_flush_denormal(True)
+    if matmul == "tf32":
+        torch.backends.cuda.matmul.allow_tf32 = True
+        torch.backends.cudnn.allow_tf32 = True
+
+
+def _name(scan) -> str:
+    return scan.source or "scan"
+
+
+def checked_depth_range(scan, depth_range=None) -> tuple[float, float]:
+    """(near, far) mm: `depth_range`, else the scan's; ScanError when neither is given or it is not 0 < near < far."""
+    given = depth_range or scan.depth_range
+    if given is None:
+        raise ScanError(f"{_name(scan)}: no depth range in the scan: give one (near, far) in mm "
+                        "(CLI: --depth-range NEAR,FAR)")
+    checked = tuple(float(x) for x in given)
+    if not (len(checked) == 2 and all(map(math.isfinite, checked)) and 0 < checked[0] < checked[1]):
+        raise ScanError(f"{_name(scan)}: depth range {given} must be two finite numbers 0 < near < far (mm)")
+    return checked
+
+
+def frames_at_start(scan, config) -> int:
+    """The number of the scan's frames training starts with: all, or schedule.start_frames in incremental mode;
+    ScanError (naming the scan's problems) when the scan has fewer than two."""
+    n_all = len(scan)
+    if n_all < 2:
+        raise ScanError(f"{_name(scan)}: {'; '.join(scan.problems(config.sampling.contrast_threshold))}")
+    return min(config.schedule.start_frames, n_all) if config.schedule.incremental else n_all
+
+
+def working_volume(scan, config, n_frames: int, depth_range) -> tuple[np.ndarray, Volume]:
+    """(lit [H, W] bool: the pixels lit with contrast in the first n_frames frames, the working volume: their
+    frustum box between near and far, mm); ScanError when no pixel is lit with contrast."""
+    threshold = config.sampling.contrast_threshold
+    lit = lit_with_contrast(offset_and_modulation(scan.images[:n_frames])[1], threshold)
+    if not lit.any():
+        why = scan.problems(threshold)
+        raise ScanError(f"{_name(scan)}: no pixel is lit with contrast (modulation above {threshold}) in the frames "
+                        "used" + (f": {'; '.join(why)}" if why else ""))
+    return lit, Volume.from_frustum(scan.camera, lit, depth_range)
+
+
+def start_field(config, volume: Volume, depth_range, camera) -> torch.nn.Module:
+    """The config's field (field.make_field) sized by the working volume; a hash grid's finest cells from the
+    camera's pixel footprint at the middle of the depth range (mm)."""
+    pixel_mm = 0.5 * sum(depth_range) / (0.5 * (camera.fx + camera.fy))
+    return make_field(config.field, volume, init="camera" if config.init.method == "camera" else "sphere",
+                      far=depth_range[1], pixel_mm=pixel_mm)
+
+
+def start_renderer(field: torch.nn.Module, scan, config, n_frames: int, volume: Volume, depth_range,
+                   device: torch.device) -> StructuredLightRenderer:
+    """The renderer of the first n_frames frames around `field`, as the config samples (a fitted pattern blur
+    starts at 0: `fit_blur` sets it)."""
+    s = config.sampling
+    return StructuredLightRenderer(
+        field, scan.camera, scan.projector, scan.patterns[:n_frames], scan.images[:n_frames], depth_range=depth_range,
+        volume=volume, n_samples=s.n_samples, n_importance=s.n_importance, up_sample_steps=s.up_sample_steps,
+        contrast_threshold=s.contrast_threshold, backend=config.runtime.backend, device=device,
+        compile_field=config.runtime.compile and device.type == "cuda",
+        pattern_blur=0.0 if s.pattern_blur == "auto" else float(s.pattern_blur))
+
+
+def searches(config) -> bool:
+    """Whether a new run (no starting map given) starts from the depth search: init.method "search" with a warm-up."""
+    return config.init.method == "search" and config.init.iters > 0
+
+
+def search_start(scan, config, n_frames: int, depth_range, lit: np.ndarray, images, device: torch.device):
+    """(starting depth map [H, W] mm, NaN: none; the search's info dict): the depth search (search.search_depth) on
+    the lit pixels, the patterns blurred by the fixed pattern_blur (1 px when it is fitted). images [N, H, W]: the
+    frames as the pattern model holds them (confidence.pattern_model_inputs: on a GPU the renderer's tensors)."""
+    blur = 1.0 if config.sampling.pattern_blur == "auto" else float(config.sampling.pattern_blur)
+    # on a GPU the search reads the frames where they are: the renderer's images, the patterns blurred there
+    patterns = blur_patterns(torch.as_tensor(scan.patterns[:n_frames], device=device), blur)
+    if device.type != "cuda":
+        patterns = patterns.numpy()
+    return search_depth(scan.camera, scan.projector, images, patterns, depth_range, valid=lit,
+                        step_mm=config.init.search_step_mm, stride=config.init.search_stride, device=device)
+
+
+def fit_blur(scan, config, n_frames: int, init_depth, device: torch.device) -> tuple[float, dict | None]:
+    """(pattern blur sigma in projector px, the fit's error per sigma or None): fitted at the starting map's depths
+    init_depth [H, W] mm (pattern_model.estimate_pattern_blur); 1 px without a map. ScanError when too few pixels
+    have a starting depth (the scan does not fit its model), naming the scan's problems."""
+    if init_depth is None:
+        return 1.0, None
+    cam = scan.camera
+    try:
+        sigma, fit = estimate_pattern_blur(cam, scan.projector, scan.images[:n_frames], scan.patterns[:n_frames],
+                                           np.asarray(init_depth, np.float32).reshape(cam.height, cam.width),
+                                           device=device)
+    except ValueError as e:
+        why = scan.problems(config.sampling.contrast_threshold)
+        raise ScanError(f"{_name(scan)}: " + (f"{'; '.join(why)} (so the pattern blur cannot be fitted: {e})" if why
+                        else f"cannot fit the pattern blur ({e}); check the depth range and the patterns, or give a "
+                        "fixed pattern_blur (--pattern-blur)")) from None
+    return sigma, fit
+
+
+def surface_terms_on(init) -> bool:
+    """Whether the surface or free-space term is on (init: an InitConfig), i.e. they need `surface_depth`."""
+    return init.surface_weight > 0 or init.surface_after > 0 or init.free_space > 0
+
+
+def surface_depth(init_depth: torch.Tensor, camera, projector, images, patterns, device) -> torch.Tensor:
+    """[H*W] (mm, NaN: none; on `device`) the starting map init_depth [H*W] (mm)'s depths that the surface term pulls
+    the field onto: those that their own pixel's codes confirm (photometric confidence >= SURFACE_CONFIDENCE, images and
+    patterns as confidence.pattern_model_inputs gives them) inside a connected group of at least SURFACE_MIN_GROUP
+    of them (8 neighbours, each within AGREE_MM of the next). Why: its gradient does not vanish far from the
+    field's surface, so a wrong depth of the map raises a wrong surface. A 5x5 window's foreground depth
+    spread over the background beside a depth edge fits the pixel's own codes poorly; a chance match of the
+    codes may fit them well but comes in small scattered groups (rolled-rig spheres: 3224 targets more than
+    20 mm in front of the truth, down to the near plane, raised floaters; none lies in a group of 50)."""
+    d = init_depth.reshape(camera.height, camera.width).cpu().numpy()
+    conf = photometric_confidence(d, camera, projector, images, patterns)
+    kept = np.where(conf >= SURFACE_CONFIDENCE, d, np.nan).astype(np.float32)
+    kept[component_sizes(kept, AGREE_MM) < SURFACE_MIN_GROUP] = np.nan
+    return torch.as_tensor(kept.reshape(-1), device=device)
