@@ -4,7 +4,8 @@ scanner, with the paper's 6 random patterns.
 One simulated scan per rig and scene (noise on, `SimOptions(seed=SEED)`), holding the paper's 6 random
 patterns and the 7-bit Gray code along the projector axis that carries depth on that rig (columns on
 `default`, `oblique` and `rolled`, rows on `vertical`). The neural presets train on the 6 random patterns
-only (`--frames 'rand*'`); GC(7)-interp and GC(6)-interp decode 7 and 6 of the Gray code images (no
+only (`--frames 'rand*'`), or with `--neural-frames gray7` on the 7 Gray code images GC(7) decodes (what the real
+captures give: bench.real_captures); GC(7)-interp and GC(6)-interp decode 7 and 6 of the Gray code images (no
 inverses), triangulated as `slwarp decode` does by default. Metrics over the scan's GT mask: MAE, RMSE, median,
 shares above 1, 2 and 5 mm, completeness; means over scenes per rig, as papers report, and the targets
 (mean MAE <= 0.5x GC(7) and <= 0.3x GC(6), completeness within 1 point of GC(7), >5 mm share and RMSE no higher).
@@ -147,7 +148,7 @@ def run_job(job: dict) -> dict:
             from slwarp.neural.reconstruct import reconstruct
 
             cfg = preset(job["preset"], device=_DEVICE, **job["overrides"])
-            rec = reconstruct(scan.select("rand*"), cfg, progress=False)
+            rec = reconstruct(scan.select(neural_frames(job, axis)), cfg, progress=False)
             m = dict(rec.metrics)
             m.update(error_split(rec.depth, scan))
             keep_error_map(job, job["label"], rec.depth, scan, rec.fate)
@@ -180,9 +181,17 @@ def run_job(job: dict) -> dict:
                 "wall_s": time.perf_counter() - t0}
 
 
+def neural_frames(job: dict, axis: str) -> str:
+    """The frame selector a neural run trains on: the 6 random patterns, or (job["frames"] == "gray7") the 7 most
+    significant Gray code images along the depth axis, no inverses: what the real captures give (bench.real_captures)."""
+    return f"gray:{axis}:bit=0-6:noinv" if job.get("frames") == "gray7" else "rand*"
+
+
 def job_key(job: dict) -> str:
     name = job["label"] if job["kind"] == "neural" else "classical"
-    return f"{name}__{job['rig']}__{job['scene']}__s{job['seed']}".replace("/", "_").replace(":", "_").replace("=", "-")
+    frames = f"__{job['frames']}" if job.get("frames") else ""
+    return (f"{name}{frames}__{job['rig']}__{job['scene']}__s{job['seed']}").replace("/", "_").replace(":", "_") \
+        .replace("=", "-")
 
 
 def _without_note(argv: list[str]) -> list[str]:
@@ -263,7 +272,9 @@ def markdown(doc: dict) -> str:
           (f"`{doc['command']}`: the tables of the finished runs in its --state. " if doc.get("report") else
            f"`{doc['command']}`; {doc['workers']} runs at a time on {max(doc['gpus'], 1)} device(s); {doc['wall_s'] / 60:.1f} min. ")
           + (f"{doc['note']} " if doc.get("note") else "") + "Scans: `random6+gray7` (rows on the vertical rig), "
-          f"SimOptions(seed={doc['seed']}); ours trains on the 6 random patterns; GC(k) interp decodes k Gray code "
+          f"SimOptions(seed={doc['seed']}); ours trains on "
+          + ("the 7 most significant Gray code images (no inverses), as on the real captures"
+             if doc.get("neural_frames") == "gray7" else "the 6 random patterns") + "; GC(k) interp decodes k Gray code "
           "images without inverses. Metrics over the GT mask, means over the scenes "
           f"({', '.join(scenes)}).", ""]
     if doc["overrides"]:
@@ -334,6 +345,9 @@ def main(argv=None) -> int:
     ap.add_argument("--small", action="store_true", help="each geometry's small-resolution rig")
     ap.add_argument("--scenes", default=None, help="comma-separated scenes (default: every built-in scene)")
     ap.add_argument("--seed", type=int, default=0, help="simulator noise seed")
+    ap.add_argument("--neural-frames", choices=("random6", "gray7"), default="random6",
+                    help="what the neural presets train on: the paper's 6 random patterns, or the 7 Gray code images "
+                         "the classical GC(7) decodes (the real captures' case)")
     ap.add_argument("--workers-per-gpu", type=int, default=4, help="processes per GPU (CUDA)")
     ap.add_argument("--workers", type=int, default=None, help="processes on the CPU (default 1)")
     ap.add_argument("--state", default=None, help="folder of finished runs (default <out>/accuracy-state)")
@@ -381,7 +395,8 @@ def main(argv=None) -> int:
                 name, *variant = label.split(":")
                 jobs.append({"kind": "neural", "label": label, "preset": name,
                              "overrides": {**overrides, **parse_overrides(",".join(variant))}, "rig": r, "scene": s,
-                             "seed": args.seed, **({"also_extract": also} if also else {})})
+                             "seed": args.seed, **({"also_extract": also} if also else {}),
+                             **({"frames": args.neural_frames} if args.neural_frames != "random6" else {})})
             jobs.append({"kind": "classical", "rig": r, "scene": s, "seed": args.seed})
     results, todo = [], []
     for j in jobs:
@@ -432,7 +447,7 @@ def main(argv=None) -> int:
            "gpus": n_gpu, "workers": len(devices), "command": command, "seed": args.seed, "rigs": rigs,
            "scenes": scenes, "labels": all_labels, "overrides": overrides, "wall_s": time.perf_counter() - t0,
            "table": summarise(results, rigs, scenes, all_labels), "errors": errors, "report": args.report,
-           "note": args.note}
+           "note": args.note, "neural_frames": args.neural_frames}
     out.mkdir(parents=True, exist_ok=True)
     stem = args.stem or f"accuracy-{doc['device']}"
     (out / f"{stem}.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")

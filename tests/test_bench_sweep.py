@@ -90,3 +90,25 @@ def test_keep_writes_the_error_picture_and_the_signed_error_and_fates(tmp_path, 
     np.testing.assert_allclose(err[2:], 0.25, atol=1e-3)
     np.testing.assert_array_equal(z["fate"], fate)
     assert tuple(z["fates"]) == PIXEL_FATES
+
+
+def test_gray7_runs_train_on_the_seven_gray_code_images_and_are_kept_apart(tmp_path):
+    """--neural-frames gray7: the neural runs select the 7 most significant Gray code images along the depth axis
+    (what GC(7) decodes and the real captures give), their state files do not collide with the random-pattern runs,
+    and a gray7 report does not take random6 runs."""
+    from slwarp.sim.rigs import rig_name
+
+    scan, axis = accuracy_sweep._scan(rig_name("vertical", True), "bunny", 0)
+    job = {"kind": "neural", "label": "tiny", "preset": "tiny", "overrides": {}, "rig": "vertical_small",
+           "scene": "bunny", "seed": 0, "frames": "gray7"}
+    chosen = scan.select(accuracy_sweep.neural_frames(job, axis))
+    assert axis == "row" and len(chosen) == 7
+    assert [r.bit for r in chosen.roles] == list(range(7)) and all(r.axis == "row" and not r.inverse for r in chosen.roles)
+    assert all(n.startswith("rand") for n in scan.select(accuracy_sweep.neural_frames({}, axis)).names)
+    assert accuracy_sweep.job_key(job) != accuracy_sweep.job_key({**job, "frames": None})
+
+    _state(tmp_path / "state")  # random-pattern runs only
+    assert _report(tmp_path, tmp_path / "state", "--neural-frames", "gray7") == 0
+    doc = json.loads((tmp_path / "out" / "sweep.json").read_text())
+    assert "tiny" not in doc["table"]["default"] and doc["neural_frames"] == "gray7"
+    assert "7 most significant Gray code images" in (tmp_path / "out" / "sweep.md").read_text()
