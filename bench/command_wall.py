@@ -174,7 +174,7 @@ def main(argv=None) -> None:
                "--overwrite", *flags]
     runs = []
     for i in range(args.runs):
-        warm = any(caches.rglob("*"))
+        warm = any(f.is_file() for f in caches.rglob("*"))  # files: the cache folders exist before anything is in them
         out = work / f"out-{i + 1}"
         row = {"caches": "filled" if warm else "empty",
                **run_command([sys.executable, *[str(out) if c == "OUT" else c for c in command[1:]]], env, out)}

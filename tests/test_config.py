@@ -47,7 +47,7 @@ FLAT_PRESETS = {
                  grid_gradient="finite_difference_4",
                  grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, refine_range=3.0,
                  refine_max_misfit=0.024, search_doubt=True, search_repair=True, repair_min_component=100, repair_grow=True,
-                 surface_weight=1.0, surface_after=1.0, surface_in_front=True, free_space=0.5, variance_lr_factor=2.0, uniform_fill=True, denoise_radius=4,
+                 surface_weight=1.0, surface_after=1.0, surface_in_front=True, free_space=0.5, variance_lr_factor=4.0, uniform_fill=True, denoise_radius=4,
                  denoise_footprints=8.0, stages=SEARCH_STAGES, **HASHGRID),
     "accurate": dict(matmul="tf32", compile=False, iters=2000, grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2, grid_level_every=100, variance_lr_factor=4.0, refine_range=3.0,
                      refine_max_misfit=0.024, search_doubt=True, search_repair=True, repair_min_component=100, repair_grow=True,

@@ -48,12 +48,12 @@ _preset("tiny", "a 3x48 field for 300 iterations: tests", iters=300, rays=256, n
         up_sample_steps=1, lr=5e-4, lr_decay="cosine", sc_start=100, hidden=48, layers=3, skip=None, n_freqs=4,
         init_iters=100, search_step_mm=2.0, search_stride=3, mc_resolution=128, checkpoint_every=100, log_every=25)
 _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 800 iterations of 1024 rays, levels switched on "
-        "quickly, two up-sampling steps, NeuS's variance at 2x the rate, with tuned's surface term (on both sides of "
+        "quickly, two up-sampling steps, NeuS's variance at 4x the rate, with tuned's surface term (on both sides of "
         "the map) and extraction and a free-space term: a depth map as soon as possible (GPU)",
         matmul="tf32", compile=False, iters=800, init_iters=200, rays=1024, up_sample_steps=2, grid_levels=8,
         grid_gradient="finite_difference_4",
         grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, surface_weight=1.0,
-        surface_after=1.0, surface_in_front=True, free_space=0.5, variance_lr_factor=2.0, **_DEFAULT_EXTRACTION,
+        surface_after=1.0, surface_in_front=True, free_space=0.5, variance_lr_factor=4.0, **_DEFAULT_EXTRACTION,
         **_GPU_DENOISE, **_HASHGRID)
 _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations of the paper's batch, levels "
         "coarse to fine, NeuS's variance at 4x the rate, with tuned's surface term and extraction and a free-space "
