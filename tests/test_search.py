@@ -395,7 +395,7 @@ def _brute_force_search(scan, patterns, valid, centres, radius, step_mm, exclude
     """(depth [P], best [P], second [P]) at centres [P, 2] (row, col): each window projects and samples its own
     pixels at every hypothesis (the torch twin's projection and bilinear taps), hypotheses in order, the rival
     the best cost more than `exclude` cells from the best (the search kernel's rule, written out in float64)."""
-    from slwarp.decode.triangulate import camera_rays
+    from slwarp.scans.scanner import camera_rays
     from slwarp.neural import ops, twin
 
     images = np.asarray(scan.images, np.float64)

@@ -23,8 +23,7 @@ import typing
 import numpy as np
 import torch
 
-from ..decode.triangulate import camera_rays
-from ..scans.scanner import bounded_cache
+from ..scans.scanner import bounded_cache, camera_rays
 from .config import CONTRAST_THRESHOLD  # the config holds the default; re-exported for the renderer
 from .twin import bilinear_patterns
 

@@ -18,8 +18,8 @@ import cv2
 import numpy as np
 import torch
 
-from ..decode.triangulate import camera_rays
 from ..devices import warp_device
+from ..scans.scanner import camera_rays
 from .pattern_model import lit_with_contrast, offset_and_modulation
 from slwarp.kernels import runtime
 from slwarp.kernels.geometry import projector_params

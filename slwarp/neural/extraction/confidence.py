@@ -33,7 +33,7 @@ import math
 import numpy as np
 import torch
 
-from ...decode.triangulate import camera_rays
+from ...scans.scanner import camera_rays
 from .. import ops
 from ..confidence import on_depth, photometric_confidence
 from ..pattern_model import MIN_MODULATION, offset_and_modulation

@@ -18,8 +18,8 @@ import contextlib
 import numpy as np
 import torch
 
-from ...decode.triangulate import camera_rays
 from ...devices import warp_device
+from ...scans.scanner import camera_rays
 from ..field import Volume
 from ..progress import Progress
 from slwarp.kernels import runtime
