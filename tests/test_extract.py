@@ -5,7 +5,8 @@ from types import SimpleNamespace
 import numpy as np
 
 from slwarp.neural.config import ExtractionConfig
-from slwarp.neural.extraction.surface import denoise_depth, flying_pixel_filter, neighbour_stack, readmit_edge_pixels
+from slwarp.neural.depth_maps import neighbour_stack
+from slwarp.neural.extraction.surface import denoise_depth, flying_pixel_filter, readmit_edge_pixels
 
 CAMERA = SimpleNamespace(fx=500.0, fy=500.0)  # a pixel footprint of 1 mm at 500 mm
 # the edge readmission's default bars (the options edge_readmit_support and edge_readmit_confidence)

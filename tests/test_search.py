@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from slwarp.neural.extraction.repair import doubt_by_search, grow_repair, neighbours_within, repair_by_search
+from slwarp.neural.depth_maps import component_sizes, neighbour_stack, neighbours_within
+from slwarp.neural.extraction.repair import doubt_by_search, grow_repair, repair_by_search
 from slwarp.neural.extraction.state import ModelInputs
-from slwarp.neural.extraction.surface import neighbour_stack
 from slwarp.neural.pattern_model import blur_patterns, lit_with_contrast, offset_and_modulation
-from slwarp.neural.search import component_sizes, search_depth
+from slwarp.neural.search import search_depth
 from slwarp.sim.simulate import SimOptions, simulate_scene
 
 BLUR = 1.0  # projector px: the simulated defocus, and the blur the patterns are rendered with

@@ -10,14 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from .depth_maps import on_depth
 from .pattern_model import photometric_residual
 
 __all__ = ["photometric_confidence", "pattern_model_inputs", "on_depth"]
-
-
-def on_depth(values: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    """values as float32 in [0, 1], NaN where depth is NaN."""
-    return np.where(np.isfinite(depth), np.clip(values, 0.0, 1.0), np.nan).astype(np.float32)
 
 
 def photometric_confidence(depth: np.ndarray, camera, projector, images, patterns) -> np.ndarray:

@@ -26,7 +26,8 @@ import torch
 from ..evaluation.outputs import (check_output_folder, staged_outputs, write_confidence, write_depth, write_mesh_ply,
                                   write_points_ply)
 from .config import TrainConfig, save_config
-from .extraction import build_stages, depth_to_points, extract_depth, fate_counts, pixel_fates
+from .depth_maps import depth_to_points
+from .extraction import build_stages, extract_depth, fate_counts, pixel_fates
 from .train import Trainer
 
 

@@ -24,17 +24,18 @@ import torch
 
 from ..scans.scan import ScanError
 from .confidence import photometric_confidence
+from .depth_maps import AGREE_MM, component_sizes
 from .field import Volume, make_field
 from .pattern_model import blur_patterns, estimate_pattern_blur, lit_with_contrast, offset_and_modulation
 from .render import StructuredLightRenderer
-from .search import AGREE_MM, component_sizes, search_depth
+from .search import search_depth
 
 __all__ = ["SURFACE_CONFIDENCE", "SURFACE_MIN_GROUP", "set_process_flags", "checked_depth_range", "frames_at_start",
            "working_volume", "start_field", "start_renderer", "searches", "search_start", "fit_blur",
            "surface_terms_on", "surface_depth"]
 
 SURFACE_CONFIDENCE = 0.8  # the surface term's depths: the map's where the pixel's own codes fit this well ...
-SURFACE_MIN_GROUP = 50  # ... inside a connected group of at least this many such pixels (search.AGREE_MM apart)
+SURFACE_MIN_GROUP = 50  # ... inside a connected group of at least this many such pixels (depth_maps.AGREE_MM apart)
 
 
 def set_process_flags(device: torch.device, matmul: str) -> None:

@@ -19,7 +19,6 @@ from .runner import build_stages, extract_depth, run_stages
 from .stages import STAGES, Stage
 from .state import (FATE, PIXEL_FATES, Extraction, ModelInputs, State, TrainedField, fate_counts, pixel_fates,
                     register_fate)
-from .surface import depth_to_points
 
 __all__ = ["build_stages", "extract_depth", "run_stages", "STAGES", "Stage", "FATE", "PIXEL_FATES", "Extraction",
-           "ModelInputs", "State", "TrainedField", "fate_counts", "pixel_fates", "register_fate", "depth_to_points"]
+           "ModelInputs", "State", "TrainedField", "fate_counts", "pixel_fates", "register_fate"]

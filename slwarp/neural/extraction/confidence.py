@@ -35,7 +35,8 @@ import torch
 
 from ...scans.scanner import camera_rays
 from .. import ops
-from ..confidence import on_depth, photometric_confidence
+from ..confidence import photometric_confidence
+from ..depth_maps import on_depth
 from ..pattern_model import MIN_MODULATION, offset_and_modulation
 from .state import ModelInputs, TrainedField, evaluating
 

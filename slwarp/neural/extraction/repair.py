@@ -5,7 +5,6 @@
   depths the codes do not support dropped.
 - `doubt_by_search`: that doubt rule alone (drops, never fills or replaces).
 - `grow_repair`: the repair's changes spread to neighbours that kept another surface's depth.
-- `neighbours_within`: how many of each pixel's neighbours agree with its depth.
 
 All take the pattern model's inputs as one bundle (`state.ModelInputs`); patterns as rendered (blurred).
 """
@@ -13,13 +12,12 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-import torch
 
 from ...devices import torch_device
 from ..confidence import photometric_confidence
-from ..search import AGREE_MM, component_sizes, search_depth
+from ..depth_maps import AGREE_MM, component_sizes, neighbours_within
+from ..search import search_depth
 from .state import ModelInputs
-from .surface import neighbour_stack, neighbours_at
 
 
 # a pixel's depth and a confident search's answer "disagree" beyond this (mm): the search's own exclusion zone
@@ -190,15 +188,3 @@ def grow_repair(depth: np.ndarray, seeds: np.ndarray, inputs: ModelInputs, *, ma
         grown |= switch
         grown_or_seed |= switch
     return out, grown
-
-
-def neighbours_within(depth: np.ndarray, tol_mm: float, index: np.ndarray | None = None,
-                      device=None) -> np.ndarray:
-    """[H, W] int: how many of each pixel's 8 neighbours have a depth within tol_mm of its own (computed by torch
-    on `device`, default the CPU); with index (flat pixel indices [P]) the same counts [P] at those pixels only."""
-    if index is None:
-        d = torch.as_tensor(np.asarray(depth, np.float64), device=device)
-        return (torch.abs(neighbour_stack(d) - d) < tol_mm).sum(0).int().cpu().numpy()
-    own = np.asarray(depth, np.float64).reshape(-1)[index]
-    with np.errstate(invalid="ignore"):
-        return (np.abs(neighbours_at(depth, index) - own) < tol_mm).sum(0).astype(np.int32)
