@@ -86,7 +86,7 @@ def test_patterns_sampled_on_a_device_equal_cv2_remap():
     """twin.bilinear_patterns, which the residual on a device samples with, has sample_patterns_at's conventions (pixel centres at integer coordinates, zeros
     outside, bilinear): equal at coordinates on OpenCV 4's 1/32 px grid, edges and outside included."""
     from slwarp.neural.pattern_model import sample_patterns_at
-    from slwarp.neural.twin import bilinear_patterns
+    from slwarp.neural.ops.twin import bilinear_patterns
 
     rng = np.random.default_rng(2)
     pats = rng.uniform(0.0, 1.0, (3, 12, 17)).astype(np.float32)

@@ -396,7 +396,8 @@ def _brute_force_search(scan, patterns, valid, centres, radius, step_mm, exclude
     pixels at every hypothesis (the torch twin's projection and bilinear taps), hypotheses in order, the rival
     the best cost more than `exclude` cells from the best (the search kernel's rule, written out in float64)."""
     from slwarp.scans.scanner import camera_rays
-    from slwarp.neural import ops, twin
+    from slwarp.neural import ops
+    from slwarp.neural.ops import twin
 
     images = np.asarray(scan.images, np.float64)
     a, b = offset_and_modulation(images)

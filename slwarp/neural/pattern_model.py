@@ -14,7 +14,7 @@ sampled there, the photometric residual and filter of a depth map, and the fit o
 photometric refinement of a depth map (`refine_depth`) and its blur fit per projector depth run in torch on
 any device (numpy in and out). The fused
 renderer evaluates the same model per sample in Warp (slwarp.kernels.render) and its twin in torch
-(slwarp.neural.twin).
+(slwarp.neural.ops.twin).
 """
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ import torch
 
 from ..scans.scanner import bounded_cache, camera_rays
 from .config import CONTRAST_THRESHOLD  # the config holds the default; re-exported for the renderer
-from .twin import bilinear_patterns
+from .ops.twin import bilinear_patterns
 
 __all__ = [
     "CONTRAST_THRESHOLD",

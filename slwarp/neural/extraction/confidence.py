@@ -121,7 +121,7 @@ def uniqueness_confidence(depth: np.ndarray, camera, projector, images, patterns
     epipolar line), `step_px` projector px apart at the pixel that moves most. images [N, H, W], patterns
     [N, Hp, Wp] as rendered (blurred). Computed with the torch twin's projection and bilinear sampling on `device`.
     """
-    from ..twin import bilinear_patterns, project_to_projector
+    from ..ops.twin import bilinear_patterns, project_to_projector
 
     device = torch.device(device)
     H, W = depth.shape
