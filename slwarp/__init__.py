@@ -10,8 +10,8 @@ Public API (imported lazily, so `import slwarp` stays fast):
     depth_metrics                          depth error metrics (slwarp.evaluation.metrics)
     render_structured_light, RenderOutput  the fused Warp renderer as a torch op (slwarp.neural.ops)
     StructuredLightRenderer                sampling + any SDF module + losses: a drop-in loss (slwarp.neural.render)
-    NeuSField, LearnedVariance, Volume     the SDF network in mm (slwarp.neural.field)
-    HashGridSDF                            the hash-grid SDF field in mm (slwarp.neural.hashgrid)
+    NeuSField, LearnedVariance, Volume     the SDF network in mm (slwarp.neural.fields)
+    HashGridSDF                            the hash-grid SDF field in mm (slwarp.neural.fields)
     TrainConfig, preset, load_config       the typed run configuration and its presets (slwarp.neural.config)
     Trainer                                training with the paper's schedule (slwarp.neural.train)
     reconstruct                            train, extract mesh and depth (slwarp.neural.reconstruct)
@@ -39,10 +39,10 @@ _LAZY = {
     "RenderOutput": "slwarp.neural.ops",
     "StructuredLightRenderer": "slwarp.neural.render",
     "structured_light_losses": "slwarp.neural.render",
-    "NeuSField": "slwarp.neural.field",
-    "LearnedVariance": "slwarp.neural.field",
-    "Volume": "slwarp.neural.field",
-    "HashGridSDF": "slwarp.neural.hashgrid",
+    "NeuSField": "slwarp.neural.fields",
+    "LearnedVariance": "slwarp.neural.fields",
+    "Volume": "slwarp.neural.fields",
+    "HashGridSDF": "slwarp.neural.fields",
     "TrainConfig": "slwarp.neural.config",
     "load_config": "slwarp.neural.config",
     "Trainer": "slwarp.neural.train",

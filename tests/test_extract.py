@@ -115,7 +115,7 @@ def test_extract_mesh_leaves_out_the_volume_outside_the_depth_range():
     import torch
 
     from slwarp.neural.extraction.surface import extract_mesh
-    from slwarp.neural.field import Volume
+    from slwarp.neural.fields import Volume
 
     vol = Volume((-100.0, -100.0, 400.0), (100.0, 100.0, 1000.0))
     ball_centre = torch.tensor([0.0, 0.0, 420.0])
@@ -280,7 +280,7 @@ def test_extract_mesh_winds_faces_and_normals_outward():
     import torch
 
     from slwarp.neural.extraction.surface import extract_mesh
-    from slwarp.neural.field import Volume
+    from slwarp.neural.fields import Volume
 
     centre = torch.tensor([0.0, 0.0, 460.0])
     mesh = extract_mesh(lambda x: torch.linalg.norm(x - centre, dim=-1) - 40.0,

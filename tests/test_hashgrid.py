@@ -11,8 +11,8 @@ import math
 import pytest
 import torch
 
-from slwarp.neural.field import Volume
-from slwarp.neural.hashgrid import TETRAHEDRON, HashGridLayout, HashGridSDF, hashgrid_encode, hashgrid_gradient
+from slwarp.neural.fields import Volume
+from slwarp.neural.fields.hashgrid import TETRAHEDRON, HashGridLayout, HashGridSDF, hashgrid_encode, hashgrid_gradient
 from slwarp.neural.ops.hashgrid_ops import PRIMES, twin_encode, twin_gradient
 
 VOL = Volume((-400.0, -300.0, 434.0), (400.0, 300.0, 1116.0))

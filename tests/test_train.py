@@ -107,7 +107,7 @@ def test_incremental_mode_adds_frames_and_keeps_improving(small_scan):
 
 
 def test_trainer_builds_the_renderer_around_its_field(small_scan):
-    from slwarp.neural.field import Volume
+    from slwarp.neural.fields import Volume
 
     tr = Trainer(small_scan.select("0:6"), tiny(init="sphere"), progress=False)
     r = tr.renderer
@@ -536,7 +536,7 @@ def test_map_terms_compile_as_one_graph_with_the_same_values(small_scan):
 
 
 def test_compiled_graphs_serve_the_next_scan(small_scan, monkeypatch):
-    """The compiled field and map terms read the working volume as tensors (field.register_volume_buffers,
+    """The compiled field and map terms read the working volume as tensors (fields.register_volume_buffers,
     MapTerms.scale_mm), not as constants: a trainer on a scan with another volume runs on the graphs compiled for the
     one before, compiling nothing (slwarp.batch keeps them between the scans of a batch). Counted with torch.compile
     replaced by an eager counting backend, as the trainer compiles only on CUDA."""

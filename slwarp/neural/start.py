@@ -25,7 +25,7 @@ import torch
 from ..scans.scan import ScanError
 from .confidence import photometric_confidence
 from .depth_maps import AGREE_MM, component_sizes
-from .field import Volume, make_field
+from .fields import Volume, make_field
 from .pattern_model import blur_patterns, estimate_pattern_blur, lit_with_contrast, offset_and_modulation
 from .render import StructuredLightRenderer
 from .search import search_depth
@@ -88,7 +88,7 @@ def working_volume(scan, config, n_frames: int, depth_range) -> tuple[np.ndarray
 
 
 def start_field(config, volume: Volume, depth_range, camera) -> torch.nn.Module:
-    """The config's field (field.make_field) sized by the working volume; a hash grid's finest cells from the
+    """The config's field (fields.make_field) sized by the working volume; a hash grid's finest cells from the
     camera's pixel footprint at the middle of the depth range (mm)."""
     pixel_mm = 0.5 * sum(depth_range) / (0.5 * (camera.fx + camera.fy))
     return make_field(config.field, volume, init="camera" if config.init.method == "camera" else "sphere",

@@ -22,7 +22,7 @@ class FieldConfig:
     """The SDF network: `kind` picks it, and only that kind's options apply.
 
     mlp: NeuS's MLP (positional encoding, Softplus(beta=100), weight normalisation, geometric initialisation);
-    the paper's field. hashgrid: `HashGridSDF` (slwarp.neural.hashgrid), a multiresolution hash encoding and
+    the paper's field. hashgrid: `HashGridSDF` (slwarp.neural.fields.hashgrid), a multiresolution hash encoding and
     a small MLP, trained with its own Adam groups (tables at grid_table_lr_factor x lr) and levels switched on
     coarse to fine (grid_start_levels after the warm-up, one more every grid_level_every iterations)."""
 

@@ -45,9 +45,10 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .field import Volume, geometric_init, register_volume_buffers
-from .ops.hashgrid_ops import hashgrid_encode, hashgrid_gradient
-from .ops.launch import check_backend
+from ..ops.hashgrid_ops import hashgrid_encode, hashgrid_gradient
+from ..ops.launch import check_backend
+from .mlp import geometric_init
+from .volume import Volume, register_volume_buffers
 
 __all__ = ["HashGridLayout", "HashGridSDF", "hashgrid_encode", "hashgrid_gradient"]
 
