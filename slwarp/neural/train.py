@@ -50,7 +50,6 @@ from ..devices import torch_device
 from . import schedule
 from .checkpoint import (CheckpointError, CheckpointExists, RunMismatch, check_field, identity_differences,
                          make_state, read_checkpoint, restore, run_identity, write_checkpoint)
-from .confidence import pattern_model_inputs
 from .config import TrainConfig
 from .graph_step import GraphedStep
 from .history import History
@@ -61,7 +60,7 @@ from .stops import StopSignals, TrainingDiverged, TrainingInterrupted
 from .terms import MapTerms, free_space_weights, step_loss, surface_term_weights
 
 __all__ = ["Trainer", "surface_term_weights", "free_space_weights", "TrainingDiverged", "TrainingInterrupted",
-           "CheckpointError", "CheckpointExists", "RunMismatch", "History", "run_identity"]
+           "CheckpointError", "CheckpointExists", "RunMismatch", "History", "run_identity", "pattern_model_inputs"]
 
 
 def _with_frames(scan, n: int, images, patterns) -> tuple:
@@ -83,6 +82,17 @@ def _held_by_terms(name: str, doc: str) -> property:
     """A Trainer attribute that lives in its MapTerms (`Trainer.terms`)."""
     return property(lambda self: getattr(self.terms, name), lambda self, value: setattr(self.terms, name, value),
                     doc=doc)
+
+
+def pattern_model_inputs(trainer) -> tuple:
+    """(images [N, H, W], patterns as rendered [N, Hp, Wp]) of a trainer's frames for the pattern model
+    (photometric_confidence, the depth searches): on a GPU the renderer's own tensors, so that the model runs
+    there (pattern_model.residual._residual_on_device); else numpy, on the host."""
+    patterns = trainer.renderer.rendered_patterns.detach()
+    if trainer.device.type == "cuda":
+        cam = trainer.scan.camera
+        return trainer.renderer.images_flat.t().reshape(-1, cam.height, cam.width), patterns
+    return trainer.scan.images[: trainer.n_frames], patterns.cpu().numpy()
 
 
 class Trainer:

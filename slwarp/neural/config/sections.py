@@ -177,7 +177,7 @@ class ExtractionConfig:
                                        "pixel's depth", min=1, max=8, resumable=True)
     edge_readmit_confidence: float = option(0.9, "edge readmission: the pixel's photometric confidence at least this",
                                             min=0.0, max=1.0, resumable=True)
-    # what the method knows about each pixel, as a map in [0, 1] written beside the depth (slwarp.neural.confidence);
+    # what the method knows about each pixel, as a map in [0, 1] written beside the depth (slwarp.neural.extraction.confidence);
     # photometric with min_confidence 0.6 is the photometric check (relative RMS residual below 0.4)
     confidence: Literal["photometric", "peak", "agreement", "uniqueness", "combined"] = option(
         "photometric", "per-pixel confidence written as confidence.npy and used by min_confidence: photometric (1 - "

@@ -12,7 +12,7 @@ A new stage is one subclass of `stages.Stage` (its settings: extraction options 
 - `surface`: marching cubes, the mesh's depth by ray casting or the field's by sphere tracing, the flying-pixel
   filter and its edge readmission, the edge-aware denoising, point clouds.
 - `confidence`: per-pixel confidence maps of a depth map (the photometric term, which the training shares, is
-  `slwarp.neural.confidence`'s).
+  `slwarp.neural.pattern_model`'s).
 - `repair`: the search repair, its doubt rule and its growth; `fill`: the uniform-code fill.
 """
 from .runner import build_stages, extract_depth, run_stages

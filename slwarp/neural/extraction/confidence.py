@@ -22,7 +22,7 @@ random patterns another depth a few projector px away fits the codes as well eve
 right) and pulls any product down. As a filter at min_confidence 0.6, photometric is better (combined's values
 sit higher), so photometric stays the extraction's default.
 
-`photometric_confidence` is slwarp.neural.confidence's (the training uses it too). `depth_confidence(inputs, depth,
+`photometric_confidence` is slwarp.neural.pattern_model's (the training uses it too). `depth_confidence(inputs, depth,
 kind, field)` is the one entry point the extraction uses: the pattern model's inputs (`state.ModelInputs`) and the
 trained field where a term renders it (`state.TrainedField`), not the trainer.
 """
@@ -35,9 +35,8 @@ import torch
 
 from ...scans.scanner import camera_rays
 from .. import ops
-from ..confidence import photometric_confidence
 from ..depth_maps import on_depth
-from ..pattern_model import MIN_MODULATION, offset_and_modulation
+from ..pattern_model import MIN_MODULATION, offset_and_modulation, photometric_confidence
 from .state import ModelInputs, TrainedField, evaluating
 
 __all__ = [

@@ -14,8 +14,8 @@ import cv2
 import numpy as np
 
 from ...devices import torch_device
-from ..confidence import photometric_confidence
 from ..depth_maps import AGREE_MM, component_sizes, neighbours_within
+from ..pattern_model import photometric_confidence
 from ..search import search_depth
 from .state import ModelInputs
 
@@ -45,7 +45,7 @@ def repair_by_search(depth: np.ndarray, inputs: ModelInputs, min_confidence: flo
     finds the thin surface (small-rig rods: 2411 of 3472 rod pixels within 5 mm, against none from the field).
     A search answer counts where it is confident with a 3x3 window and a 5x5 window agrees (within AGREE_MM):
     single answers of either put wrong depths into 20-30% of the holes they fill (bench/repair_study.py).
-    Judged by the photometric confidence (1 - relative RMS residual, `confidence.photometric_confidence`;
+    Judged by the photometric confidence (1 - relative RMS residual, `pattern_model.photometric_confidence`;
     patterns as rendered, blurred):
     - holes: a lit pixel in `valid` without depth takes the search's depth when its confidence there is
       >= max(min_confidence, fill_confidence);
@@ -161,7 +161,7 @@ def grow_repair(depth: np.ndarray, seeds: np.ndarray, inputs: ModelInputs, *, ma
     is repaired, against 0.4% for the map as a whole.
     Each pass takes the pixels with depth that have at least `support` grown or seed pixels among their 8
     neighbours, whose mean depth differs from theirs by more than `differ_mm`, and gives them that mean where its
-    photometric confidence (`confidence.photometric_confidence`; patterns as rendered) beats theirs by more than
+    photometric confidence (`pattern_model.photometric_confidence`; patterns as rendered) beats theirs by more than
     `margin`. Nothing is dropped and no hole is filled: the map keeps its completeness. seeds [H, W] bool: the
     repair's changes. Cost: two confidences at the candidate pixels per pass."""
     out = np.asarray(depth, np.float32).copy()
