@@ -15,7 +15,7 @@ Public API (imported lazily, so `import slwarp` stays fast):
     TrainConfig, preset, load_config       the typed run configuration and its presets (slwarp.neural.config)
     Trainer                                training with the paper's schedule (slwarp.neural.train)
     reconstruct                            train, extract mesh and depth (slwarp.neural.reconstruct)
-    search_depth                           depth by exhaustive search, the training's start (slwarp.neural.search)
+    search_depth                           depth by exhaustive search, the training's start (slwarp.neural.start.search)
 """
 from __future__ import annotations
 
@@ -48,7 +48,7 @@ _LAZY = {
     "Trainer": "slwarp.neural.train",
     "preset": "slwarp.neural.config",
     "reconstruct": "slwarp.neural.reconstruct",
-    "search_depth": "slwarp.neural.search",
+    "search_depth": "slwarp.neural.start.search",
     "depth_metrics": "slwarp.evaluation.metrics",
 }
 

@@ -1,4 +1,4 @@
-"""The depth search (slwarp.neural.search): the search along each ray, its `centres` option, and the search repair
+"""The depth search (slwarp.neural.start.search): the search along each ray, its `centres` option, and the search repair
 at extraction (slwarp.neural.extraction.repair: repair_by_search fills holes, replaces contradicted depths and
 refuses isolated changes; doubt_by_search, its doubt rule alone, drops contradicted depths the codes do not support;
 grow_repair spreads the repair's changes)."""
@@ -12,7 +12,7 @@ from slwarp.neural.depth_maps import component_sizes, neighbour_stack, neighbour
 from slwarp.neural.extraction.repair import doubt_by_search, grow_repair, repair_by_search
 from slwarp.neural.extraction.state import ModelInputs
 from slwarp.neural.pattern_model import blur_patterns, lit_with_contrast, offset_and_modulation
-from slwarp.neural.search import search_depth
+from slwarp.neural.start.search import search_depth
 from slwarp.sim.simulate import SimOptions, simulate_scene
 
 BLUR = 1.0  # projector px: the simulated defocus, and the blur the patterns are rendered with
@@ -193,7 +193,7 @@ def test_component_sizes_link_neighbours_of_one_surface():
 def test_median3_is_nanmedians_outlier_rule():
     """search._median3 drops what np.nanmedian's 3x3 median (NaN ignored, the two middle values averaged when
     their count is even) puts more than 10 mm away, on maps with every count of finite neighbours."""
-    from slwarp.neural.search import _median3
+    from slwarp.neural.start.search import _median3
 
     rng = np.random.default_rng(3)
     for share in (0.0, 0.2, 0.5, 0.9, 1.0):
@@ -437,7 +437,7 @@ def test_search_is_the_brute_force_window_search(scene, radius, stride):
     """search_depth's two passes (each pixel's cost once per hypothesis, then the windows' sums across blocks of
     hypotheses) give the brute-force search's answer: the best hypothesis of 40 centres, and where the ratio
     test is clear of rounding, the same confident ones."""
-    from slwarp.neural import search
+    from slwarp.neural.start import search
 
     scan, patterns, valid = scene
     rng = np.random.default_rng(1)

@@ -9,7 +9,7 @@ lit with contrast, the field and renderer, the depth search's starting map and t
 (slwarp.neural.schedule; TrainConfig.schedule): lambda_sc = 0 for the first `sc_start` iterations, then `lambda_sc`;
 lambda_reg throughout; Adam at a constant learning rate (or cosine decay). Before it (init.method "search", the
 default), `init.iters` warm-up iterations pull the volume-rendered depth onto a depth-search map
-(slwarp.neural.search): the photometric loss is not convex in depth, and NeuS's sphere initialisation leaves
+(slwarp.neural.start.search): the photometric loss is not convex in depth, and NeuS's sphere initialisation leaves
 surfaces hundreds of mm from the truth stuck in other minima (measured: 232 mm MAE on the small-rig bunny
 without it). The loss (slwarp.neural.terms): with init.surface_weight > 0 the warm-up also puts the field's zero
 level at the map's points (`MapTerms.surface_term`), and init.surface_after > 0 keeps that term after the warm-up

@@ -1,4 +1,4 @@
-"""The search repair at extraction: a per-pixel depth search (`search.search_depth`) against the field's depth map.
+"""The search repair at extraction: a per-pixel depth search (`start.search.search_depth`) against the field's depth map.
 
 - `repair_by_search`: holes filled and contradicted depths replaced where the searches agree and the codes fit
   clearly better, kept only where neighbours (and, as asked, a large connected group) confirm them; contradicted
@@ -16,7 +16,7 @@ import numpy as np
 from ...devices import torch_device
 from ..depth_maps import AGREE_MM, component_sizes, neighbours_within
 from ..pattern_model import photometric_confidence
-from ..search import search_depth
+from ..start.search import search_depth
 from .state import ModelInputs
 
 

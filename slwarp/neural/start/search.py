@@ -18,9 +18,9 @@ import cv2
 import numpy as np
 import torch
 
-from ..devices import warp_device
-from ..scans.scanner import camera_rays
-from .pattern_model import lit_with_contrast, offset_and_modulation
+from ...devices import warp_device
+from ...scans.scanner import camera_rays
+from ..pattern_model import lit_with_contrast, offset_and_modulation
 from slwarp.kernels import runtime
 from slwarp.kernels.geometry import projector_params
 from slwarp.kernels.search import NO_COST, search_kernels

@@ -11,9 +11,9 @@
     if surface_terms_on(config.init): targets = surface_depth(init_depth, cam, prj, images, patterns, device)
 
 The pixels lit with contrast in the frames in use give the working volume (the frustum box of those pixels between
-near and far), which sizes the field; the depth search (slwarp.neural.search) gives the warm-up's starting map, at
-whose depths the pattern blur is fitted (pattern_model.estimate_pattern_blur); the surface term pulls the field onto
-the map's depths that the pixels' own codes confirm, in connected groups (`surface_depth`).
+near and far), which sizes the field; the depth search (`search`: slwarp.neural.start.search) gives the warm-up's
+starting map, at whose depths the pattern blur is fitted (pattern_model.estimate_pattern_blur); the surface term pulls
+the field onto the map's depths that the pixels' own codes confirm, in connected groups (`surface_depth`).
 """
 from __future__ import annotations
 
@@ -22,12 +22,12 @@ import math
 import numpy as np
 import torch
 
-from ..scans.scan import ScanError
-from .depth_maps import AGREE_MM, component_sizes
-from .fields import Volume, make_field
-from .pattern_model import (blur_patterns, estimate_pattern_blur, lit_with_contrast, offset_and_modulation,
-                            photometric_confidence)
-from .render import StructuredLightRenderer
+from ...scans.scan import ScanError
+from ..depth_maps import AGREE_MM, component_sizes
+from ..fields import Volume, make_field
+from ..pattern_model import (blur_patterns, estimate_pattern_blur, lit_with_contrast, offset_and_modulation,
+                             photometric_confidence)
+from ..render import StructuredLightRenderer
 from .search import search_depth
 
 __all__ = ["SURFACE_CONFIDENCE", "SURFACE_MIN_GROUP", "set_process_flags", "checked_depth_range", "frames_at_start",
