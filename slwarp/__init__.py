@@ -13,7 +13,7 @@ Public API (imported lazily, so `import slwarp` stays fast):
     NeuSField, LearnedVariance, Volume     the SDF network in mm (slwarp.neural.fields)
     HashGridSDF                            the hash-grid SDF field in mm (slwarp.neural.fields)
     TrainConfig, preset, load_config       the typed run configuration and its presets (slwarp.neural.config)
-    Trainer                                training with the paper's schedule (slwarp.neural.train)
+    Trainer                                training with the paper's schedule (slwarp.neural.training)
     reconstruct                            train, extract mesh and depth (slwarp.neural.reconstruct)
     search_depth                           depth by exhaustive search, the training's start (slwarp.neural.start.search)
 """
@@ -45,7 +45,7 @@ _LAZY = {
     "HashGridSDF": "slwarp.neural.fields",
     "TrainConfig": "slwarp.neural.config",
     "load_config": "slwarp.neural.config",
-    "Trainer": "slwarp.neural.train",
+    "Trainer": "slwarp.neural.training",
     "preset": "slwarp.neural.config",
     "reconstruct": "slwarp.neural.reconstruct",
     "search_depth": "slwarp.neural.start.search",

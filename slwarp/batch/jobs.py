@@ -153,7 +153,7 @@ def run_scan(job: ScanJob, config, options: BatchOptions = BatchOptions(), worke
     asked for (KeyboardInterrupt, SystemExit, TrainingInterrupted: Ctrl-C or SIGTERM during training, after its
     checkpoint) passes, so that the batch stops instead of going on with the next scan."""
     from ..neural.reconstruct import reconstruct
-    from ..neural.train import TrainingInterrupted
+    from ..neural.training import TrainingInterrupted
     from ..scans.scan import load_scan
 
     import numpy as np

@@ -21,7 +21,7 @@ from ...devices import warp_device
 from ...scans.scanner import camera_rays
 from ..depth_maps import neighbour_stack
 from ..fields import Volume
-from ..progress import Progress
+from ..training.progress import Progress
 from slwarp.kernels import runtime
 from slwarp.kernels.simulate import first_hit_depth, mesh_hits
 

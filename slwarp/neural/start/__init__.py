@@ -116,7 +116,7 @@ def searches(config) -> bool:
 def search_start(scan, config, n_frames: int, depth_range, lit: np.ndarray, images, device: torch.device):
     """(starting depth map [H, W] mm, NaN: none; the search's info dict): the depth search (search.search_depth) on
     the lit pixels, the patterns blurred by the fixed pattern_blur (1 px when it is fitted). images [N, H, W]: the
-    frames as the pattern model holds them (train.pattern_model_inputs: on a GPU the renderer's tensors)."""
+    frames as the pattern model holds them (training.pattern_model_inputs: on a GPU the renderer's tensors)."""
     blur = 1.0 if config.sampling.pattern_blur == "auto" else float(config.sampling.pattern_blur)
     # on a GPU the search reads the frames where they are: the renderer's images, the patterns blurred there
     patterns = blur_patterns(torch.as_tensor(scan.patterns[:n_frames], device=device), blur)
@@ -153,7 +153,7 @@ def surface_terms_on(init) -> bool:
 def surface_depth(init_depth: torch.Tensor, camera, projector, images, patterns, device) -> torch.Tensor:
     """[H*W] (mm, NaN: none; on `device`) the starting map init_depth [H*W] (mm)'s depths that the surface term pulls
     the field onto: those that their own pixel's codes confirm (photometric confidence >= SURFACE_CONFIDENCE, images and
-    patterns as train.pattern_model_inputs gives them) inside a connected group of at least SURFACE_MIN_GROUP
+    patterns as training.pattern_model_inputs gives them) inside a connected group of at least SURFACE_MIN_GROUP
     of them (8 neighbours, each within AGREE_MM of the next). Why: its gradient does not vanish far from the
     field's surface, so a wrong depth of the map raises a wrong surface. A 5x5 window's foreground depth
     spread over the background beside a depth edge fits the pixel's own codes poorly; a chance match of the

@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import torch
 
-from . import ops
-from .render import compile_in_process
+from .. import ops
+from ..render import compile_in_process
 
 __all__ = ["MISSED_MM", "surface_term_weights", "free_space_weights", "MapTerms", "step_loss"]
 
