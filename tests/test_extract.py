@@ -1,5 +1,5 @@
-"""Depth-map clean-up at extraction (slwarp.neural.extract): the neighbourhood stack and the flying-pixel filter,
-on hand-made depth maps."""
+"""Depth-map clean-up at extraction (slwarp.neural.extraction.surface): the neighbourhood stack
+(slwarp.neural.depth_maps) and the flying-pixel filter, on hand-made depth maps."""
 from types import SimpleNamespace
 
 import numpy as np
