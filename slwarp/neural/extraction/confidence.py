@@ -36,6 +36,7 @@ import torch
 from ...scans.scanner import camera_rays
 from .. import ops
 from ..depth_maps import on_depth
+from ..ops.twin import bilinear_patterns, project_to_projector
 from ..pattern_model import MIN_MODULATION, offset_and_modulation, photometric_confidence
 from .state import ModelInputs, TrainedField, evaluating
 
@@ -120,8 +121,6 @@ def uniqueness_confidence(depth: np.ndarray, camera, projector, images, patterns
     epipolar line), `step_px` projector px apart at the pixel that moves most. images [N, H, W], patterns
     [N, Hp, Wp] as rendered (blurred). Computed with the torch twin's projection and bilinear sampling on `device`.
     """
-    from ..ops.twin import bilinear_patterns, project_to_projector
-
     device = torch.device(device)
     H, W = depth.shape
     near, far = (float(x) for x in depth_range)
