@@ -104,7 +104,7 @@ def refine_facts(timings: dict) -> dict:
 def keep_error_map(job: dict, label: str, depth: np.ndarray, scan, fate: np.ndarray | None = None) -> None:
     """Save the absolute error map of one run as <--keep>/<job key>__<method>.png (0-5 mm colour scale) and, for
     study without the device, <...>.npz: "error" (depth - gt in mm as float16, NaN outside the GT mask or without
-    depth) and for the neural runs "fate" (uint8, slwarp.neural.reconstruct.PIXEL_FATES, named in "fates")."""
+    depth) and for the neural runs "fate" (uint8, slwarp.neural.extraction.PIXEL_FATES, named in "fates")."""
     keep = _KEEP
     if not keep:
         return

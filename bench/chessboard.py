@@ -39,7 +39,7 @@ def main(argv=None):
 
     from slwarp.decode import reconstruct_depth
     from slwarp.evaluation.metrics import chessboard_region, plane_rms, quadric_rms
-    from slwarp.neural.extraction.surface import depth_to_points
+    from slwarp.neural.depth_maps import depth_to_points
     from slwarp.neural.reconstruct import reconstruct
     from slwarp.devices import torch_device
     from slwarp.neural.config import default_preset_name, preset

@@ -46,7 +46,7 @@ PRODUCTS = [("photometric", "agreement"), ("photometric", "uniqueness"), ("photo
 
 def trained(scan, config, work: Path, progress: bool):
     """A Trainer on the scan's random frames, trained (or resumed from work/train/checkpoint.pt)."""
-    from slwarp.neural.train import Trainer
+    from slwarp.neural.training import Trainer
 
     resume = (work / "train" / "checkpoint.pt").is_file()
     trainer = Trainer(scan.select("random"), config, out_dir=work / "train", resume=resume, progress=progress,

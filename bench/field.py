@@ -42,8 +42,7 @@ from bench.kernels import graphed, timeit
 
 REPO = Path(__file__).resolve().parents[1]
 
-from slwarp.neural.field import NeuSField, Volume  # noqa: E402
-from slwarp.neural.hashgrid import HashGridSDF  # noqa: E402
+from slwarp.neural.fields import HashGridSDF, NeuSField, Volume  # noqa: E402
 
 # the default rig's working volume for the bunny (Volume.from_frustum of its lit pixels, 450..1100 mm)
 DEFAULT_VOLUME = Volume((-410.3, -312.0, 434.8), (380.8, 311.1, 1115.2))

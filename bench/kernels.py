@@ -33,7 +33,7 @@ from pathlib import Path
 import torch
 
 from slwarp.neural import ops
-from slwarp.neural.hashgrid import TETRAHEDRON, HashGridLayout, hashgrid_encode, hashgrid_gradient
+from slwarp.neural.fields.hashgrid import TETRAHEDRON, HashGridLayout, hashgrid_encode, hashgrid_gradient
 from slwarp.neural.render import structured_light_losses
 from slwarp.scans.patterns import random_binary
 from slwarp.sim.rigs import make_rig

@@ -100,7 +100,7 @@ def prepare(args) -> None:
 def capture_metrics(depth: np.ndarray, ref: dict, camera) -> dict:
     """Plate RMS (plane, quadric), plate coverage and agreement with the full decode of one depth map [H, W] mm."""
     from slwarp.evaluation.metrics import plane_rms, quadric_rms
-    from slwarp.neural.extraction.surface import depth_to_points
+    from slwarp.neural.depth_maps import depth_to_points
 
     region = ref["region"]
     pts = depth_to_points(np.where(region, depth, np.nan), camera)

@@ -151,7 +151,7 @@ def time_config(scan, spec: str, preset_name: str, warmup: int, iters: int, dev:
     import torch
 
     from slwarp.neural.config import preset
-    from slwarp.neural.train import Trainer
+    from slwarp.neural.training import Trainer
 
     parsed = parse_spec(spec)
     # init "preset": the preset's own start (its depth search, so the step carries the terms that need the map: the

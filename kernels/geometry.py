@@ -7,7 +7,7 @@
 - sigmoid, the inside-box test, and the constants the renderer and the sampler share.
 
 Conventions follow `slwarp.scans.scanner`: mm, OpenCV axes, pixel centres at integer coordinates, X_p = R X_c + T.
-The torch twin (slwarp.neural.twin) imports the constants, so both compute with the same values.
+The torch twin (slwarp.neural.ops.twin) imports the constants, so both compute with the same values.
 """
 
 import functools

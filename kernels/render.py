@@ -76,7 +76,7 @@ def neus_alpha_vjp(sdf: float, true_cos: float, dz: float, inv_s: float, anneal:
 
 
 # The kernels' arguments in the groups that travel together (R rays, S samples, N patterns; mm). Field names are
-# those of the torch side (slwarp.neural.ops), which fills each struct by name in one place.
+# those of the torch side (slwarp.neural.ops.render_ops), which fills each struct by name in one place.
 
 
 @wp.struct

@@ -10,12 +10,12 @@ Public API (imported lazily, so `import slwarp` stays fast):
     depth_metrics                          depth error metrics (slwarp.evaluation.metrics)
     render_structured_light, RenderOutput  the fused Warp renderer as a torch op (slwarp.neural.ops)
     StructuredLightRenderer                sampling + any SDF module + losses: a drop-in loss (slwarp.neural.render)
-    NeuSField, LearnedVariance, Volume     the SDF network in mm (slwarp.neural.field)
-    HashGridSDF                            the hash-grid SDF field in mm (slwarp.neural.hashgrid)
+    NeuSField, LearnedVariance, Volume     the SDF network in mm (slwarp.neural.fields)
+    HashGridSDF                            the hash-grid SDF field in mm (slwarp.neural.fields)
     TrainConfig, preset, load_config       the typed run configuration and its presets (slwarp.neural.config)
-    Trainer                                training with the paper's schedule (slwarp.neural.train)
+    Trainer                                training with the paper's schedule (slwarp.neural.training)
     reconstruct                            train, extract mesh and depth (slwarp.neural.reconstruct)
-    search_depth                           depth by exhaustive search, the training's start (slwarp.neural.search)
+    search_depth                           depth by exhaustive search, the training's start (slwarp.neural.start.search)
 """
 from __future__ import annotations
 
@@ -39,16 +39,16 @@ _LAZY = {
     "RenderOutput": "slwarp.neural.ops",
     "StructuredLightRenderer": "slwarp.neural.render",
     "structured_light_losses": "slwarp.neural.render",
-    "NeuSField": "slwarp.neural.field",
-    "LearnedVariance": "slwarp.neural.field",
-    "Volume": "slwarp.neural.field",
-    "HashGridSDF": "slwarp.neural.hashgrid",
+    "NeuSField": "slwarp.neural.fields",
+    "LearnedVariance": "slwarp.neural.fields",
+    "Volume": "slwarp.neural.fields",
+    "HashGridSDF": "slwarp.neural.fields",
     "TrainConfig": "slwarp.neural.config",
     "load_config": "slwarp.neural.config",
-    "Trainer": "slwarp.neural.train",
+    "Trainer": "slwarp.neural.training",
     "preset": "slwarp.neural.config",
     "reconstruct": "slwarp.neural.reconstruct",
-    "search_depth": "slwarp.neural.search",
+    "search_depth": "slwarp.neural.start.search",
     "depth_metrics": "slwarp.evaluation.metrics",
 }
 

@@ -63,8 +63,8 @@ def run_demo(out_dir="slwarp-demo", scene: str = DEMO_SCENE, config=None, preset
     from .devices import torch_device, warp_device
     from .evaluation.metrics import format_table
     from .neural.config import default_preset_name, preset
+    from .neural.depth_maps import depth_to_points
     from .neural.describe import describe
-    from .neural.extraction.surface import depth_to_points
     from .neural.reconstruct import reconstruct
     from .sim.simulate import simulate_scene
 
@@ -153,7 +153,7 @@ def _save_pictures(out: Path, scan, gt: np.ndarray, results: dict) -> None:
     """Each method's depth colour picture and error map in its folder, comparison.png and the neural SDF's
     point_cloud.png."""
     from .evaluation.viz import save_depth_color, save_error_map, save_point_cloud_render
-    from .neural.extraction.surface import depth_to_points
+    from .neural.depth_maps import depth_to_points
 
     lo_hi = (np.nanpercentile(gt, 1), np.nanpercentile(gt, 99))
     for name, r in results.items():

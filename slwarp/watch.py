@@ -180,7 +180,7 @@ class Watcher:
 
     def run(self, max_scans: int | None = None, until_idle: bool = False) -> list[ScanResult]:
         """Reconstruct scans as they come until stopped; the rows of the scans reconstructed (or failed)."""
-        from .neural.train import TrainingInterrupted
+        from .neural.training import TrainingInterrupted
 
         if not self.inbox.is_dir():
             raise FileNotFoundError(f"{self.inbox}: the inbox is not a folder")

@@ -51,7 +51,7 @@ def tiny_rods_field():
     """(scan, config, trainer): a 60-iteration `tiny` field on the small-rig rods scene (CPU), trained once for
     the extraction tests; a test sets trainer.cfg to the extraction it wants."""
     from slwarp.neural.config import preset
-    from slwarp.neural.train import Trainer
+    from slwarp.neural.training import Trainer
     from slwarp.sim.simulate import SimOptions, simulate_scene
 
     scan = simulate_scene("rods", "random6", rig="small", options=SimOptions(seed=0), device="cpu")

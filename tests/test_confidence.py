@@ -14,10 +14,9 @@ from slwarp.decode import decode, decoding_confidence, reconstruct_depth
 from slwarp.decode.confidence import code_certainty, signal_swing
 from slwarp.evaluation.metrics import confidence_metrics, depth_metrics, sparsification_curve
 from slwarp.evaluation.outputs import read_confidence, write_confidence
-from slwarp.neural.confidence import photometric_confidence
 from slwarp.neural.extraction.confidence import combine, ray_confidence, uniqueness_confidence
 from slwarp.neural.config import ConfigError, preset
-from slwarp.neural.pattern_model import blur_patterns, photometric_residual
+from slwarp.neural.pattern_model import blur_patterns, photometric_confidence, photometric_residual
 from slwarp.neural.render import StructuredLightRenderer
 from slwarp.sim.simulate import SimOptions, simulate_scene
 

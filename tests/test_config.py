@@ -291,8 +291,7 @@ def test_field_kind_network_and_default_presets():
 def test_make_field_builds_each_kind():
     import torch
 
-    from slwarp.neural.field import NeuSField, Volume, auto_finest_resolution, make_field
-    from slwarp.neural.hashgrid import HashGridSDF
+    from slwarp.neural.fields import HashGridSDF, NeuSField, Volume, auto_finest_resolution, make_field
 
     volume = Volume((-395.0, -300.0, 440.0), (395.0, 300.0, 1110.0))  # 790 mm along x, as the built-in rigs' bunny
     # the pixel footprint at 775 mm (the middle of 450..1100): 775 / 450 = 1.72 mm on the small rig -> 459 cells

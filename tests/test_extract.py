@@ -1,11 +1,12 @@
-"""Depth-map clean-up at extraction (slwarp.neural.extract): the neighbourhood stack and the flying-pixel filter,
-on hand-made depth maps."""
+"""Depth-map clean-up at extraction (slwarp.neural.extraction.surface): the neighbourhood stack
+(slwarp.neural.depth_maps) and the flying-pixel filter, on hand-made depth maps."""
 from types import SimpleNamespace
 
 import numpy as np
 
 from slwarp.neural.config import ExtractionConfig
-from slwarp.neural.extraction.surface import denoise_depth, flying_pixel_filter, neighbour_stack, readmit_edge_pixels
+from slwarp.neural.depth_maps import neighbour_stack
+from slwarp.neural.extraction.surface import denoise_depth, flying_pixel_filter, readmit_edge_pixels
 
 CAMERA = SimpleNamespace(fx=500.0, fy=500.0)  # a pixel footprint of 1 mm at 500 mm
 # the edge readmission's default bars (the options edge_readmit_support and edge_readmit_confidence)
@@ -114,7 +115,7 @@ def test_extract_mesh_leaves_out_the_volume_outside_the_depth_range():
     import torch
 
     from slwarp.neural.extraction.surface import extract_mesh
-    from slwarp.neural.field import Volume
+    from slwarp.neural.fields import Volume
 
     vol = Volume((-100.0, -100.0, 400.0), (100.0, 100.0, 1000.0))
     ball_centre = torch.tensor([0.0, 0.0, 420.0])
@@ -279,7 +280,7 @@ def test_extract_mesh_winds_faces_and_normals_outward():
     import torch
 
     from slwarp.neural.extraction.surface import extract_mesh
-    from slwarp.neural.field import Volume
+    from slwarp.neural.fields import Volume
 
     centre = torch.tensor([0.0, 0.0, 460.0])
     mesh = extract_mesh(lambda x: torch.linalg.norm(x - centre, dim=-1) - 40.0,

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from slwarp.neural.field import LearnedVariance, NeuSField, Volume, sdf_and_gradient
+from slwarp.neural.fields import LearnedVariance, NeuSField, Volume, sdf_and_gradient
 from slwarp.sim.rigs import make_rig
 
 VOL = Volume((-400.0, -300.0, 434.0), (400.0, 300.0, 1116.0))

@@ -11,9 +11,9 @@ import math
 import pytest
 import torch
 
-from slwarp.neural.field import Volume
-from slwarp.neural.hashgrid import TETRAHEDRON, HashGridLayout, HashGridSDF, hashgrid_encode, hashgrid_gradient
-from slwarp.neural.hashgrid_ops import PRIMES, twin_encode, twin_gradient
+from slwarp.neural.fields import Volume
+from slwarp.neural.fields.hashgrid import TETRAHEDRON, HashGridLayout, HashGridSDF, hashgrid_encode, hashgrid_gradient
+from slwarp.neural.ops.hashgrid_ops import PRIMES, twin_encode, twin_gradient
 
 VOL = Volume((-400.0, -300.0, 434.0), (400.0, 300.0, 1116.0))
 # 6 levels: 4 and 7 cells dense; 12, 21, 37 and 64 hashed into 2^10 entries
@@ -87,7 +87,7 @@ def test_backward_sums_runs_of_points_in_one_cell(device):
     """The table gradient sums runs of consecutive points in one cell in registers (BACKWARD_RUN per thread):
     samples along rays, many consecutive ones sharing a coarse cell, some jumping back to an earlier cell, and
     a point count that leaves the last thread's run short, against the twin."""
-    from slwarp.neural.hashgrid_ops import BACKWARD_RUN
+    from slwarp.neural.ops.hashgrid_ops import BACKWARD_RUN
 
     g = torch.Generator().manual_seed(3)
     rays, n = 7, 13  # 91 points: not a multiple of the run

@@ -13,9 +13,9 @@ import yaml
 from slwarp.batch import scan_cost
 from slwarp.cli import main as cli_main
 from slwarp.evaluation.outputs import read_confidence
-from slwarp.neural.checkpoint import FORMAT, CheckpointError, make_state, read_checkpoint
+from slwarp.neural.training.checkpoint import FORMAT, CheckpointError, make_state, read_checkpoint
 from slwarp.neural.config import ConfigError, load_config, preset
-from slwarp.neural.train import Trainer
+from slwarp.neural.training import Trainer
 from slwarp.scans.patterns import gray_code
 from slwarp.scans.scan import Scan, ScanError, inside_folder, load_scan, read_depth
 from slwarp.scans.scanner import Camera, Projector, look_at_rotation

@@ -16,7 +16,8 @@ import warp as wp
 
 from slwarp.kernels.geometry import TRANS_EPS
 from slwarp.kernels.sampling import CDF_EPS, PDF_EPS, upsample_inverse_cdf, upsample_place
-from slwarp.neural import launch, ops, twin
+from slwarp.neural import ops
+from slwarp.neural.ops import launch, twin
 from slwarp.scans.patterns import random_binary
 from slwarp.sim.rigs import make_rig
 

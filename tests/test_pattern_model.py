@@ -12,7 +12,8 @@ from slwarp.neural.pattern_model import (BLUR_BINS, BLUR_LADDER, BLUR_LADDER_STE
                                         lit_with_contrast, offset_and_modulation, photometric_filter,
                                         photometric_residual, projector_coords, refine_depth, sample_patterns,
                                         refinement_generalises, model_misfit, refine_where_model_fits, REFINE_RADIUS,
-                                        REFINE_STEP_MM, _BlurLadder)
+                                        REFINE_STEP_MM)
+from slwarp.neural.pattern_model.blur import _BlurLadder
 from slwarp.sim.simulate import SimOptions, simulate_scene
 
 
@@ -64,7 +65,7 @@ def test_photometric_filter_removes_wrong_depths_and_keeps_right_ones(blurred_sc
 def test_photometric_residual_of_a_sparse_map_equals_the_dense_one(blurred_scan, monkeypatch):
     """A map with depth at few pixels takes the sparse path (those pixels only): the same values as the dense
     computation, with depths off the projector and more pixels than one remap row holds."""
-    from slwarp.neural import pattern_model
+    from slwarp.neural.pattern_model import image, residual
 
     s = blurred_scan
     pats = blur_patterns(torch.as_tensor(s.patterns), 1.0).numpy()
@@ -72,10 +73,10 @@ def test_photometric_residual_of_a_sparse_map_equals_the_dense_one(blurred_scan,
     depth = np.where(rng.random(s.gt_depth.shape) < 0.2, s.gt_depth + rng.normal(0, 20, s.gt_depth.shape), np.nan)
     depth[0, :5] = 1.0  # in front of the projector's near range: projects far off its image
     depth = depth.astype(np.float32)
-    assert 0.15 < np.isfinite(depth).mean() < pattern_model.SPARSE_SHARE
-    assert np.isfinite(depth).sum() > pattern_model._REMAP_ROW
+    assert 0.15 < np.isfinite(depth).mean() < residual.SPARSE_SHARE
+    assert np.isfinite(depth).sum() > image._REMAP_ROW
     sparse = photometric_residual(depth, s.camera, s.projector, s.images, pats)
-    monkeypatch.setattr(pattern_model, "SPARSE_SHARE", 0.0)  # the dense path
+    monkeypatch.setattr(residual, "SPARSE_SHARE", 0.0)  # the dense path
     dense = photometric_residual(depth, s.camera, s.projector, s.images, pats)
     np.testing.assert_array_equal(np.isfinite(sparse), np.isfinite(depth))
     np.testing.assert_allclose(sparse, dense, rtol=1e-6, atol=1e-7)
@@ -86,7 +87,7 @@ def test_patterns_sampled_on_a_device_equal_cv2_remap():
     """twin.bilinear_patterns, which the residual on a device samples with, has sample_patterns_at's conventions (pixel centres at integer coordinates, zeros
     outside, bilinear): equal at coordinates on OpenCV 4's 1/32 px grid, edges and outside included."""
     from slwarp.neural.pattern_model import sample_patterns_at
-    from slwarp.neural.twin import bilinear_patterns
+    from slwarp.neural.ops.twin import bilinear_patterns
 
     rng = np.random.default_rng(2)
     pats = rng.uniform(0.0, 1.0, (3, 12, 17)).astype(np.float32)

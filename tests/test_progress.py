@@ -1,7 +1,7 @@
 """Progress output: plain lines every few seconds where the output is not a terminal, a bar where it is."""
 import io
 
-from slwarp.neural.progress import Progress
+from slwarp.neural.training.progress import Progress
 
 
 class Clock:

@@ -18,8 +18,8 @@ from slwarp.cli import main as cli_main
 from slwarp.evaluation.outputs import OutputError, check_output_folder, staged_outputs, write_depth
 from slwarp.neural.config import preset
 from slwarp.neural.reconstruct import reconstruct
-from slwarp.neural.checkpoint import CheckpointError, CheckpointExists, RunMismatch, read_checkpoint
-from slwarp.neural.train import Trainer, TrainingInterrupted
+from slwarp.neural.training.checkpoint import CheckpointError, CheckpointExists, RunMismatch, read_checkpoint
+from slwarp.neural.training import Trainer, TrainingInterrupted
 from slwarp.scans.scan import Scan, ScanError, load_scan
 from slwarp.sim.simulate import SimOptions, simulate_scene
 
@@ -265,7 +265,7 @@ def test_sigkill_mid_training_resumes_to_the_same_result(scan, tmp_path):
         import time, pathlib
         from slwarp.scans.scan import load_scan
         from slwarp.neural.config import preset
-        from slwarp.neural.train import Trainer
+        from slwarp.neural.training import Trainer
         cfg = preset("tiny", device="cpu", iters=20, init="sphere", init_iters=10, checkpoint_every=10, log_every=5,
                      rays=64, mc_resolution=32)
         def hold(tr):

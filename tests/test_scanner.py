@@ -138,7 +138,7 @@ def test_packed_projector_names_its_floats():
     assert (p.k1, p.k2, p.p1, p.p2, p.k3) == (0.05, -0.02, 0.001, -0.002, 0.01) and p.dist == tuple(proj.dist)
     assert (p.width, p.height, p.max_r2) == (proj.width, proj.height, proj.max_normalized_r2)
     # the torch twin's projection reads the packed floats and agrees with the projector's own model
-    from slwarp.neural import twin
+    from slwarp.neural.ops import twin
 
     uvp = np.stack([rng.uniform(0, proj.width - 1, 200), rng.uniform(0, proj.height - 1, 200)], -1)
     X = torch.as_tensor(proj.center + proj.pixel_to_ray_in_camera(uvp) * rng.uniform(400, 1200, (200, 1)))

@@ -1,4 +1,4 @@
-"""The depth search (slwarp.neural.search): the search along each ray, its `centres` option, and the search repair
+"""The depth search (slwarp.neural.start.search): the search along each ray, its `centres` option, and the search repair
 at extraction (slwarp.neural.extraction.repair: repair_by_search fills holes, replaces contradicted depths and
 refuses isolated changes; doubt_by_search, its doubt rule alone, drops contradicted depths the codes do not support;
 grow_repair spreads the repair's changes)."""
@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from slwarp.neural.extraction.repair import doubt_by_search, grow_repair, neighbours_within, repair_by_search
+from slwarp.neural.depth_maps import component_sizes, neighbour_stack, neighbours_within
+from slwarp.neural.extraction.repair import doubt_by_search, grow_repair, repair_by_search
 from slwarp.neural.extraction.state import ModelInputs
-from slwarp.neural.extraction.surface import neighbour_stack
 from slwarp.neural.pattern_model import blur_patterns, lit_with_contrast, offset_and_modulation
-from slwarp.neural.search import component_sizes, search_depth
+from slwarp.neural.start.search import search_depth
 from slwarp.sim.simulate import SimOptions, simulate_scene
 
 BLUR = 1.0  # projector px: the simulated defocus, and the blur the patterns are rendered with
@@ -193,7 +193,7 @@ def test_component_sizes_link_neighbours_of_one_surface():
 def test_median3_is_nanmedians_outlier_rule():
     """search._median3 drops what np.nanmedian's 3x3 median (NaN ignored, the two middle values averaged when
     their count is even) puts more than 10 mm away, on maps with every count of finite neighbours."""
-    from slwarp.neural.search import _median3
+    from slwarp.neural.start.search import _median3
 
     rng = np.random.default_rng(3)
     for share in (0.0, 0.2, 0.5, 0.9, 1.0):
@@ -395,8 +395,9 @@ def _brute_force_search(scan, patterns, valid, centres, radius, step_mm, exclude
     """(depth [P], best [P], second [P]) at centres [P, 2] (row, col): each window projects and samples its own
     pixels at every hypothesis (the torch twin's projection and bilinear taps), hypotheses in order, the rival
     the best cost more than `exclude` cells from the best (the search kernel's rule, written out in float64)."""
-    from slwarp.decode.triangulate import camera_rays
-    from slwarp.neural import ops, twin
+    from slwarp.scans.scanner import camera_rays
+    from slwarp.neural import ops
+    from slwarp.neural.ops import twin
 
     images = np.asarray(scan.images, np.float64)
     a, b = offset_and_modulation(images)
@@ -436,7 +437,7 @@ def test_search_is_the_brute_force_window_search(scene, radius, stride):
     """search_depth's two passes (each pixel's cost once per hypothesis, then the windows' sums across blocks of
     hypotheses) give the brute-force search's answer: the best hypothesis of 40 centres, and where the ratio
     test is clear of rounding, the same confident ones."""
-    from slwarp.neural import search
+    from slwarp.neural.start import search
 
     scan, patterns, valid = scene
     rng = np.random.default_rng(1)

@@ -256,7 +256,7 @@ def test_a_stage_inserted_into_a_presets_list_runs_timed_and_recorded_in_the_fat
 def test_the_confidence_map_is_that_of_the_final_depth(tiny_rods_field):
     """The runner scores every depth a stage moves, the refined and the denoised ones too: the map written beside
     the depth is the photometric confidence of the final depth map at every pixel with depth."""
-    from slwarp.neural.confidence import photometric_confidence
+    from slwarp.neural.pattern_model import photometric_confidence
     from slwarp.neural.extraction import extract_depth
 
     _, cfg, trainer = tiny_rods_field

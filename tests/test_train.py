@@ -12,7 +12,7 @@ from slwarp.cli import main as cli_main
 from slwarp.neural.reconstruct import reconstruct
 from slwarp.sim.simulate import SimOptions, simulate_scene
 from slwarp.neural.config import load_config, preset
-from slwarp.neural.train import Trainer
+from slwarp.neural.training import Trainer
 
 # Bounds set from measurement with margin: small rig, 'spheres' (noise seed 3), 6 random patterns, the
 # 'tiny' preset (100 warm-up + 300 iterations) on the CPU gave, for seeds 0, 1, 2: median 1.96, 2.10,
@@ -107,7 +107,7 @@ def test_incremental_mode_adds_frames_and_keeps_improving(small_scan):
 
 
 def test_trainer_builds_the_renderer_around_its_field(small_scan):
-    from slwarp.neural.field import Volume
+    from slwarp.neural.fields import Volume
 
     tr = Trainer(small_scan.select("0:6"), tiny(init="sphere"), progress=False)
     r = tr.renderer
@@ -136,7 +136,7 @@ def test_unfittable_pattern_blur_is_a_scan_error(small_scan):
 
 
 def test_non_finite_loss_stops_with_a_clear_message(small_scan, tmp_path):
-    from slwarp.neural.train import TrainingDiverged
+    from slwarp.neural.training import TrainingDiverged
 
     tr = Trainer(small_scan.select("0:3"), tiny(iters=40, checkpoint_every=20, log_every=5), out_dir=tmp_path, progress=False)
     tr.train(iters=20)
@@ -355,7 +355,7 @@ def test_surface_term_in_front_pulls_back_a_surface_the_field_carried_over_the_m
 
 
 def test_surface_term_weights_warm_up_and_after():
-    from slwarp.neural.terms import MISSED_MM, surface_term_weights
+    from slwarp.neural.training.terms import MISSED_MM, surface_term_weights
 
     target = torch.tensor([600.0, 600.0, 600.0, float("nan")])
     rendered = torch.tensor([600.5, 600.0 + MISSED_MM + 1.0, 590.0, 900.0])
@@ -374,7 +374,7 @@ def test_surface_term_weights_warm_up_and_after():
 
 
 def test_free_space_weights_only_where_the_field_lies_in_front():
-    from slwarp.neural.terms import MISSED_MM, free_space_weights
+    from slwarp.neural.training.terms import MISSED_MM, free_space_weights
 
     target = torch.tensor([900.0, 900.0, 900.0, float("nan")])
     rendered = torch.tensor([900.0 - MISSED_MM - 1.0, 899.0, 950.0, 600.0])
@@ -389,7 +389,7 @@ def test_free_space_term_by_hand(small_scan):
     and behind the plane are inside (f < 0) and the term is the sum of their -f; its gradient moves the plane away
     from the camera. With the map's depth on the plane the term is 0."""
     from slwarp.neural import ops
-    from slwarp.neural.terms import MISSED_MM
+    from slwarp.neural.training.terms import MISSED_MM
 
     tr = Trainer(small_scan.select("0:6"), tiny(init="sphere"), sdf=PlaneSDF(700.0), progress=False)
     batch = tr.renderer.sample_pixels(16, torch.Generator().manual_seed(0))
@@ -457,7 +457,7 @@ def test_draw_ahead_gives_the_step_by_step_draws_and_generator_state():
     """DrawAhead (the CUDA-graph trainer's draws, here on the CPU): the same draws in the same order as drawing
     step by step, the generator's state after the steps taken (a checkpoint's), and a change of key mid-block
     rewinds to the steps taken before drawing anew."""
-    from slwarp.neural.graph_step import DrawAhead
+    from slwarp.neural.training.graph_step import DrawAhead
 
     def draw(g, n=7):
         return torch.randint(0, n, (5,), generator=g), torch.rand(5, generator=g)
@@ -536,7 +536,7 @@ def test_map_terms_compile_as_one_graph_with_the_same_values(small_scan):
 
 
 def test_compiled_graphs_serve_the_next_scan(small_scan, monkeypatch):
-    """The compiled field and map terms read the working volume as tensors (field.register_volume_buffers,
+    """The compiled field and map terms read the working volume as tensors (fields.register_volume_buffers,
     MapTerms.scale_mm), not as constants: a trainer on a scan with another volume runs on the graphs compiled for the
     one before, compiling nothing (slwarp.batch keeps them between the scans of a batch). Counted with torch.compile
     replaced by an eager counting backend, as the trainer compiles only on CUDA."""

@@ -132,7 +132,7 @@ def _fit_compiled(scan, config) -> None:
     """Keep torch.compile's graphs for a scan of the sizes and settings they were compiled for, else drop them.
 
     The compiled graphs depend on the settings and the scan's image size and frame count only (the working volume
-    reaches them as tensors: field.register_volume_buffers), so the scans of one rig after the first compile
+    reaches them as tensors: fields.register_volume_buffers), so the scans of one rig after the first compile
     nothing (one H100, 8 `fast` scans one after another: 22.9 -> 8.0 s a scan, bench/results/
     batch-throughput-cuda-h100x2-before.md and -cold.md). Each other size adds
     compiled versions, and past torch._dynamo's recompile limit (8) the field would run uncompiled: a new size
@@ -153,7 +153,7 @@ def run_scan(job: ScanJob, config, options: BatchOptions = BatchOptions(), worke
     asked for (KeyboardInterrupt, SystemExit, TrainingInterrupted: Ctrl-C or SIGTERM during training, after its
     checkpoint) passes, so that the batch stops instead of going on with the next scan."""
     from ..neural.reconstruct import reconstruct
-    from ..neural.train import TrainingInterrupted
+    from ..neural.training import TrainingInterrupted
     from ..scans.scan import load_scan
 
     import numpy as np

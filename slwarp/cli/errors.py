@@ -17,7 +17,7 @@ def _user_errors() -> tuple:
     from ..decode.frames import MissingFrames
     from ..devices import DeviceError
     from ..neural.config import ConfigError
-    from ..neural.train import CheckpointError, TrainingDiverged
+    from ..neural.training import CheckpointError, TrainingDiverged
     from ..scans.scan import ScanError
     from ..scans.scanner import CalibrationError
 
@@ -35,7 +35,7 @@ _VALUE_ERRORS_ARE_USER_ERRORS = {"decode"}
 
 def _interrupted():
     """TrainingInterrupted (a signal stopped training after its checkpoint): reported with its own exit status."""
-    from ..neural.train import TrainingInterrupted
+    from ..neural.training import TrainingInterrupted
 
     return TrainingInterrupted
 

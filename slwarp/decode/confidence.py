@@ -1,4 +1,4 @@
-"""Per-pixel confidence of a classical decoding, the analogue of the neural method's (slwarp.neural.confidence).
+"""Per-pixel confidence of a classical decoding, the analogue of the neural method's (slwarp.neural.extraction.confidence).
 
     confidence = code certainty x signal swing, in [0, 1] (1 = trustworthy)
 

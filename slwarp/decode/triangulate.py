@@ -26,9 +26,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..scans.scanner import Camera, Projector, bounded_cache
+from ..scans.scanner import Camera, Projector, camera_rays
 
-__all__ = ["baseline_alignment", "choose_plane_axis", "choose_triangulation", "camera_rays", "triangulate_plane",
+__all__ = ["baseline_alignment", "choose_plane_axis", "choose_triangulation", "triangulate_plane",
            "triangulate_rays", "triangulate_midpoint", "triangulate"]
 
 TRIANGULATION_MODES = ("auto", "col", "row", "both", "midpoint")
@@ -69,22 +69,6 @@ def choose_triangulation(projector: Projector, has_col: bool, has_row: bool) -> 
     if best == "col":
         return "col" if has_col else "row"
     return "row" if has_row else "col"
-
-
-_RAYS_CACHE: dict = {}
-
-
-def camera_rays(camera: Camera, uv: np.ndarray | None = None) -> np.ndarray:
-    """Unit ray directions [..., 3] (camera frame) of pixels uv [..., 2] (default: every pixel, [H, W, 3]; the
-    last few cameras' grids are cached, read-only: undistorting every pixel costs more than a triangulation)."""
-    if uv is not None:
-        return camera.pixel_to_ray(np.asarray(uv, np.float64))
-    return bounded_cache(_RAYS_CACHE, camera.cache_key, lambda: _read_only(camera.pixel_to_ray(camera.pixel_grid())))
-
-
-def _read_only(a: np.ndarray) -> np.ndarray:
-    a.flags.writeable = False
-    return a
 
 
 def _plane_intersection(d: np.ndarray, projector: Projector, n_coord: np.ndarray, axis: str) -> np.ndarray:

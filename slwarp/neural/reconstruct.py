@@ -12,7 +12,7 @@ reads it back), and metrics.json + error_map.png when the scan has ground truth;
 train/checkpoint.pt holds the resumable training state. The outputs appear together or not at all
 (`evaluation.outputs.staged_outputs`); `resume` continues the checkpoint of the same run (else RunMismatch), and a
 new run into a folder with a checkpoint needs `overwrite=True` (else CheckpointExists). SIGINT/SIGTERM raise
-`TrainingInterrupted` after saving a checkpoint (see slwarp.neural.train).
+`TrainingInterrupted` after saving a checkpoint (see slwarp.neural.training).
 """
 from __future__ import annotations
 
@@ -26,8 +26,9 @@ import torch
 from ..evaluation.outputs import (check_output_folder, staged_outputs, write_confidence, write_depth, write_mesh_ply,
                                   write_points_ply)
 from .config import TrainConfig, save_config
-from .extraction import build_stages, depth_to_points, extract_depth, fate_counts, pixel_fates
-from .train import Trainer
+from .depth_maps import depth_to_points
+from .extraction import build_stages, extract_depth, fate_counts, pixel_fates
+from .training import Trainer
 
 
 @dataclass

@@ -26,7 +26,7 @@ import torch
 import torch.nn as nn
 
 from . import ops
-from .field import LearnedVariance, Volume, sdf_and_gradient
+from .fields import LearnedVariance, Volume, sdf_and_gradient
 from .pattern_model import CONTRAST_THRESHOLD, blur_patterns, lit_with_contrast, offset_and_modulation
 
 

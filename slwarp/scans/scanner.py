@@ -7,7 +7,9 @@ Conventions (binding across slwarp):
 - a camera-frame point X_c maps to the projector frame as X_p = R X_c + T.
 
 Every geometric function accepts numpy arrays or torch tensors (any device, any float dtype) with the
-coordinate axis last, and returns the same kind of array.
+coordinate axis last, and returns the same kind of array. `camera_rays(camera)` is the camera's grid of unit pixel
+rays (numpy), cached per camera: the decoders' triangulation, the depth search, the pattern model and the extraction
+share it.
 """
 from __future__ import annotations
 
@@ -317,6 +319,23 @@ class Camera:
             f"{self.width}x{self.height} px, fx={self.fx:.2f} fy={self.fy:.2f} "
             f"cx={self.cx:.2f} cy={self.cy:.2f}, dist=({k})"
         )
+
+
+# the last few cameras' ray grids (camera_rays)
+_RAYS_CACHE: dict = {}
+
+
+def camera_rays(camera: Camera, uv: np.ndarray | None = None) -> np.ndarray:
+    """Unit ray directions [..., 3] (camera frame) of pixels uv [..., 2] (default: every pixel, [H, W, 3]; the
+    last few cameras' grids are cached, read-only: undistorting every pixel costs more than a triangulation)."""
+    if uv is not None:
+        return camera.pixel_to_ray(np.asarray(uv, np.float64))
+    return bounded_cache(_RAYS_CACHE, camera.cache_key, lambda: _read_only(camera.pixel_to_ray(camera.pixel_grid())))
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False
+    return a
 
 
 def check_rotation(R: np.ndarray, what: str = "extrinsics R", tol: float = 1e-3) -> np.ndarray:

@@ -22,7 +22,7 @@ class FieldConfig:
     """The SDF network: `kind` picks it, and only that kind's options apply.
 
     mlp: NeuS's MLP (positional encoding, Softplus(beta=100), weight normalisation, geometric initialisation);
-    the paper's field. hashgrid: `HashGridSDF` (slwarp.neural.hashgrid), a multiresolution hash encoding and
+    the paper's field. hashgrid: `HashGridSDF` (slwarp.neural.fields.hashgrid), a multiresolution hash encoding and
     a small MLP, trained with its own Adam groups (tables at grid_table_lr_factor x lr) and levels switched on
     coarse to fine (grid_start_levels after the warm-up, one more every grid_level_every iterations)."""
 
@@ -177,7 +177,7 @@ class ExtractionConfig:
                                        "pixel's depth", min=1, max=8, resumable=True)
     edge_readmit_confidence: float = option(0.9, "edge readmission: the pixel's photometric confidence at least this",
                                             min=0.0, max=1.0, resumable=True)
-    # what the method knows about each pixel, as a map in [0, 1] written beside the depth (slwarp.neural.confidence);
+    # what the method knows about each pixel, as a map in [0, 1] written beside the depth (slwarp.neural.extraction.confidence);
     # photometric with min_confidence 0.6 is the photometric check (relative RMS residual below 0.4)
     confidence: Literal["photometric", "peak", "agreement", "uniqueness", "combined"] = option(
         "photometric", "per-pixel confidence written as confidence.npy and used by min_confidence: photometric (1 - "

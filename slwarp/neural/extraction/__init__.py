@@ -12,14 +12,13 @@ A new stage is one subclass of `stages.Stage` (its settings: extraction options 
 - `surface`: marching cubes, the mesh's depth by ray casting or the field's by sphere tracing, the flying-pixel
   filter and its edge readmission, the edge-aware denoising, point clouds.
 - `confidence`: per-pixel confidence maps of a depth map (the photometric term, which the training shares, is
-  `slwarp.neural.confidence`'s).
+  `slwarp.neural.pattern_model`'s).
 - `repair`: the search repair, its doubt rule and its growth; `fill`: the uniform-code fill.
 """
 from .runner import build_stages, extract_depth, run_stages
 from .stages import STAGES, Stage
 from .state import (FATE, PIXEL_FATES, Extraction, ModelInputs, State, TrainedField, fate_counts, pixel_fates,
                     register_fate)
-from .surface import depth_to_points
 
 __all__ = ["build_stages", "extract_depth", "run_stages", "STAGES", "Stage", "FATE", "PIXEL_FATES", "Extraction",
-           "ModelInputs", "State", "TrainedField", "fate_counts", "pixel_fates", "register_fate", "depth_to_points"]
+           "ModelInputs", "State", "TrainedField", "fate_counts", "pixel_fates", "register_fate"]

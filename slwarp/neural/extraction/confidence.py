@@ -22,7 +22,7 @@ random patterns another depth a few projector px away fits the codes as well eve
 right) and pulls any product down. As a filter at min_confidence 0.6, photometric is better (combined's values
 sit higher), so photometric stays the extraction's default.
 
-`photometric_confidence` is slwarp.neural.confidence's (the training uses it too). `depth_confidence(inputs, depth,
+`photometric_confidence` is slwarp.neural.pattern_model's (the training uses it too). `depth_confidence(inputs, depth,
 kind, field)` is the one entry point the extraction uses: the pattern model's inputs (`state.ModelInputs`) and the
 trained field where a term renders it (`state.TrainedField`), not the trainer.
 """
@@ -33,10 +33,11 @@ import math
 import numpy as np
 import torch
 
-from ...decode.triangulate import camera_rays
+from ...scans.scanner import camera_rays
 from .. import ops
-from ..confidence import on_depth, photometric_confidence
-from ..pattern_model import MIN_MODULATION, offset_and_modulation
+from ..depth_maps import on_depth
+from ..ops.twin import bilinear_patterns, project_to_projector
+from ..pattern_model import MIN_MODULATION, offset_and_modulation, photometric_confidence
 from .state import ModelInputs, TrainedField, evaluating
 
 __all__ = [
@@ -120,8 +121,6 @@ def uniqueness_confidence(depth: np.ndarray, camera, projector, images, patterns
     epipolar line), `step_px` projector px apart at the pixel that moves most. images [N, H, W], patterns
     [N, Hp, Wp] as rendered (blurred). Computed with the torch twin's projection and bilinear sampling on `device`.
     """
-    from ..twin import bilinear_patterns, project_to_projector
-
     device = torch.device(device)
     H, W = depth.shape
     near, far = (float(x) for x in depth_range)

@@ -5,8 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..pattern_model import MIN_MODULATION, offset_and_modulation, projector_coords_at, sample_patterns_at
-from ..search import AGREE_MM
-from .repair import neighbours_within
+from ..depth_maps import AGREE_MM, neighbours_within
 from .state import ModelInputs
 
 # uniform-code fill (`fill_uniform_codes`): how far each predicted code may lie from all-black (0) or all-white
@@ -50,7 +49,7 @@ def fill_uniform_codes(depth: np.ndarray, field_depth: np.ndarray, inputs: Model
       surface's depth);
     - UNIFORM_MIN_SHARE of its (2 UNIFORM_RADIUS + 1)^2 window is lit with contrast, and the images fit a + b Q
       with that window's mean offset a and modulation b: 1 - relative RMS residual >= min_confidence;
-    - two of its 8 neighbours end within search.AGREE_MM of its depth.
+    - two of its 8 neighbours end within depth_maps.AGREE_MM of its depth.
     Its depth is then corrected by the mean of depth - field_depth over the pixels in its
     (2 UNIFORM_CORRECTION_RADIUS + 1)^2 window where that difference is within UNIFORM_CORRECTION_MAX_MM (the
     refinement's local correction of the field, which a pixel without contrast cannot measure itself; small-rig

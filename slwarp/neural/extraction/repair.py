@@ -1,11 +1,10 @@
-"""The search repair at extraction: a per-pixel depth search (`search.search_depth`) against the field's depth map.
+"""The search repair at extraction: a per-pixel depth search (`start.search.search_depth`) against the field's depth map.
 
 - `repair_by_search`: holes filled and contradicted depths replaced where the searches agree and the codes fit
   clearly better, kept only where neighbours (and, as asked, a large connected group) confirm them; contradicted
   depths the codes do not support dropped.
 - `doubt_by_search`: that doubt rule alone (drops, never fills or replaces).
 - `grow_repair`: the repair's changes spread to neighbours that kept another surface's depth.
-- `neighbours_within`: how many of each pixel's neighbours agree with its depth.
 
 All take the pattern model's inputs as one bundle (`state.ModelInputs`); patterns as rendered (blurred).
 """
@@ -13,13 +12,12 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-import torch
 
 from ...devices import torch_device
-from ..confidence import photometric_confidence
-from ..search import AGREE_MM, component_sizes, search_depth
+from ..depth_maps import AGREE_MM, component_sizes, neighbours_within
+from ..pattern_model import photometric_confidence
+from ..start.search import search_depth
 from .state import ModelInputs
-from .surface import neighbour_stack, neighbours_at
 
 
 # a pixel's depth and a confident search's answer "disagree" beyond this (mm): the search's own exclusion zone
@@ -47,7 +45,7 @@ def repair_by_search(depth: np.ndarray, inputs: ModelInputs, min_confidence: flo
     finds the thin surface (small-rig rods: 2411 of 3472 rod pixels within 5 mm, against none from the field).
     A search answer counts where it is confident with a 3x3 window and a 5x5 window agrees (within AGREE_MM):
     single answers of either put wrong depths into 20-30% of the holes they fill (bench/repair_study.py).
-    Judged by the photometric confidence (1 - relative RMS residual, `confidence.photometric_confidence`;
+    Judged by the photometric confidence (1 - relative RMS residual, `pattern_model.photometric_confidence`;
     patterns as rendered, blurred):
     - holes: a lit pixel in `valid` without depth takes the search's depth when its confidence there is
       >= max(min_confidence, fill_confidence);
@@ -163,7 +161,7 @@ def grow_repair(depth: np.ndarray, seeds: np.ndarray, inputs: ModelInputs, *, ma
     is repaired, against 0.4% for the map as a whole.
     Each pass takes the pixels with depth that have at least `support` grown or seed pixels among their 8
     neighbours, whose mean depth differs from theirs by more than `differ_mm`, and gives them that mean where its
-    photometric confidence (`confidence.photometric_confidence`; patterns as rendered) beats theirs by more than
+    photometric confidence (`pattern_model.photometric_confidence`; patterns as rendered) beats theirs by more than
     `margin`. Nothing is dropped and no hole is filled: the map keeps its completeness. seeds [H, W] bool: the
     repair's changes. Cost: two confidences at the candidate pixels per pass."""
     out = np.asarray(depth, np.float32).copy()
@@ -190,15 +188,3 @@ def grow_repair(depth: np.ndarray, seeds: np.ndarray, inputs: ModelInputs, *, ma
         grown |= switch
         grown_or_seed |= switch
     return out, grown
-
-
-def neighbours_within(depth: np.ndarray, tol_mm: float, index: np.ndarray | None = None,
-                      device=None) -> np.ndarray:
-    """[H, W] int: how many of each pixel's 8 neighbours have a depth within tol_mm of its own (computed by torch
-    on `device`, default the CPU); with index (flat pixel indices [P]) the same counts [P] at those pixels only."""
-    if index is None:
-        d = torch.as_tensor(np.asarray(depth, np.float64), device=device)
-        return (torch.abs(neighbour_stack(d) - d) < tol_mm).sum(0).int().cpu().numpy()
-    own = np.asarray(depth, np.float64).reshape(-1)[index]
-    with np.errstate(invalid="ignore"):
-        return (np.abs(neighbours_at(depth, index) - own) < tol_mm).sum(0).astype(np.int32)

@@ -20,8 +20,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from ..confidence import photometric_confidence
-from ..pattern_model import refine_where_model_fits, refinement_generalises
+from ..pattern_model import photometric_confidence, refine_where_model_fits, refinement_generalises
 from .confidence import depth_confidence
 from .fill import fill_uniform_codes
 from .repair import doubt_by_search, grow_repair, repair_by_search

@@ -10,8 +10,8 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from ..confidence import pattern_model_inputs
 from ..pattern_model import lit_with_contrast, offset_and_modulation
+from ..training import pattern_model_inputs
 
 
 def _host(x) -> np.ndarray:
@@ -62,7 +62,7 @@ class ModelInputs:
 
     @classmethod
     def from_trainer(cls, trainer, valid: np.ndarray | None = None, region: np.ndarray | None = None) -> "ModelInputs":
-        """The bundle of a trainer's frames (`confidence.pattern_model_inputs`), rig, depth range, lit map and device;
+        """The bundle of a trainer's frames (`training.pattern_model_inputs`), rig, depth range, lit map and device;
         valid and region as the caller restricts them."""
         images, patterns = pattern_model_inputs(trainer)
         n = trainer.n_frames

@@ -9,7 +9,6 @@
 - `denoise_depth`: an edge-aware local plane fit of the final depth map (the field's fine-scale noise).
 - `sphere_trace_depth`: the alternative without a mesh: march each ray with steps of the SDF value,
   then refine the first sign change by the secant method.
-- `depth_to_points`: back-projection of a depth map.
 """
 from __future__ import annotations
 
@@ -18,10 +17,11 @@ import contextlib
 import numpy as np
 import torch
 
-from ...decode.triangulate import camera_rays
 from ...devices import warp_device
-from ..field import Volume
-from ..progress import Progress
+from ...scans.scanner import camera_rays
+from ..depth_maps import neighbour_stack
+from ..fields import Volume
+from ..training.progress import Progress
 from slwarp.kernels import runtime
 from slwarp.kernels.simulate import first_hit_depth, mesh_hits
 
@@ -128,32 +128,6 @@ def mesh_depth(mesh, camera, device=None, hits: int = 1, eps_mm: float = 1.0) ->
             wp.launch(mesh_hits, dim=dirs.shape[0], inputs=[m.id, wp.array(dirs, dtype=wp.vec3), float(eps_mm)],
                       outputs=[depth])
         return depth.numpy().reshape(shape)
-
-
-# the 8 neighbours as (dy, dx) into the map padded by one pixel, in the order of neighbour_stack's rows
-_NEIGHBOURS = tuple((dy, dx) for dy in range(3) for dx in range(3) if (dy, dx) != (1, 1))
-
-
-def neighbour_stack(depth):
-    """[8, H, W] float64: each pixel's 8 neighbours' depths (NaN outside the image); depth [H, W] numpy, or a
-    tensor (a tensor back, on its device)."""
-    if isinstance(depth, torch.Tensor):
-        d = depth.double()
-        H, W = d.shape
-        pad = torch.nn.functional.pad(d, (1, 1, 1, 1), value=float("nan"))
-        return torch.stack([pad[dy : dy + H, dx : dx + W] for dy, dx in _NEIGHBOURS])
-    d = np.asarray(depth, np.float64)
-    H, W = d.shape
-    pad = np.pad(d, 1, constant_values=np.nan)
-    return np.stack([pad[dy : dy + H, dx : dx + W] for dy, dx in _NEIGHBOURS])
-
-
-def neighbours_at(depth: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """[8, P] float64: neighbour_stack at the pixels of flat indices index [P] only."""
-    d = np.asarray(depth, np.float64)
-    pad = np.pad(d, 1, constant_values=np.nan)
-    y, x = np.divmod(np.asarray(index), d.shape[1])
-    return np.stack([pad[y + dy, x + dx] for dy, dx in _NEIGHBOURS])
 
 
 def flying_pixel_filter(depth: np.ndarray, camera, footprints: float = 10.0, device=None) -> np.ndarray:
@@ -291,10 +265,3 @@ def sphere_trace_depth(field, camera, depth_range, device, valid: np.ndarray | N
         ok = found & (t_hit <= t_far)
         depth[idx] = torch.where(ok, t_hit * d[:, 2], torch.full_like(t_hit, float("nan")))
     return depth.reshape(H, W).cpu().numpy()
-
-
-def depth_to_points(depth: np.ndarray, camera) -> np.ndarray:
-    """[P, 3] camera-frame points (mm) of the finite pixels of a depth map (z = depth)."""
-    d = camera_rays(camera)
-    ok = np.isfinite(depth)
-    return (d[ok] / d[ok][:, 2:3] * depth[ok][:, None]).astype(np.float32)

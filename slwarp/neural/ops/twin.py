@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from ..scans.scanner import PackedProjector, const_like, distort_normalized
+from ...scans.scanner import PackedProjector, const_like, distort_normalized
 from slwarp.kernels.geometry import ALPHA_EPS, FAR_AWAY_PX, MIN_PROJECTOR_Z, TRANS_EPS
 from slwarp.kernels.render import NORM_EPS, WSUM_EPS
 from slwarp.kernels.sampling import CDF_EPS, MIN_SLOPE, PDF_EPS, SLOPE_EPS

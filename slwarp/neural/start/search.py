@@ -8,7 +8,7 @@ match the observations over a small window (the window's pixels share the hypoth
 confident answers (the best cost clearly below the best cost elsewhere on the ray), and spreads them to
 full resolution. The trainer's warm-up pulls the rendered depth onto this map before the paper's losses
 take over. The extraction's search repair runs the same search per pixel (slwarp.neural.extraction.repair);
-`component_sizes` groups the depths of one surface for both.
+`depth_maps.component_sizes` groups the depths of one surface for both.
 """
 from __future__ import annotations
 
@@ -18,9 +18,9 @@ import cv2
 import numpy as np
 import torch
 
-from ..decode.triangulate import camera_rays
-from ..devices import warp_device
-from .pattern_model import lit_with_contrast, offset_and_modulation
+from ...devices import warp_device
+from ...scans.scanner import camera_rays
+from ..pattern_model import lit_with_contrast, offset_and_modulation
 from slwarp.kernels import runtime
 from slwarp.kernels.geometry import projector_params
 from slwarp.kernels.search import NO_COST, search_kernels
@@ -134,65 +134,3 @@ def _median3(x):
     med = torch.where(count > 0, 0.5 * (lo + hi), nan)
     # a value far from its neighbourhood's median is an outlier
     return torch.where(torch.abs(x - med) < 10.0, x, nan)
-
-
-# the 3x3 and 5x5 searches "agree" within this (mm); two depths of one surface agree within it (the surface term's
-# groups, the extraction's repair and fill)
-AGREE_MM = 3.0
-
-
-def component_sizes(depth: np.ndarray, tol_mm: float) -> np.ndarray:
-    """[H, W] int: the pixel count of each finite pixel's connected group, where two of the 8 neighbours connect
-    when their depths differ by less than tol_mm (0 where depth is NaN).
-
-    Exact, in two steps. The row and column links are labelled by OpenCV on a doubled grid: pixel (y, x) at
-    (2y, 2x), its link to the right at (2y, 2x + 1) and down at (2y + 1, 2x), cell centres empty, so that 4-connected
-    labelling joins exactly the linked pixels. The diagonal links, which would cross on that grid, then merge
-    those labels with a union-find over the labels they join (few: on a surface nearly every diagonal pair is
-    already joined through a row and a column). 0.10 s at 1280 x 1024 against 0.84 s for a union-find over
-    the pixels (bench/residual_speed.py, CPU)."""
-    import cv2
-
-    d = np.asarray(depth, np.float64)
-    H, W = d.shape
-    finite = np.isfinite(d)
-    with np.errstate(invalid="ignore"):
-        right = np.abs(d[:, 1:] - d[:, :-1]) < tol_mm  # [H, W-1]; NaN compares False
-        down = np.abs(d[1:, :] - d[:-1, :]) < tol_mm  # [H-1, W]
-        diag = np.abs(d[1:, 1:] - d[:-1, :-1]) < tol_mm  # (y, x) - (y+1, x+1), [H-1, W-1]
-        anti = np.abs(d[1:, :-1] - d[:-1, 1:]) < tol_mm  # (y, x+1) - (y+1, x), [H-1, W-1]
-    grid = np.zeros((2 * H - 1, 2 * W - 1), np.uint8)
-    grid[::2, ::2] = finite
-    grid[::2, 1::2] = right
-    grid[1::2, ::2] = down
-    n_labels, labels = cv2.connectedComponents(grid, connectivity=4, ltype=cv2.CV_32S)
-    label = labels[::2, ::2]  # [H, W], 0 where NaN
-    # the diagonal links between different labels, each pair once (selected before they are gathered: nearly all
-    # diagonal links join pixels of one label already)
-    la, lb, lc, ld = label[:-1, :-1], label[1:, 1:], label[:-1, 1:], label[1:, :-1]
-    cross, cross_anti = diag & (la != lb), anti & (lc != ld)
-    pairs = np.concatenate([np.stack([la[cross], lb[cross]], 1), np.stack([lc[cross_anti], ld[cross_anti]], 1)])
-    parent = np.arange(n_labels)
-    if len(pairs):
-        a, b = np.unique(np.sort(pairs, 1), axis=0).T
-        while True:  # hang each pair's larger root under its smaller until both share one
-            ra, rb = _roots(parent, a), _roots(parent, b)
-            diff = ra != rb
-            if not diff.any():
-                break
-            parent[np.maximum(ra[diff], rb[diff])] = np.minimum(ra[diff], rb[diff])
-            a, b = a[diff], b[diff]
-    group = _roots(parent, np.arange(n_labels))[label[finite]]  # each finite pixel's merged label
-    out = np.zeros((H, W), np.int64)
-    out[finite] = np.bincount(group, minlength=n_labels)[group]
-    return out
-
-
-def _roots(parent: np.ndarray, i: np.ndarray) -> np.ndarray:
-    """The union-find roots of the nodes i (parent: [n], halving the paths on the way)."""
-    while True:
-        p = parent[i]
-        if np.array_equal(p, parent[p]):
-            return p
-        parent[i] = parent[p]
-        i = parent[i]

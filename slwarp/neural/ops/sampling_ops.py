@@ -1,5 +1,5 @@
 """Torch-facing ray and sample ops (no gradients flow through them), each with a pure-torch twin in
-slwarp.neural.twin; importable from slwarp.neural.ops with the renderer. Kernels: kernels/sampling.py.
+slwarp.neural.ops.twin; importable from slwarp.neural.ops with the renderer. Kernels: kernels/sampling.py.
 
     camera_rays(...)              pixels -> rays and near/far distances
     stratified_samples(...)       stratified samples with per-ray jitter

@@ -11,9 +11,9 @@
     if surface_terms_on(config.init): targets = surface_depth(init_depth, cam, prj, images, patterns, device)
 
 The pixels lit with contrast in the frames in use give the working volume (the frustum box of those pixels between
-near and far), which sizes the field; the depth search (slwarp.neural.search) gives the warm-up's starting map, at
-whose depths the pattern blur is fitted (pattern_model.estimate_pattern_blur); the surface term pulls the field onto
-the map's depths that the pixels' own codes confirm, in connected groups (`surface_depth`).
+near and far), which sizes the field; the depth search (`search`: slwarp.neural.start.search) gives the warm-up's
+starting map, at whose depths the pattern blur is fitted (pattern_model.estimate_pattern_blur); the surface term pulls
+the field onto the map's depths that the pixels' own codes confirm, in connected groups (`surface_depth`).
 """
 from __future__ import annotations
 
@@ -22,19 +22,20 @@ import math
 import numpy as np
 import torch
 
-from ..scans.scan import ScanError
-from .confidence import photometric_confidence
-from .field import Volume, make_field
-from .pattern_model import blur_patterns, estimate_pattern_blur, lit_with_contrast, offset_and_modulation
-from .render import StructuredLightRenderer
-from .search import AGREE_MM, component_sizes, search_depth
+from ...scans.scan import ScanError
+from ..depth_maps import AGREE_MM, component_sizes
+from ..fields import Volume, make_field
+from ..pattern_model import (blur_patterns, estimate_pattern_blur, lit_with_contrast, offset_and_modulation,
+                             photometric_confidence)
+from ..render import StructuredLightRenderer
+from .search import search_depth
 
 __all__ = ["SURFACE_CONFIDENCE", "SURFACE_MIN_GROUP", "set_process_flags", "checked_depth_range", "frames_at_start",
            "working_volume", "start_field", "start_renderer", "searches", "search_start", "fit_blur",
            "surface_terms_on", "surface_depth"]
 
 SURFACE_CONFIDENCE = 0.8  # the surface term's depths: the map's where the pixel's own codes fit this well ...
-SURFACE_MIN_GROUP = 50  # ... inside a connected group of at least this many such pixels (search.AGREE_MM apart)
+SURFACE_MIN_GROUP = 50  # ... inside a connected group of at least this many such pixels (depth_maps.AGREE_MM apart)
 
 
 def set_process_flags(device: torch.device, matmul: str) -> None:
@@ -87,7 +88,7 @@ def working_volume(scan, config, n_frames: int, depth_range) -> tuple[np.ndarray
 
 
 def start_field(config, volume: Volume, depth_range, camera) -> torch.nn.Module:
-    """The config's field (field.make_field) sized by the working volume; a hash grid's finest cells from the
+    """The config's field (fields.make_field) sized by the working volume; a hash grid's finest cells from the
     camera's pixel footprint at the middle of the depth range (mm)."""
     pixel_mm = 0.5 * sum(depth_range) / (0.5 * (camera.fx + camera.fy))
     return make_field(config.field, volume, init="camera" if config.init.method == "camera" else "sphere",
@@ -115,7 +116,7 @@ def searches(config) -> bool:
 def search_start(scan, config, n_frames: int, depth_range, lit: np.ndarray, images, device: torch.device):
     """(starting depth map [H, W] mm, NaN: none; the search's info dict): the depth search (search.search_depth) on
     the lit pixels, the patterns blurred by the fixed pattern_blur (1 px when it is fitted). images [N, H, W]: the
-    frames as the pattern model holds them (confidence.pattern_model_inputs: on a GPU the renderer's tensors)."""
+    frames as the pattern model holds them (training.pattern_model_inputs: on a GPU the renderer's tensors)."""
     blur = 1.0 if config.sampling.pattern_blur == "auto" else float(config.sampling.pattern_blur)
     # on a GPU the search reads the frames where they are: the renderer's images, the patterns blurred there
     patterns = blur_patterns(torch.as_tensor(scan.patterns[:n_frames], device=device), blur)
@@ -152,7 +153,7 @@ def surface_terms_on(init) -> bool:
 def surface_depth(init_depth: torch.Tensor, camera, projector, images, patterns, device) -> torch.Tensor:
     """[H*W] (mm, NaN: none; on `device`) the starting map init_depth [H*W] (mm)'s depths that the surface term pulls
     the field onto: those that their own pixel's codes confirm (photometric confidence >= SURFACE_CONFIDENCE, images and
-    patterns as confidence.pattern_model_inputs gives them) inside a connected group of at least SURFACE_MIN_GROUP
+    patterns as training.pattern_model_inputs gives them) inside a connected group of at least SURFACE_MIN_GROUP
     of them (8 neighbours, each within AGREE_MM of the next). Why: its gradient does not vanish far from the
     field's surface, so a wrong depth of the map raises a wrong surface. A 5x5 window's foreground depth
     spread over the background beside a depth edge fits the pixel's own codes poorly; a chance match of the

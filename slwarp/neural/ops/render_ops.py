@@ -1,14 +1,6 @@
-"""Torch-facing ops: the Warp kernels wrapped as torch custom ops, with a pure-torch twin each.
-
-Public functions take `backend="warp"` (default: fused Warp kernels, CPU or CUDA, float32) or
-`backend="torch"` (the twin in slwarp.neural.twin: any dtype, differentiable by autograd).
-
-    render_structured_light(...)  the fused renderer (differentiable in sdf, sdf_grad and inv_s)
-    camera_rays(...)              pixels -> rays and near/far distances
-    stratified_samples(...)       stratified samples with per-ray jitter
-    upsample_samples(...)         one NeuS hierarchical up-sampling step
-    merge_samples(...)            merge two sorted per-ray sample lists
-(the last four live in slwarp.neural.sampling_ops).
+"""The fused structured-light render as a torch op (`render_structured_light`, differentiable in sdf, sdf_grad and
+inv_s), with `backend="warp"` (default: fused Warp kernels, CPU or CUDA, float32) or `backend="torch"` (the twin in
+slwarp.neural.ops.twin: any dtype, differentiable by autograd); importable from slwarp.neural.ops.
 
 The Warp render composes with autograd through one forward and one hand-written backward (kernels/render.py),
 reached eagerly through a torch.autograd.Function and, under torch.compile, through torch.library custom ops
@@ -22,19 +14,14 @@ from typing import NamedTuple
 import torch
 
 from . import twin
-from .launch import BACKENDS, bounds_list, check_backend, desc, f32, f32v, launch, projector_struct, struct, vec3  # noqa: F401 (BACKENDS: re-exported)
-from .sampling_ops import camera_rays, merge_samples, stratified_samples, upsample_samples
-from ..scans.scanner import PackedProjector
+from .launch import bounds_list, check_backend, desc, f32, f32v, launch, projector_struct, struct, vec3
+from ...scans.scanner import PackedProjector
 from slwarp.kernels.render import (Cotangents, ForwardOutputs, ForwardSaved, InputGrads, RaySamples, RenderParams,
                                    render_kernels)
 
 __all__ = [
     "RenderOutput",
     "render_structured_light",
-    "camera_rays",
-    "stratified_samples",
-    "upsample_samples",
-    "merge_samples",
     "pack_projector",
     "pack_patterns",
 ]

@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..devices import warp_device
-from ..scans.scanner import PackedProjector
+from ...devices import warp_device
+from ...scans.scanner import PackedProjector
 from slwarp.kernels import runtime
 from slwarp.kernels.geometry import camera_params, projector_params
 

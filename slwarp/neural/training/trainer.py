@@ -4,32 +4,32 @@
     trainer.train()                 # resumable: Trainer(..., resume=True) continues from run/checkpoint.pt
     field = trainer.field           # x [..., 3] mm -> sdf mm
 
-`Trainer` orchestrates; the parts live beside it. The start (slwarp.neural.start): the working volume of the pixels
-lit with contrast, the field and renderer, the depth search's starting map and the fitted pattern blur. Schedule
-(slwarp.neural.schedule; TrainConfig.schedule): lambda_sc = 0 for the first `sc_start` iterations, then `lambda_sc`;
-lambda_reg throughout; Adam at a constant learning rate (or cosine decay). Before it (init.method "search", the
-default), `init.iters` warm-up iterations pull the volume-rendered depth onto a depth-search map
-(slwarp.neural.search): the photometric loss is not convex in depth, and NeuS's sphere initialisation leaves
-surfaces hundreds of mm from the truth stuck in other minima (measured: 232 mm MAE on the small-rig bunny
-without it). The loss (slwarp.neural.terms): with init.surface_weight > 0 the warm-up also puts the field's zero
-level at the map's points (`MapTerms.surface_term`), and init.surface_after > 0 keeps that term after the warm-up
-where the field lost a surface in front of the one it shows (thin parts: bench/thin_stages.py); init.free_space > 0
-adds the opposite after the warm-up: where the field shows a surface in front of the map's, its samples before the
-map's point are pushed out of the solid (`MapTerms.free_space_term`: gaps and background the field bridged).
-Incremental mode (paper Fig. 8): start with `start_frames` frames and add the next one every `add_every` iterations
-without restarting; `Trainer.add_frames` lets a caller add captured frames to a running optimisation.
+`Trainer` orchestrates; the parts live beside it in slwarp.neural.training. The start (slwarp.neural.start): the
+working volume of the pixels lit with contrast, the field and renderer, the depth search's starting map and the
+fitted pattern blur. Schedule (training.schedule; TrainConfig.schedule): lambda_sc = 0 for the first `sc_start`
+iterations, then `lambda_sc`; lambda_reg throughout; Adam at a constant learning rate (or cosine decay). Before it
+(init.method "search", the default), `init.iters` warm-up iterations pull the volume-rendered depth onto a
+depth-search map (slwarp.neural.start.search): the photometric loss is not convex in depth, and NeuS's sphere
+initialisation leaves surfaces hundreds of mm from the truth stuck in other minima (measured: 232 mm MAE on the
+small-rig bunny without it). The loss (training.terms): with init.surface_weight > 0 the warm-up also puts the
+field's zero level at the map's points (`MapTerms.surface_term`), and init.surface_after > 0 keeps that term after
+the warm-up where the field lost a surface in front of the one it shows (thin parts: bench/thin_stages.py);
+init.free_space > 0 adds the opposite after the warm-up: where the field shows a surface in front of the map's, its
+samples before the map's point are pushed out of the solid (`MapTerms.free_space_term`: gaps and background the field
+bridged). Incremental mode (paper Fig. 8): start with `start_frames` frames and add the next one every `add_every`
+iterations without restarting; `Trainer.add_frames` lets a caller add captured frames to a running optimisation.
 
-Checkpoints (`out_dir/checkpoint.pt`; slwarp.neural.checkpoint: tensors and plain data, read without unpickling
+Checkpoints (`out_dir/checkpoint.pt`; training.checkpoint: tensors and plain data, read without unpickling
 anything else) record the run's identity (`run_identity`: the frames by name and content digest, the depth range, a
 digest of the calibration and every option that is not `resumable`); `resume=True` refuses a checkpoint of another
 run (`RunMismatch`, naming each difference), and a new run refuses to replace an existing checkpoint unless
 `overwrite=True` (`CheckpointExists`). SIGINT/SIGTERM during `train()` save a checkpoint at the next step boundary and
-raise `TrainingInterrupted` (exit status 130/143 on the command line; slwarp.neural.stops).
+raise `TrainingInterrupted` (exit status 130/143 on the command line; training.stops).
 
 The hash-grid field (field.kind "hashgrid"): Adam groups for its tables (grid_table_lr_factor x lr), its MLP
 and the NeuS variance (lr), all following the schedule's factor; its levels switch on coarse to fine
 (`active_levels`) through a device-side count, so a captured CUDA graph is replayed unchanged
-(slwarp.neural.graph_step: the step captured once and replayed on CUDA).
+(training.graph_step: the step captured once and replayed on CUDA).
 
 Repeatability: every random draw (pixel batches, ray jitter) comes from one torch.Generator seeded by
 `runtime.seed` and saved in checkpoints, so a resumed run continues exactly as an uninterrupted one would.
@@ -46,22 +46,21 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..devices import torch_device
+from ...devices import torch_device
+from ..config import TrainConfig
+from ..start import (checked_depth_range, fit_blur, frames_at_start, search_start, searches, set_process_flags,
+                     start_field, start_renderer, surface_depth, surface_terms_on, working_volume)
 from . import schedule
 from .checkpoint import (CheckpointError, CheckpointExists, RunMismatch, check_field, identity_differences,
                          make_state, read_checkpoint, restore, run_identity, write_checkpoint)
-from .confidence import pattern_model_inputs
-from .config import TrainConfig
 from .graph_step import GraphedStep
 from .history import History
 from .progress import Progress
-from .start import (checked_depth_range, fit_blur, frames_at_start, search_start, searches, set_process_flags,
-                    start_field, start_renderer, surface_depth, surface_terms_on, working_volume)
 from .stops import StopSignals, TrainingDiverged, TrainingInterrupted
 from .terms import MapTerms, free_space_weights, step_loss, surface_term_weights
 
 __all__ = ["Trainer", "surface_term_weights", "free_space_weights", "TrainingDiverged", "TrainingInterrupted",
-           "CheckpointError", "CheckpointExists", "RunMismatch", "History", "run_identity"]
+           "CheckpointError", "CheckpointExists", "RunMismatch", "History", "run_identity", "pattern_model_inputs"]
 
 
 def _with_frames(scan, n: int, images, patterns) -> tuple:
@@ -83,6 +82,17 @@ def _held_by_terms(name: str, doc: str) -> property:
     """A Trainer attribute that lives in its MapTerms (`Trainer.terms`)."""
     return property(lambda self: getattr(self.terms, name), lambda self, value: setattr(self.terms, name, value),
                     doc=doc)
+
+
+def pattern_model_inputs(trainer) -> tuple:
+    """(images [N, H, W], patterns as rendered [N, Hp, Wp]) of a trainer's frames for the pattern model
+    (photometric_confidence, the depth searches): on a GPU the renderer's own tensors, so that the model runs
+    there (pattern_model.residual._residual_on_device); else numpy, on the host."""
+    patterns = trainer.renderer.rendered_patterns.detach()
+    if trainer.device.type == "cuda":
+        cam = trainer.scan.camera
+        return trainer.renderer.images_flat.t().reshape(-1, cam.height, cam.width), patterns
+    return trainer.scan.images[: trainer.n_frames], patterns.cpu().numpy()
 
 
 class Trainer:
@@ -185,7 +195,7 @@ class Trainer:
         self.n_frames = min(self.n_frames + count, len(self.scan))
         self.renderer.set_frames(self.scan.images[: self.n_frames], self.scan.patterns[: self.n_frames])
 
-    # --- schedule (slwarp.neural.schedule) ----------------------------------------------------
+    # --- schedule (training.schedule) ----------------------------------------------------
     @property
     def warmup_iters(self) -> int:
         return self.cfg.init.iters if self.init_depth is not None else 0
@@ -226,7 +236,7 @@ class Trainer:
         return self._identity
 
     def state(self) -> dict:
-        """The checkpoint's contents (slwarp.neural.checkpoint.make_state): tensors and plain data only."""
+        """The checkpoint's contents (training.checkpoint.make_state): tensors and plain data only."""
         return make_state(iteration=self.iteration, config=self.cfg.to_dict(), field=self.field,
                           variance=self.renderer.variance, optimizer=self.optimizer,
                           generator_state=self._steps.generator_state(self.generator), n_frames=self.n_frames,

@@ -5,8 +5,8 @@
     hashgrid_encode(x, table, meta, active)        features [P, L F] of unit-cube points x [P, 3]
     hashgrid_gradient(x, table, g, meta, active)   sum_j g_j d feat_j / dx [P, 3]
 
-meta [L, 4] int32 comes from `slwarp.neural.hashgrid.HashGridLayout.meta`; the field (`HashGridSDF`) is in
-slwarp.neural.hashgrid, which re-exports both ops.
+meta [L, 4] int32 comes from `slwarp.neural.fields.hashgrid.HashGridLayout.meta`; the field (`HashGridSDF`) is in
+slwarp.neural.fields.hashgrid, which re-exports both ops.
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""SDF networks and the learned NeuS variance, in millimetres.
+"""NeuS's SDF network (`NeuSField`, the paper's MLP) and its learned variance (`LearnedVariance`), in millimetres.
 
 The renderer works in the camera frame in mm, so a field maps points x [..., 3] (mm) to signed distances
 [...] (mm). `NeuSField` keeps NeuS's network in a normalised space: the working volume (an axis-aligned
@@ -9,61 +9,13 @@ f(x) = scale * mlp(x_n): distances and gradients stay metric (|grad f| = 1 for a
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
-import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 from torch.nn.utils import parametrizations
 
-
-@dataclass(frozen=True)
-class Volume:
-    """Axis-aligned working volume in the camera frame (mm): lo [3], hi [3]."""
-
-    lo: tuple[float, float, float]
-    hi: tuple[float, float, float]
-
-    @property
-    def center(self) -> np.ndarray:
-        return (np.asarray(self.lo) + np.asarray(self.hi)) / 2
-
-    @property
-    def scale(self) -> float:
-        """Half the largest side (mm): the box fits in [-1, 1]^3 after (x - center) / scale.
-        Plain Python arithmetic: torch.compile traces through it without a graph break (through numpy it broke
-        the trainer's compiled map terms into six graphs)."""
-        return max(float(h) - float(l) for l, h in zip(self.lo, self.hi)) / 2
-
-    def as_bounds(self) -> list[list[float]]:
-        return [list(map(float, self.lo)), list(map(float, self.hi))]
-
-    @classmethod
-    def from_frustum(cls, camera, valid: np.ndarray, depth_range, margin: float = 0.02) -> "Volume":
-        """Box around the camera frustum of the `valid` pixels [H, W] between the near and far depth."""
-        v, u = np.nonzero(valid)
-        if u.size == 0:
-            raise ValueError("no valid pixel to define the working volume")
-        step = max(1, u.size // 20000)  # a subsample of the valid pixels bounds the frustum well enough
-        d = camera.pixel_to_ray(np.stack([u[::step], v[::step]], -1).astype(np.float64))
-        d = d / d[:, 2:3]  # points at unit depth
-        corners = np.concatenate([d * depth_range[0], d * depth_range[1]])
-        lo, hi = corners.min(0), corners.max(0)
-        pad = (hi - lo).max() * margin
-        return cls(tuple((lo - pad).tolist()), tuple((hi + pad).tolist()))
-
-
-def register_volume_buffers(module: nn.Module, volume: Volume, far: float | None) -> None:
-    """Give an SDF module the per-scan numbers its forward reads: `center` [3] (float32, saved with the weights),
-    and, not saved, `scale_mm` (the volume's scale) and `prior_mm` (the camera prior's radius `far`, when given) as
-    0-d float32 buffers (float32 as a Python float meets a float32 tensor). As tensors they are inputs of
-    torch.compile's graphs, not constants: the graphs compiled for one scan serve the next scan of the same
-    sizes (as floats, every working volume recompiled them)."""
-    module.register_buffer("center", torch.tensor(volume.center, dtype=torch.float32))
-    module.register_buffer("scale_mm", torch.tensor(float(volume.scale), dtype=torch.float32), persistent=False)
-    if far is not None:
-        module.register_buffer("prior_mm", torch.tensor(float(far), dtype=torch.float32), persistent=False)
+from .volume import Volume, register_volume_buffers
 
 
 class PositionalEncoding(nn.Module):
@@ -219,40 +171,6 @@ class NeuSField(nn.Module):
         return f
 
 
-def auto_finest_resolution(volume: Volume, pixel_mm: float) -> int:
-    """Cells per side of a hash grid's finest level that match a pixel footprint `pixel_mm` (mm, at the working
-    depth): the power of two nearest (in log scale) to the volume's largest side over it. 2048 (0.39 mm cells)
-    on the default rig, 512 (1.5 mm) on the small one; finer cells failed on the small rig (notes/hashgrid.md)."""
-    if not pixel_mm > 0:
-        raise ValueError(f"auto_finest_resolution: the pixel footprint must be > 0 mm, got {pixel_mm}")
-    cells = 2.0 * volume.scale / pixel_mm
-    return int(2 ** min(20, max(0, round(math.log2(max(cells, 1.0))))))
-
-
-def make_field(config, volume: Volume, *, init: str = "sphere", far: float | None = None,
-               pixel_mm: float | None = None) -> nn.Module:
-    """The SDF network a TrainConfig.field section describes, sized to the working volume (mm in, mm out).
-    init and far as NeuSField takes them; pixel_mm: the camera's pixel footprint (mm) at the working depth,
-    needed by a hash grid with grid_finest "auto". The one place that turns a field config into a network: a
-    new kind of field is added here (and its options in slwarp.neural.config.FieldConfig)."""
-    if config.kind == "mlp":
-        return NeuSField(volume, hidden=config.hidden, layers=config.layers, skip=config.skip, n_freqs=config.n_freqs,
-                         init=init, far=far)
-    if config.kind != "hashgrid":
-        raise ValueError(f"make_field: unknown field kind {config.kind!r} (mlp or hashgrid)")
-    from .hashgrid import HashGridSDF
-
-    finest = config.grid_finest
-    if finest == "auto":
-        if pixel_mm is None:
-            raise ValueError("make_field: grid_finest 'auto' needs the pixel footprint pixel_mm (mm)")
-        finest = max(config.grid_base, auto_finest_resolution(volume, pixel_mm))
-    return HashGridSDF(volume, levels=config.grid_levels, log2_table_size=config.grid_log2_table,
-                       base_resolution=config.grid_base, finest_resolution=finest, hidden=config.grid_hidden,
-                       layers=config.grid_layers, activation=config.grid_activation, gradient=config.grid_gradient,
-                       init=init, far=far, active_levels=config.grid_start_levels)
-
-
 class LearnedVariance(nn.Module):
     """NeuS's learned inverse standard deviation: inv_s = exp(10 v) / length_scale (1/mm), v starts at 0.3.
 
@@ -266,16 +184,3 @@ class LearnedVariance(nn.Module):
 
     def forward(self) -> torch.Tensor:
         return torch.exp(self.v * 10.0) / self.length_scale
-
-
-def sdf_and_gradient(field: nn.Module, x: torch.Tensor, create_graph: bool = True):
-    """f(x) [...] and grad f(x) [..., 3], differentiable, for any torch SDF module: its own
-    `value_and_gradient` when it has one (explicit, first-order), else autograd with a double backward."""
-    explicit = getattr(field, "value_and_gradient", None)
-    if explicit is not None:
-        return explicit(x.detach())
-    with torch.enable_grad():
-        x = x.detach().requires_grad_(True)
-        f = field(x)
-        (g,) = torch.autograd.grad(f, x, torch.ones_like(f), create_graph=create_graph)
-    return f, g

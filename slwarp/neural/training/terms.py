@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import torch
 
-from . import ops
-from .render import compile_in_process
+from .. import ops
+from ..render import compile_in_process
 
 __all__ = ["MISSED_MM", "surface_term_weights", "free_space_weights", "MapTerms", "step_loss"]
 
@@ -69,7 +69,7 @@ class MapTerms:
         self.field, self.init = field, init
         self.camera, self.depth_range, self.backend = camera, depth_range, backend
         # the terms' unit (mm), a device tensor: an input of their compiled graph, which so serves every scan of the
-        # same sizes (field.register_volume_buffers)
+        # same sizes (fields.register_volume_buffers)
         self.scale_mm = torch.tensor(scale, dtype=torch.float32, device=device)
         self.init_depth: torch.Tensor | None = None
         self.surface_depth: torch.Tensor | None = None

@@ -38,7 +38,7 @@ class History:
 
     def save(self, folder) -> None:
         """The loss curves into `folder`: history.json and (once anything is logged) loss.png."""
-        from ..evaluation.viz import save_loss_curves
+        from ...evaluation.viz import save_loss_curves
 
         folder = Path(folder)
         (folder / "history.json").write_text(json.dumps(dataclasses.asdict(self)))

@@ -35,7 +35,7 @@ with an 8-level grid took 178 ms with finite differences, 97 ms analytic, 188 ms
 thread); the GPU figures come from bench/bench_field.py.
 
 The encoding ops (`hashgrid_encode`, `hashgrid_gradient`: Warp kernels and their torch twins) live in
-slwarp.neural.hashgrid_ops and are importable from here.
+slwarp.neural.ops.hashgrid_ops and are importable from here.
 """
 from __future__ import annotations
 
@@ -45,9 +45,10 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .field import Volume, geometric_init, register_volume_buffers
-from .hashgrid_ops import hashgrid_encode, hashgrid_gradient
-from .launch import check_backend
+from ..ops.hashgrid_ops import hashgrid_encode, hashgrid_gradient
+from ..ops.launch import check_backend
+from .mlp import geometric_init
+from .volume import Volume, register_volume_buffers
 
 __all__ = ["HashGridLayout", "HashGridSDF", "hashgrid_encode", "hashgrid_gradient"]
 
