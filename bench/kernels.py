@@ -168,8 +168,7 @@ def kernel_times(inp, device) -> dict:
 
 
 def graphed(fn, device):
-    """fn replayed from a CUDA graph: warmed up on a side stream, as torch requires, and captured on that same
-    stream (the Warp ops keep one Warp stream per torch stream, made on first use, which a capture must not do)."""
+    """fn replayed from a CUDA graph (warm-up on a side stream first, as torch requires)."""
     s = torch.cuda.Stream(device)
     s.wait_stream(torch.cuda.current_stream(device))
     with torch.cuda.stream(s):
@@ -177,7 +176,7 @@ def graphed(fn, device):
             fn()
     torch.cuda.current_stream(device).wait_stream(s)
     g = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(g, stream=s):
+    with torch.cuda.graph(g):
         fn()
     return g.replay
 
