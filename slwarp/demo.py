@@ -63,7 +63,6 @@ def run_demo(out_dir="slwarp-demo", scene: str = DEMO_SCENE, config=None, preset
     from .devices import torch_device, warp_device
     from .evaluation.metrics import format_table
     from .neural.config import default_preset_name, preset
-    from .neural.depth_maps import depth_to_points
     from .neural.describe import describe
     from .neural.reconstruct import reconstruct
     from .sim.simulate import simulate_scene

@@ -133,7 +133,6 @@ def _run_torchrun(scans, config, out: Path, options: BatchOptions, single: bool,
     try:
         rank, world = dist.get_rank(), dist.get_world_size()
         local_rank = int(os.environ.get("LOCAL_RANK", rank))
-        local_world = int(os.environ.get("LOCAL_WORLD_SIZE", world))
         t0 = time.perf_counter()
         box: list = [None]
         if rank == 0:  # one process decides, so that every rank sees the same plan however the files change
