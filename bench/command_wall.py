@@ -29,6 +29,7 @@ import sys
 import time
 from pathlib import Path
 
+from bench import write_study
 from bench.batch_throughput import compile_cache_env
 
 REPO = Path(__file__).resolve().parents[1]
@@ -189,13 +190,8 @@ def main(argv=None) -> None:
            "bench_command": "python -m bench.command_wall " + " ".join(argv if argv is not None else sys.argv[1:]),
            "setup": {"preset": args.preset, "scene": args.scene, "rig": args.rig, "set": args.set, "cold": args.cold,
                      "bytecode": args.bytecode, "smoke": args.smoke}, "runs": runs}
-    out_dir = Path(args.out)
-    out_dir.mkdir(parents=True, exist_ok=True)
     stem = args.stem or f"command-wall-{'cuda' if cuda else 'cpu'}-{args.preset}"
-    md = markdown(doc)
-    print(md)
-    (out_dir / f"{stem}.json").write_text(json.dumps(doc, indent=1))
-    (out_dir / f"{stem}.md").write_text(md + "\n")
+    write_study(Path(args.out) / stem, doc, lambda d: markdown(d) + "\n")
 
 
 if __name__ == "__main__":

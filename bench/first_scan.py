@@ -29,6 +29,7 @@ import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
+from bench import write_study  # noqa: E402
 from bench.batch_throughput import compile_cache_env  # noqa: E402  (where a station keeps torch.compile's caches)
 
 SMOKE_SET = ["iters=3", "init_iters=2", "mc_resolution=32", "rays=64"]
@@ -183,13 +184,8 @@ def main(argv=None) -> None:
            "bench_command": "python -m bench.first_scan " + " ".join(argv if argv is not None else sys.argv[1:]),
            "setup": {"preset": args.preset, "scene": args.scene, "rig": args.rig, "set": args.set,
                      "fresh": args.fresh, "smoke": args.smoke}, "runs": runs}
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     stem = args.stem or f"first-scan-{'cuda' if cuda else 'cpu'}-{args.preset}"
-    md = markdown(doc)
-    print(md)
-    (out / f"{stem}.json").write_text(json.dumps(doc, indent=1))
-    (out / f"{stem}.md").write_text(md + "\n")
+    write_study(Path(args.out) / stem, doc, lambda d: markdown(d) + "\n")
 
 
 if __name__ == "__main__":
