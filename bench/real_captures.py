@@ -21,8 +21,11 @@ ignored).
 (`python -m slwarp reconstruct SCAN --config PRESET.yaml --out DIR --quiet`), spread over the visible GPUs, and
 reports per capture: the plate's RMS distance to its fitted plane (mm; the calibration alone bends the plate by
 about 0.4 mm RMS), the same about a quadric (local error), the plate's coverage, the agreement with the full decode
-over the whole image (median |difference| and the share above 2 mm where both have depth), and the command's wall
-time. The two classical references are reported the same way. Writes <out>/<stem>.json and .md.
+over the whole image (median |difference| and the share above 2 mm where both have depth), the command's wall
+time, and what the extraction decided about the photometric refinement (refined or not, the misfit its gate saw, the
+held-out check's word); beside the full decode, the pattern model's misfit of the 7 images at that depth (what the
+gate compares with `refine_max_misfit`). The two classical references are reported the same way. Writes
+<out>/<stem>.json and .md.
 """
 from __future__ import annotations
 
@@ -113,6 +116,15 @@ def capture_metrics(depth: np.ndarray, ref: dict, camera) -> dict:
             "pixels_with_depth": float(np.isfinite(depth).mean())}
 
 
+def refinement_facts(timings: dict) -> dict:
+    """What a run's extraction decided about the photometric refinement, from its timings.json: refined (bool),
+    refine_misfit (the pattern model's misfit at the depth the gate saw; None without a gate) and refine_kept (the
+    held-out check's decision; None without the check)."""
+    check = timings.get("refine_check")
+    return {"refined": timings.get("refined"), "refine_misfit": timings.get("refine_misfit"),
+            "refine_kept": check.get("keep") if isinstance(check, dict) else None}
+
+
 def _gpus() -> list[str]:
     """The visible GPUs' indices as strings (nvidia-smi; no CUDA context in this process); [] without one."""
     visible = os.environ.get("CUDA_VISIBLE_DEVICES")
@@ -142,6 +154,7 @@ def _run_one(job: dict, gpu: str | None) -> dict:
 
 def run(args) -> None:
     from slwarp.neural.config import parse_assignments, preset, save_config
+    from slwarp.neural.pattern_model import model_misfit
     from slwarp.scans.scan import load_scan
 
     data, work = Path(args.data), Path(args.work)
@@ -185,15 +198,21 @@ def run(args) -> None:
     rows = []
     for c in captures:
         ref = dict(np.load(data / f"capture_{c}" / "reference.npz"))
-        camera = load_scan(data / f"capture_{c}" / "scan").camera
-        rows.append({"capture": c, "method": "full 40-image gc-interp", **capture_metrics(ref["full_decode"], ref, camera)})
+        seven = load_scan(data / f"capture_{c}" / "scan").select(SEVEN_ROWS)
+        camera = seven.camera
+        # the refinement's gate compares this kind of number with refine_max_misfit: the model's misfit of the
+        # 7 images at the full decode, a depth close to the truth
+        misfit = model_misfit(ref["full_decode"], camera, seven.projector, seven.images, seven.patterns)
+        rows.append({"capture": c, "method": "full 40-image gc-interp", "model_misfit": misfit,
+                     **capture_metrics(ref["full_decode"], ref, camera)})
         rows.append({"capture": c, "method": "GC(7)-interp, same 7 images", **capture_metrics(ref["gc7"], ref, camera)})
         for res in sorted((r for r in done if r["capture"] == c), key=lambda r: labels.index(r["label"])):
             row = {"capture": c, "method": res["label"], "wall_s": res["wall_s"], "rc": res["rc"]}
             if res["rc"] == 0:
                 depth = np.load(res["out"] / "depth.npy")
                 timings = json.loads((res["out"] / "timings.json").read_text())
-                row.update(capture_metrics(depth, ref, camera), depth_map_s=timings.get("depth_map_s"))
+                row.update(capture_metrics(depth, ref, camera), depth_map_s=timings.get("depth_map_s"),
+                           **refinement_facts(timings))
             else:
                 row["error"] = res.get("tail", "")[-300:]
             rows.append(row)
@@ -231,8 +250,8 @@ def markdown(doc: dict, captures: list[int], methods: list[str]) -> str:
         vals = [by.get((c, m), {}).get("plane_rms_mm", float("nan")) for c in captures]
         lines.append(f"| {m} | " + " | ".join(f"{v:.3f}" for v in vals) + f" | {np.mean(vals):.3f} |")
     lines += ["", "## Every metric", "", "| capture | method | plate RMS mm | quadric RMS mm | plate covered | "
-              "agreement median mm | agreement > 2 mm | pixels with depth | command wall s | in-run depth map s |",
-              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+              "agreement median mm | agreement > 2 mm | pixels with depth | command wall s | in-run depth map s | "
+              "refined (misfit) |", "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for c in captures:
         for m in methods:
             r = by.get((c, m))
@@ -245,8 +264,20 @@ def markdown(doc: dict, captures: list[int], methods: list[str]) -> str:
             dm = f"{r['depth_map_s']:.1f}" if r.get("depth_map_s") is not None else "-"
             lines.append(f"| {c} | {m} | {r['plane_rms_mm']:.3f} | {r['quadric_rms_mm']:.3f} | {r['plate_coverage']:.1%} | "
                          f"{r['agree_median_mm']:.3f} | {r['agree_over_2mm']:.2%} | {r['pixels_with_depth']:.1%} | "
-                         f"{wall} | {dm} |")
+                         f"{wall} | {dm} | {_refinement_cell(r)} |")
     return "\n".join(lines)
+
+
+def _refinement_cell(row: dict) -> str:
+    """'yes' / 'no' with the misfit the gate saw and the held-out check's word; for the full decode its misfit."""
+    if row.get("model_misfit") is not None:
+        return f"({row['model_misfit']:.4f} at this depth)"
+    if row.get("refined") is None:
+        return "-"
+    cell = "yes" if row["refined"] else "no"
+    notes = ([f"misfit {row['refine_misfit']:.4f}"] if row.get("refine_misfit") is not None else []) + \
+        ([f"check {'kept' if row['refine_kept'] else 'refused'}"] if row.get("refine_kept") is not None else [])
+    return cell + (f" ({', '.join(notes)})" if notes else "")
 
 
 def main(argv=None) -> None:

@@ -1,0 +1,34 @@
+"""bench/real_captures.py without data or a GPU: what a run's timings say about the refinement, and the tables."""
+from bench import real_captures
+
+
+def test_refinement_facts_read_the_extraction_timings():
+    assert real_captures.refinement_facts({"refined": False, "refine_misfit": 0.0264, "refine_check": None}) == \
+        {"refined": False, "refine_misfit": 0.0264, "refine_kept": None}
+    kept = real_captures.refinement_facts({"refined": True, "refine_misfit": None,
+                                           "refine_check": {"keep": True, "before": [0.04], "after": [0.03]}})
+    assert kept == {"refined": True, "refine_misfit": None, "refine_kept": True}
+    assert real_captures.refinement_facts({}) == {"refined": None, "refine_misfit": None, "refine_kept": None}
+
+def _row(capture, method, rms, **extra):
+    return {"capture": capture, "method": method, "plane_rms_mm": rms, "quadric_rms_mm": rms / 2,
+            "plate_coverage": 0.5, "agree_median_mm": 0.3, "agree_over_2mm": 0.1, "pixels_with_depth": 0.7, **extra}
+
+def test_tables_give_the_means_and_the_refinement_decisions():
+    rows = [_row(0, "full 40-image gc-interp", 0.6, model_misfit=0.0264),
+            _row(0, "GC(7)-interp, same 7 images", 2.0),
+            _row(0, "fast", 0.7, wall_s=20.0, depth_map_s=12.0, refined=False, refine_misfit=0.027, refine_kept=None),
+            _row(1, "full 40-image gc-interp", 0.2, model_misfit=0.0321),
+            _row(1, "GC(7)-interp, same 7 images", 0.6),
+            _row(1, "fast", 0.5, wall_s=21.0, depth_map_s=13.0, refined=True, refine_misfit=None, refine_kept=True)]
+    doc = {"date": "2026-11-26", "device": "Test GPU", "command": "python -m bench.real_captures run --presets fast",
+           "depth_range_mm": [800.0, 2600.0], "frames": real_captures.SEVEN_ROWS, "rows": rows}
+    md = real_captures.markdown(doc, [0, 1], ["full 40-image gc-interp", "GC(7)-interp, same 7 images", "fast"])
+    plate = {line.split("|")[1].strip(): [c.strip() for c in line.strip("|").split("|")[1:]]
+             for line in md.splitlines() if line.startswith("| ") and line.count("|") == 5}
+    assert plate["fast"] == ["0.700", "0.500", "0.600"]
+    assert plate["GC(7)-interp, same 7 images"][-1] == "1.300"
+    lines = md.splitlines()
+    assert any(line.startswith("| 0 | fast |") and line.endswith("| no (misfit 0.0270) |") for line in lines)
+    assert any(line.startswith("| 1 | fast |") and line.endswith("| yes (check kept) |") for line in lines)
+    assert any(line.startswith("| 1 | full 40-image gc-interp |") and "(0.0321 at this depth)" in line for line in lines)
