@@ -18,9 +18,11 @@ from __future__ import annotations
 
 import importlib
 import json
+import os
 import sys
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -89,8 +91,7 @@ def _import_in_background(*modules) -> None:
 
 def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log_every_s, overwrite, staging=None):
     """reconstruct's work: the checkpoint in out/train, the other outputs written into `staging`."""
-    from ..evaluation.metrics import confidence_metrics, depth_metrics, error_map, metrics_document
-    from ..evaluation.viz import save_confidence_map, save_depth_color, save_fate_map, save_map_with_colorbar
+    from ..evaluation.metrics import depth_metrics
 
     t0 = time.perf_counter()
     stages = build_stages(config.extraction)  # a stage list that cannot run fails before training
@@ -116,29 +117,51 @@ def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log
     timings = {"setup_s": t1 - t0, "train_s": t2 - t1, "depth_map_s": t3 - t0, "train_wall_s_total": trainer.elapsed,
                "iterations": trainer.iteration, **ext_t, "pixels": fate_counts(fate), "total_s": time.perf_counter() - t0}
     if staging is not None:
-        out = staging
-        write_depth(out, depth)
-        rng = (np.nanpercentile(scan.gt_depth, 1), np.nanpercentile(scan.gt_depth, 99)) if scan.gt_depth is not None and np.isfinite(scan.gt_depth).any() else None
-        save_depth_color(out / "depth_color.png", depth, rng)
-        if mesh is not None:
-            write_mesh_ply(out / "mesh.ply", mesh)
-        write_points_ply(out / "points.ply", points, scan.images.max(0)[np.isfinite(depth)])
-        trainer.save_history(out)
-        if metrics is not None:
-            doc = metrics_document(metrics, method="neural-sdf", scan=scan.source,
-                                   frames=list(scan.names[: trainer.n_frames]), mask="scan mask" if scan.mask is not None else "none",
-                                   confidence={"kind": config.extraction.confidence,
-                                               **confidence_metrics(depth, confidence, scan.gt_depth, scan.mask)})
-            (out / "metrics.json").write_text(json.dumps(doc, indent=2, default=float) + "\n")
-            save_map_with_colorbar(out / "error_map.png", error_map(depth, scan.gt_depth, scan.mask),
-                                   f"|depth error|, MAE {metrics['mae']:.3f} mm", "mm", value_range=(0.0, 5.0), cmap="inferno")
-        # the confidence map beside the depth map
-        write_confidence(out, confidence)
-        save_confidence_map(out / "confidence.png", confidence, f"confidence ({config.extraction.confidence})")
-        # why pixels have no depth (or a repaired / filled one), as a picture
-        save_fate_map(out / "pixel_fate.png", fate, pixel_fates())
-        (out / "timings.json").write_text(json.dumps(timings, indent=1))
+        _write_outputs(staging, scan, config, trainer, depth, confidence, mesh, points, metrics, fate, timings)
+    return Reconstruction(depth, mesh, points, metrics, timings, trainer, confidence, fate)
+
+
+def _write_outputs(out, scan, config, trainer, depth, confidence, mesh, points, metrics, fate, timings) -> None:
+    """Every output file of a reconstruction into the folder `out`, written concurrently. Each file is independent,
+    and the PNG encoders, numpy and the file writes leave the interpreter free most of the time, so the pictures,
+    the point cloud and the metrics overlap instead of queuing; this returns when all are written (the first failure
+    raised)."""
+    from ..evaluation.metrics import confidence_metrics, error_map, metrics_document
+    from ..evaluation.viz import save_confidence_map, save_depth_color, save_fate_map, save_map_with_colorbar
+
+    has_gt = scan.gt_depth is not None and np.isfinite(scan.gt_depth).any()
+    rng = (np.nanpercentile(scan.gt_depth, 1), np.nanpercentile(scan.gt_depth, 99)) if has_gt else None
+
+    def metrics_files():
+        doc = metrics_document(metrics, method="neural-sdf", scan=scan.source,
+                               frames=list(scan.names[: trainer.n_frames]),
+                               mask="scan mask" if scan.mask is not None else "none",
+                               confidence={"kind": config.extraction.confidence,
+                                           **confidence_metrics(depth, confidence, scan.gt_depth, scan.mask)})
+        (out / "metrics.json").write_text(json.dumps(doc, indent=2, default=float) + "\n")
+        save_map_with_colorbar(out / "error_map.png", error_map(depth, scan.gt_depth, scan.mask),
+                               f"|depth error|, MAE {metrics['mae']:.3f} mm", "mm", value_range=(0.0, 5.0), cmap="inferno")
+
+    def config_file():
         fitted = {"pattern_blur_px": trainer.renderer.pattern_blur, "pattern_blur_fit_mse": trainer.blur_fit,
                   "depth_search": {k: v for k, v in (trainer.search_info or {}).items() if k != "pattern_blur_fit"}}
         save_config(out / "config.yaml", config, fitted)
-    return Reconstruction(depth, mesh, points, metrics, timings, trainer, confidence, fate)
+
+    jobs = [lambda: write_depth(out, depth),
+            lambda: save_depth_color(out / "depth_color.png", depth, rng),
+            lambda: write_points_ply(out / "points.ply", points, scan.images.max(0)[np.isfinite(depth)]),
+            lambda: trainer.save_history(out),
+            # the confidence map beside the depth map
+            lambda: write_confidence(out, confidence),
+            lambda: save_confidence_map(out / "confidence.png", confidence, f"confidence ({config.extraction.confidence})"),
+            # why pixels have no depth (or a repaired / filled one), as a picture
+            lambda: save_fate_map(out / "pixel_fate.png", fate, pixel_fates()),
+            lambda: (out / "timings.json").write_text(json.dumps(timings, indent=1)),
+            config_file]
+    if mesh is not None:
+        jobs.append(lambda: write_mesh_ply(out / "mesh.ply", mesh))
+    if metrics is not None:
+        jobs.append(metrics_files)
+    with ThreadPoolExecutor(max_workers=min(len(jobs), os.cpu_count() or 1)) as pool:
+        for done in [pool.submit(job) for job in jobs]:
+            done.result()
