@@ -85,6 +85,8 @@ def run_command(cmd: list[str], env: dict, out: Path) -> dict:
         marks.update({k: v for k, v in json.loads(line)["marks"]})
     timings = json.loads((out / "timings.json").read_text())
     row.update(breakdown(spawn, end, marks, timings))
+    row["setup_phases"] = timings.get("setup_phases_s", {})
+    row["first_steps"] = timings.get("first_steps_s", [])
     return row
 
 
@@ -120,7 +122,26 @@ def markdown(doc: dict) -> str:
             continue
         lines.append(f"| {i} | {r['caches']} | {r['wall_s']:.2f} | {r['to_depth_map']:.2f} | "
                      + " | ".join(f"{r[k]:.2f}" for k, _ in PHASES) + " |")
-    return "\n".join(lines)
+    return "\n".join(lines + setup_table(doc["runs"]))
+
+
+def setup_table(runs: list[dict]) -> list[str]:
+    """The setup phase split by the trainer's own marks (host seconds) and the host time of the first steps."""
+    names = list(dict.fromkeys(k for r in runs for k in r.get("setup_phases", {})))
+    if not names:
+        return []
+    steps = max(len(r.get("first_steps", [])) for r in runs)
+    lines = ["", "Setup by the trainer's marks and the first training steps (host seconds; a fresh process pays its "
+             "first calls here: CUDA and Warp start, module loads, lazy imports, graph capture).", "",
+             "| run | " + " | ".join(names) + " | " + " | ".join(f"step {i + 1}" for i in range(steps)) + " |",
+             "|---|" + "---:|" * (len(names) + steps)]
+    for i, r in enumerate(runs, 1):
+        if r.get("error"):
+            continue
+        ph, st = r.get("setup_phases", {}), r.get("first_steps", [])
+        lines.append(f"| {i} | " + " | ".join(f"{ph[n]:.2f}" if n in ph else "" for n in names) + " | "
+                     + " | ".join(f"{st[j]:.3f}" if j < len(st) else "" for j in range(steps)) + " |")
+    return lines
 
 
 def main(argv=None) -> None:

@@ -117,7 +117,7 @@ def test_seven_row_bits_give_a_plane(capture, board):
 
 
 def test_triangulated_points_reproject_through_opencv_onto_the_decoded_codes(capture, chessboard_path):
-    """The plate's smooth bend (plane RMS 0.69 mm, about a quadric 0.51 mm for the full gc-interp decode; notes/
+    """The plate's smooth bend (plane RMS 0.69 mm, about a quadric 0.51 mm for the full gc-interp decode; docs/
     accuracy.md section 14) is the calibration's, not our geometry's: every triangulated point, projected by
     OpenCV's own projectPoints with the file's raw matrices and distortion, lands on its camera pixel and on the
     projector row its codes decoded."""

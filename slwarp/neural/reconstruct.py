@@ -115,7 +115,8 @@ def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log
     if scan.gt_depth is not None:
         metrics = depth_metrics(depth, scan.gt_depth, scan.mask)
     timings = {"setup_s": t1 - t0, "train_s": t2 - t1, "depth_map_s": t3 - t0, "train_wall_s_total": trainer.elapsed,
-               "iterations": trainer.iteration, **ext_t, "pixels": fate_counts(fate), "total_s": time.perf_counter() - t0}
+               "iterations": trainer.iteration, "setup_phases_s": trainer.setup_phases,
+               "first_steps_s": trainer.first_steps, **ext_t, "pixels": fate_counts(fate), "total_s": time.perf_counter() - t0}
     if staging is not None:
         _write_outputs(staging, scan, config, trainer, depth, confidence, mesh, points, metrics, fate, timings)
     return Reconstruction(depth, mesh, points, metrics, timings, trainer, confidence, fate)

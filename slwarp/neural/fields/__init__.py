@@ -25,7 +25,7 @@ __all__ = ["Volume", "register_volume_buffers", "NeuSField", "LearnedVariance", 
 def auto_finest_resolution(volume: Volume, pixel_mm: float) -> int:
     """Cells per side of a hash grid's finest level that match a pixel footprint `pixel_mm` (mm, at the working
     depth): the power of two nearest (in log scale) to the volume's largest side over it. 2048 (0.39 mm cells)
-    on the default rig, 512 (1.5 mm) on the small one; finer cells failed on the small rig (notes/hashgrid.md)."""
+    on the default rig, 512 (1.5 mm) on the small one; finer cells failed on the small rig (docs/hashgrid.md)."""
     if not pixel_mm > 0:
         raise ValueError(f"auto_finest_resolution: the pixel footprint must be > 0 mm, got {pixel_mm}")
     cells = 2.0 * volume.scale / pixel_mm

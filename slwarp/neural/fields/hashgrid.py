@@ -26,7 +26,7 @@ Spatial gradient (the Eikonal term and NeuS's cosine need it, differentiably; fi
 Accuracy (bench/bench_field.py, CPU, a default field fitted to a bumpy sphere, points near its surface,
 against the float64 analytic gradient): analytic float32 median relative error 1e-5 (exact up to
 rounding); finite difference 15% (p99 51%): it is the gradient averaged over one cell, not the field's own.
-Why it is the default anyway (notes/hashgrid.md, small rig, 3 scenes, CPU): trilinear features kink on
+Why it is the default anyway (docs/hashgrid.md, small rig, 3 scenes, CPU): trilinear features kink on
 every cell face, and a V-shaped SDF across a face has |grad f| = 1 on both sides, so with the exact
 gradient thin spurious sheets survive the Eikonal term (boxes: MAE 5.49 mm, 18% of pixels > 5 mm off);
 the taps straddle the face and penalise them (boxes 0.64 mm; mean of bunny, vase, boxes 0.575 mm against

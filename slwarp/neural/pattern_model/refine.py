@@ -34,7 +34,7 @@ def model_misfit(depth: np.ndarray, camera, projector, images: np.ndarray, patte
     (8 scenes x 4 full-resolution rigs, 6 random patterns) it is 0.015 to 0.023 (the checker albedo highest; the same
     with pixel integration and a lens blur), where the refinement helps; 0.040 to 0.043 through a gamma-2.2 or sRGB
     camera, and 0.026 on the real capture (7 row-code images, at the full 40-image decode), where it doubles the
-    plate's RMS (bench/results/model-misfit-cpu.md; notes/accuracy.md, section 14)."""
+    plate's RMS (bench/results/model-misfit-cpu.md; docs/accuracy.md, section 14)."""
     model = _fit_model(depth, camera, projector, images, patterns, device)
     return float("nan") if model is None else _misfit(model)
 
@@ -187,7 +187,7 @@ def refinement_generalises(depth: np.ndarray, camera, projector, images, pattern
     Fewer than 3 frames: nothing to hold out, keep.
 
     Why: a refinement that fits the model's errors, not the surface, fits the frames it sees and explains a new
-    one worse. Real capture, 7 row-code images, the full decode refined (ad-hoc script, notes/accuracy.md section
+    one worse. Real capture, 7 row-code images, the full decode refined (ad-hoc script, docs/accuracy.md section
     13): plate RMS 0.688 -> 1.495 mm, and the held-out median residual rose in all 7 folds (mean 0.0368 ->
     0.0392); simulator, small vertical rig, rods, a CPU field's map: MAE 1.056 -> 0.743 mm, and it fell in all 6
     (0.0270 -> 0.0265). But on full-resolution simulated scans (GPU, `tuned`, default rig) it also refused

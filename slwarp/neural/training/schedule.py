@@ -86,23 +86,14 @@ def parameter_groups(config, field: torch.nn.Module, variance: torch.nn.Module) 
             {"params": variance, "lr": variance_lr, "base_lr": variance_lr}]
 
 
-def configure_adam(optimizer: torch.optim.Adam, device: torch.device, use_graph: bool) -> None:
-    """Adam as the step needs it: with CUDA graphs, capturable (step count on the GPU) and the learning rate a
-    device tensor that each replay reads; otherwise a plain float learning rate. On CUDA Adam's fused kernel: it
-    took the `accurate` preset's step from 4.70 to 4.37 ms on an H100 (notes/hashgrid.md, phase 3)."""
-    fused = device.type == "cuda"
-    for group in optimizer.param_groups:
-        lr = float(group["lr"])
-        group["fused"] = fused
-        group["foreach"] = None if fused else group.get("foreach")
-        group["capturable"] = use_graph
-        group["lr"] = torch.tensor(lr, device=device) if use_graph else lr
-    for st in optimizer.state.values():
-        if "step" in st and torch.is_tensor(st["step"]):
-            st["step"] = st["step"].to(device if use_graph else "cpu", torch.float32)
+def configure_adam(optimizer, device: torch.device, use_graph: bool) -> None:
+    """Adam (training.adam.Adam) as the step needs it: with CUDA graphs the learning rate a device tensor that each
+    replay reads; otherwise a plain float. On CUDA it runs torch's fused Adam kernel: that took the `accurate`
+    preset's step from 4.70 to 4.37 ms on an H100 (docs/hashgrid.md, phase 3)."""
+    optimizer.configure(device, capturable=use_graph)
 
 
-def set_learning_rates(optimizer: torch.optim.Adam, factor: float, lr: float) -> None:
+def set_learning_rates(optimizer, factor: float, lr: float) -> None:
     """Each group's learning rate: its base rate (else `lr`) times the schedule's factor (a device tensor's fill
     under CUDA graphs: no recapture, no host sync)."""
     for group in optimizer.param_groups:

@@ -50,7 +50,7 @@ def free_space_weights(target: torch.Tensor, rendered: torch.Tensor, warm, after
     """Per-pixel weights [R] of the free-space term (MapTerms.free_space_term): `after` (outside the warm-up: warm 0)
     where the rendered depth [R] (mm) lies more than MISSED_MM in front of the map's confirmed depth target [R]
     (mm, NaN: none), else 0. The pixel's own codes put its surface at the target, so the field's surface in front of
-    it is one the field bridged across a gap or grew over the background (steps, boxes: notes/accuracy.md)."""
+    it is one the field bridged across a gap or grew over the background (steps, boxes: docs/accuracy.md)."""
     _, _, bridged = _off_the_map(target, rendered)
     return bridged.to(rendered.dtype) * ((1.0 - warm) * after)
 

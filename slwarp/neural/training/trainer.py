@@ -53,6 +53,7 @@ from ..start import (checked_depth_range, fit_blur, frames_at_start, search_star
 from . import schedule
 from .checkpoint import (CheckpointError, CheckpointExists, RunMismatch, check_field, identity_differences,
                          make_state, read_checkpoint, restore, run_identity, write_checkpoint)
+from .adam import Adam
 from .graph_step import GraphedStep
 from .history import History
 from .progress import Progress
@@ -95,6 +96,23 @@ def pattern_model_inputs(trainer) -> tuple:
     return trainer.scan.images[: trainer.n_frames], patterns.cpu().numpy()
 
 
+FIRST_STEPS = 4  # steps whose host time a run records (Trainer.first_steps): two plain steps, the capture, a replay
+
+
+class _SetupClock:
+    """Seconds between successive marks of the trainer's set-up (Trainer.setup_phases, in timings.json): host time,
+    which is where a fresh process pays its first calls (Warp module loads, CUDA start, lazy imports)."""
+
+    def __init__(self):
+        self.phases: dict[str, float] = {}
+        self._last = time.perf_counter()
+
+    def mark(self, name: str) -> None:
+        now = time.perf_counter()
+        self.phases[name] = now - self._last
+        self._last = now
+
+
 class Trainer:
     """Trains the config's field (make_field: NeuS's MLP or the hash grid) or a given SDF module on a scan with
     the structured-light renderer.
@@ -117,32 +135,40 @@ class Trainer:
         self.progress = progress
         self.progress_interval_s = progress_interval_s
         self.depth_range = checked_depth_range(scan, depth_range)
+        clock = _SetupClock()
         checkpoint, ck_path = self._open_checkpoint(resume, overwrite)
         set_process_flags(self.device, config.runtime.matmul)
         torch.manual_seed(config.runtime.seed)
         self.generator = torch.Generator(device="cpu").manual_seed(config.runtime.seed)
+        clock.mark("device")
         self.n_frames = frames_at_start(scan, config)
         lit, self.volume = working_volume(scan, config, self.n_frames, self.depth_range)
         self.field = sdf if sdf is not None else start_field(config, self.volume, self.depth_range, scan.camera)
+        clock.mark("field")
         self.renderer = start_renderer(self.field, scan, config, self.n_frames, self.volume, self.depth_range,
                                        self.device)
+        clock.mark("renderer")
         # a captured step reads the learning rate from a device tensor and keeps Adam's step count on the GPU
         use_graph = bool(config.runtime.cuda_graph) and self.device.type == "cuda"
-        self.optimizer = torch.optim.Adam(schedule.parameter_groups(config, self.field, self.renderer.variance),
-                                          lr=config.schedule.lr)
+        self.optimizer = Adam(schedule.parameter_groups(config, self.field, self.renderer.variance),
+                              lr=config.schedule.lr)
         schedule.configure_adam(self.optimizer, self.device, use_graph)
         self.terms = MapTerms(self.field, config.init, self.volume.scale, self.device, scan.camera,
                               self.depth_range, config.runtime.backend)
         self._steps = GraphedStep(self.device, use_graph, self._step_body, self._configure_optimizer,
                                   config.sampling.rays)
+        clock.mark("optimiser")
         self.search_info, self.blur_fit = None, None
-        self._start_map(init_depth, lit, resume)
+        self._start_map(init_depth, lit, resume, clock)
         self.iteration, self.history, self.elapsed = 0, History(), 0.0
         if checkpoint is not None:
             self.load_checkpoint(ck_path, checkpoint)
         if self.init_depth is not None and surface_terms_on(config.init):
             self.surface_depth = surface_depth(self.init_depth, scan.camera, scan.projector,
                                                *pattern_model_inputs(self), self.device)
+        clock.mark("surface depth")
+        self.setup_phases = clock.phases
+        self.first_steps: list[float] = []
 
     def _open_checkpoint(self, resume: bool, overwrite: bool) -> tuple[dict | None, Path | None]:
         """(the checkpoint this run continues or None, its path): checked first, as a refusal costs nothing.
@@ -168,15 +194,17 @@ class Trainer:
                                    "--overwrite starts again and replaces it (Python: resume=True / overwrite=True)")
         return None, ck_path
 
-    def _start_map(self, init_depth, lit: np.ndarray, resume: bool) -> None:
+    def _start_map(self, init_depth, lit: np.ndarray, resume: bool, clock: _SetupClock) -> None:
         """The starting map (the given one, else a new run's depth search) and a new run's fitted pattern blur."""
         cfg = self.cfg
         if init_depth is None and searches(cfg) and not resume:
             init_depth, self.search_info = search_start(self.scan, cfg, self.n_frames, self.depth_range, lit,
                                                         pattern_model_inputs(self)[0], self.device)
+        clock.mark("depth search")
         if cfg.sampling.pattern_blur == "auto" and not resume:
             sigma, self.blur_fit = fit_blur(self.scan, cfg, self.n_frames, init_depth, self.device)
             self.renderer.set_pattern_blur(sigma)
+        clock.mark("blur fit")
         if init_depth is not None:
             self.init_depth = torch.as_tensor(np.asarray(init_depth, np.float32).reshape(-1), device=self.device)
 
@@ -353,7 +381,10 @@ class Trainer:
                 if (sched.incremental and self.iteration > 0 and self.iteration % sched.add_every == 0
                         and self.n_frames < len(self.scan)):
                     self.add_frames(count=1)
+                t_step = time.perf_counter()
                 vals = self.step()
+                if len(self.first_steps) < FIRST_STEPS:  # host time: module loads, compilation, graph capture
+                    self.first_steps.append(time.perf_counter() - t_step)
                 if self.iteration % self.cfg.runtime.log_every == 0 or self.iteration == total:
                     self._log(vals, bar, t_start)
                     if callback is not None:
