@@ -486,3 +486,40 @@ def test_cuda_graph_capture_of_forward_and_backward(gradient):
     for a, b in zip(out, f_eager):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
     assert any((a - b).abs().max() > 0 for a, b in zip(f_eager, ref))
+
+
+def test_eager_functions_match_the_custom_ops(device):
+    """Eager calls run autograd.Functions, torch.compile the custom ops (hashgrid_ops): the same values and the same
+    first and second derivatives (the Eikonal term differentiates the spatial gradient into the table)."""
+    from slwarp.neural.ops import hashgrid_ops as ops
+
+    x, table, cot, meta = grid_inputs(device=device, seed=7)
+    act = active_tensor(6, device)
+    results = []
+    for encode, gradient in ((ops._Encode.apply, ops._Gradient.apply), (ops._encode_op, ops._gradient_op)):
+        xs, tab = x.clone().requires_grad_(), table.clone().requires_grad_()
+        feat = encode(xs, tab, meta, act)
+        gx = gradient(xs, tab, meta, act, cot)
+        (d_x, d_table) = torch.autograd.grad((feat * cot).sum(), (xs, tab), create_graph=True)
+        (dd_table,) = torch.autograd.grad((gx ** 2).sum() + (d_x ** 2).sum(), (tab,))
+        results.append((feat, gx, d_x, d_table, dd_table))
+    for name, a, b in zip(("features", "gradient", "d/dx", "d/dtable", "second derivative"), *results):
+        close(a, b, rel=1e-6, what=name)
+
+
+def test_eager_field_step_imports_no_dynamo():
+    """A hash-grid field's forward and backward outside torch.compile import no torch._dynamo (its import is
+    seconds of a fresh process; a custom op's first autograd call triggers it)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, torch\n"
+            "from slwarp.neural.fields.hashgrid import hashgrid_encode, hashgrid_gradient, HashGridLayout\n"
+            "lay = HashGridLayout(levels=2, features=2, log2_table_size=8, base_resolution=4, finest_resolution=8)\n"
+            "x = torch.rand(16, 3, requires_grad=True); t = torch.randn(lay.n_entries, 2, requires_grad=True)\n"
+            "a = torch.tensor([2], dtype=torch.int32)\n"
+            "f = hashgrid_encode(x, t, lay.meta(), a); g = hashgrid_gradient(x, t, f.detach(), lay.meta(), a)\n"
+            "(f.sum() + g.sum()).backward()\n"
+            "print('torch._dynamo' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip().splitlines()[-1] == "False"

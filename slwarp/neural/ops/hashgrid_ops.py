@@ -1,5 +1,6 @@
 """The multiresolution hash-grid encoding as torch ops (kernels/hashgrid.py has the formulas): a Warp backend
-(torch custom ops: eager, torch.compile without graph breaks, CUDA-graph capture; float32) and a pure-torch twin
+(autograd.Functions when eager, torch custom ops under torch.compile, so no graph breaks; CUDA-graph capture;
+float32) and a pure-torch twin
 (gathers, any dtype, differentiable by autograd) with the same signature and semantics.
 
     hashgrid_encode(x, table, meta, active)        features [P, L F] of unit-cube points x [P, 3]
@@ -214,6 +215,45 @@ _encode_op.register_autograd(_encode_backward, setup_context=_encode_setup)
 _gradient_op.register_autograd(_gradient_backward, setup_context=_gradient_setup)
 
 
+# Eager calls go through these autograd.Functions, torch.compile through the custom ops above (as render_ops does):
+# a custom op's first autograd call imports torch._dynamo, 1.9 s of a fresh `slwarp reconstruct --preset fast` on an
+# H100 host (python -X importtime) for a run that compiles nothing. Same kernels, same derivatives.
+class _Encode(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, table, meta, active):
+        ctx.save_for_backward(x, table, meta, active)
+        return _encode_impl(x, table, meta, active)
+
+    @staticmethod
+    def backward(ctx, g_feat):
+        x, table, meta, active = ctx.saved_tensors
+        d_table = _encode_backward_impl(x, table, meta, active, g_feat) if ctx.needs_input_grad[1] else None
+        d_x = _Gradient.apply(x, table, meta, active, g_feat) if ctx.needs_input_grad[0] else None
+        return d_x, d_table, None, None
+
+
+class _Gradient(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, table, meta, active, g):
+        ctx.save_for_backward(x, table, meta, active, g)
+        return _gradient_impl(x, table, meta, active, g)
+
+    @staticmethod
+    def backward(ctx, h_out):
+        x, table, meta, active, g = ctx.saved_tensors
+        need_x, need_table, _, _, need_g = ctx.needs_input_grad
+        d_table, d_g, d_x = _gradient_backward_impl(x, table, meta, active, g, h_out, bool(need_x))
+        return d_x if need_x else None, d_table if need_table else None, None, None, d_g if need_g else None
+
+
+def _encode(x, table, meta, active):
+    return (_encode_op if torch.compiler.is_compiling() else _Encode.apply)(x, table, meta, active)
+
+
+def _gradient(x, table, meta, active, g):
+    return (_gradient_op if torch.compiler.is_compiling() else _Gradient.apply)(x, table, meta, active, g)
+
+
 def _check_inputs(x, table, meta, g=None):
     if x.dim() != 2 or x.shape[1] != 3:
         raise ValueError(f"hash grid: points must be [P, 3], got {tuple(x.shape)}")
@@ -239,7 +279,7 @@ def hashgrid_encode(x: torch.Tensor, table: torch.Tensor, meta: torch.Tensor, ac
     _check_inputs(x, table, meta)
     if backend == "torch":
         return twin_encode(x, table, meta, active)
-    return _encode_op(x.to(torch.float32), table.to(torch.float32), meta.to(torch.int32), active.to(torch.int32))
+    return _encode(x.to(torch.float32), table.to(torch.float32), meta.to(torch.int32), active.to(torch.int32))
 
 
 def hashgrid_gradient(x: torch.Tensor, table: torch.Tensor, g: torch.Tensor, meta: torch.Tensor, active: torch.Tensor,
@@ -250,5 +290,5 @@ def hashgrid_gradient(x: torch.Tensor, table: torch.Tensor, g: torch.Tensor, met
     _check_inputs(x, table, meta, g)
     if backend == "torch":
         return twin_gradient(x, table, g, meta, active)
-    return _gradient_op(x.to(torch.float32), table.to(torch.float32), meta.to(torch.int32), active.to(torch.int32),
-                        g.to(torch.float32))
+    return _gradient(x.to(torch.float32), table.to(torch.float32), meta.to(torch.int32), active.to(torch.int32),
+                     g.to(torch.float32))
