@@ -6,11 +6,13 @@
 """
 from __future__ import annotations
 
+import threading
+
 import torch
 
 from .neural.config import DEVICE_PATTERN  # the device names a user may give: the config checks them too
 
-__all__ = ["DeviceError", "torch_device", "warp_device", "DEVICE_PATTERN"]
+__all__ = ["DeviceError", "torch_device", "warp_device", "start_runtimes", "DEVICE_PATTERN"]
 
 
 class DeviceError(ValueError):
@@ -55,3 +57,24 @@ def warp_device(device: str | torch.device | None = "auto") -> str:
     if dev.type != "cpu":
         raise DeviceError(f"Warp kernels run on CPU or CUDA devices, got {dev}")
     return "cpu"
+
+
+def start_runtimes(device: torch.device) -> threading.Thread:
+    """Start the runtimes a run on `device` needs, in a daemon thread: Warp (its library, the CUDA driver, the
+    device list) and, on a GPU, torch's CUDA context there. The command line starts them before it loads the scan,
+    whose PNG decoding leaves the interpreter lock free; the trainer's first CUDA call waits for a context being made
+    (torch's lazy-init lock, slwarp.kernels.runtime's lock) instead of making another."""
+    def run():
+        try:
+            from slwarp.kernels import runtime
+
+            runtime.init()
+            if device.type == "cuda":
+                torch.cuda.init()
+                torch.empty(1, device=device)  # the context and the caching allocator's first block
+        except Exception:  # noqa: BLE001 - the run's own first use reports it, where it happens
+            pass
+
+    thread = threading.Thread(target=run, name="slwarp-runtimes", daemon=True)
+    thread.start()
+    return thread

@@ -86,6 +86,32 @@ def test_resume_matches_uninterrupted_run(small_scan, tmp_path):
     assert len(common) >= 2 and all(full_log[i] == res_log[i] for i in common)
 
 
+def test_final_checkpoint_is_written_once_in_the_background_and_complete(small_scan, tmp_path, monkeypatch):
+    """The last checkpoint follows the loop (not also inside it), snapshotted to host memory and written in a thread
+    when asked (reconstruct does); wait_checkpoint returns its path once it is on disk, and it resumes to the end."""
+    import threading
+
+    from slwarp.neural.training import trainer as trainer_module
+    from slwarp.neural.training.checkpoint import read_checkpoint
+
+    writes = []
+    real = trainer_module.write_checkpoint
+    monkeypatch.setattr(trainer_module, "write_checkpoint",
+                        lambda state, path: writes.append((state["iteration"], threading.current_thread().name))
+                        or real(state, path))
+    scan = small_scan.select("0:3")
+    cfg = tiny(iters=20, init_iters=10, checkpoint_every=15)  # in the loop at 15; 30 is the end
+    tr = Trainer(scan, cfg, out_dir=tmp_path, progress=False)
+    tr.checkpoint_in_background = True
+    tr.train()
+    assert tr.wait_checkpoint() == tmp_path / "checkpoint.pt" and tr.wait_checkpoint() is None
+    assert writes == [(15, "MainThread"), (30, "slwarp-checkpoint")]
+    ck = read_checkpoint(tmp_path / "checkpoint.pt")
+    assert ck["iteration"] == 30 and all(not t.is_cuda for t in ck["field"].values())
+    again = Trainer(scan, cfg, out_dir=tmp_path, resume=True, progress=False)
+    assert again.iteration == 30 and torch.equal(params_vector(again), params_vector(tr).cpu())
+
+
 def test_incremental_mode_adds_frames_and_keeps_improving(small_scan):
     cfg = tiny(iters=200, init_iters=40, incremental=True, start_frames=3, add_every=60, log_every=20)
     tr = Trainer(small_scan, cfg, progress=False)

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 from .discovery import (SCAN_MARKERS, Discovery, ScanEntry, find_scans, is_scan_folder, largest_first, scan_cost,
                         shard, unique_names)
-from .jobs import BatchOptions, ScanJob, ScanResult, outputs_complete, run_scan
+from .jobs import BatchOptions, ScanJob, ScanResult, outputs_complete, run_scan, run_scans
 from .launch import launched_by_torchrun, run_batch, worker_cores, worker_devices
 from .summary import BatchSummary
 
@@ -48,6 +48,7 @@ __all__ = [
     "ScanResult",
     "BatchSummary",
     "run_scan",
+    "run_scans",
     "run_batch",
     "launched_by_torchrun",
     "worker_devices",

@@ -12,10 +12,10 @@ import time
 import traceback
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 __all__ = ["COMPLETE_OUTPUTS", "CHECKPOINT", "BatchOptions", "ScanJob", "ScanResult", "outputs_complete",
-           "result_from_outputs", "error_line", "run_scan"]
+           "result_from_outputs", "error_line", "run_scan", "run_scans"]
 
 # Outputs `reconstruct` writes, config.yaml last: a folder holding all of them holds a finished run.
 COMPLETE_OUTPUTS = ("depth.npy", "timings.json", "config.yaml")
@@ -146,12 +146,37 @@ def _fit_compiled(scan, config) -> None:
     _compiled_for = key
 
 
+def run_scans(jobs: Sequence[ScanJob], config, options: BatchOptions = BatchOptions(), worker: str = "main",
+              log: Callable[[str], None] = print) -> list[ScanResult]:
+    """run_scan over `jobs` in order, each scan loading (frames decoded, camera rays computed: scans.prefetch) in a
+    thread while the scan before it trains. A `fast` scan after the first took 3.6-3.9 s in a batch on an H100, of
+    which loading was about 0.3 s."""
+    from ..scans.prefetch import ScanPrefetch
+
+    def load(job):
+        return ScanPrefetch(job.source, frames=options.frames, outside_paths=options.outside_paths)
+
+    rows: list[ScanResult] = []
+    ahead = load(jobs[0]) if jobs else None
+    for k, job in enumerate(jobs):
+        current, ahead = ahead, None
+
+        def load_next(k=k):
+            nonlocal ahead
+            ahead = load(jobs[k + 1]) if k + 1 < len(jobs) else None
+
+        rows.append(run_scan(job, config, options, worker, log, loaded=current, on_loaded=load_next))
+    return rows
+
+
 def run_scan(job: ScanJob, config, options: BatchOptions = BatchOptions(), worker: str = "main",
-             log: Callable[[str], None] = print) -> ScanResult:
+             log: Callable[[str], None] = print, loaded=None, on_loaded: Callable[[], None] | None = None
+             ) -> ScanResult:
     """Reconstruct one scan into job.out_dir with `config` (whose runtime.device it runs on) and return its
     summary line; any error of the scan (loading, training, writing) is caught and reported in the line; a stop
     asked for (KeyboardInterrupt, SystemExit, TrainingInterrupted: Ctrl-C or SIGTERM during training, after its
-    checkpoint) passes, so that the batch stops instead of going on with the next scan."""
+    checkpoint) passes, so that the batch stops instead of going on with the next scan. loaded: a ScanPrefetch of
+    job.source (else it is loaded here); on_loaded: called once the scan is in memory (run_scans loads the next)."""
     from ..neural.reconstruct import reconstruct
     from ..neural.training import TrainingInterrupted
     from ..scans.scan import load_scan
@@ -163,7 +188,12 @@ def run_scan(job: ScanJob, config, options: BatchOptions = BatchOptions(), worke
     say = log if options.log else (lambda _msg: None)
     t0 = time.perf_counter()
     try:
-        scan = load_scan(job.source, frames=options.frames, outside_paths=options.outside_paths)
+        try:
+            scan = (loaded.result() if loaded is not None
+                    else load_scan(job.source, frames=options.frames, outside_paths=options.outside_paths))
+        finally:
+            if on_loaded is not None:
+                on_loaded()
         row.frames, row.pixels = len(scan), scan.camera.width * scan.camera.height
         _fit_compiled(scan, config)
         resume = options.resume and (Path(job.out_dir) / CHECKPOINT).is_file()

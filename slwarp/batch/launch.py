@@ -12,7 +12,8 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from .discovery import ScanEntry, largest_first, scan_cost, shard
-from .jobs import BatchOptions, ScanJob, ScanResult, error_line, outputs_complete, result_from_outputs, run_scan
+from .jobs import (BatchOptions, ScanJob, ScanResult, error_line, outputs_complete, result_from_outputs, run_scan,
+                   run_scans)
 from .summary import BatchSummary
 
 __all__ = ["COLLECTIVE_TIMEOUT", "run_batch", "launched_by_torchrun", "worker_devices", "worker_cores"]
@@ -116,7 +117,7 @@ def run_batch(scans: Sequence[ScanEntry], config, out: str | os.PathLike, option
         mode = "per-device"
     else:
         devices, workers, mode = [config.runtime.device], 1, "sequential"
-        rows = [run_scan(job, config, options, log=log) for job in jobs]
+        rows = run_scans(jobs, config, options, log=log)
     summary = BatchSummary(_in_order(scans, rows + skipped), mode, workers, time.perf_counter() - t0, devices,
                            config.to_dict())
     summary.write(out)
@@ -151,7 +152,8 @@ def _run_torchrun(scans, config, out: Path, options: BatchOptions, single: bool,
         _enter_worker(device)
         cfg = config.with_options(device=device)
         mine = shard([j.cost for j in jobs], world)[rank]
-        rows = [run_scan(jobs[i], cfg, options, worker=f"rank {rank}", log=log).to_dict() for i in mine]
+        rows = [r.to_dict() for r in run_scans([jobs[i] for i in mine], cfg, options, worker=f"rank {rank}",
+                                               log=log)]
         gathered = [None] * world if rank == 0 else None
         dist.gather_object((device, rows), gathered, dst=0)
         if rank != 0:

@@ -19,6 +19,7 @@ def cmd_reconstruct(args) -> int:
     import torch
 
     from ..batch import find_scans, launched_by_torchrun
+    from ..devices import start_runtimes
     from ..evaluation.metrics import format_table
     from ..neural.describe import describe
     from ..neural.reconstruct import reconstruct
@@ -33,6 +34,7 @@ def cmd_reconstruct(args) -> int:
     if not found.single or args.per_device is not None or launched_by_torchrun():
         return _reconstruct_batch(args, found, name, cfg, dev)
     scan_path = args.scans[0]
+    start_runtimes(dev)  # beside the scan's loading
     scan = load_scan(scan_path, frames=args.frames, outside_paths=args.allow_outside_paths)
     timeline.mark("scan loaded")
     _warn_problems(scan)

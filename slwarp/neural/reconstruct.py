@@ -30,6 +30,7 @@ import torch
 
 from ..evaluation.outputs import (check_output_folder, staged_outputs, write_confidence, write_depth, write_mesh_ply,
                                   write_points_ply)
+from ..scans.prefetch import rays_ahead
 from .config import TrainConfig, save_config
 from .depth_maps import depth_to_points
 from .extraction import build_stages, extract_depth, fate_counts, pixel_fates
@@ -38,7 +39,8 @@ from .training import Trainer
 
 @dataclass
 class Reconstruction:
-    """depth [H, W] mm (NaN invalid); mesh (trimesh, mm) or None; points [P, 3] mm; metrics (dict or
+    """depth [H, W] mm (NaN invalid); mesh (extraction.surface.SurfaceMesh, mm: vertices, faces, and trimesh's
+    attributes on first use, `.to_trimesh()`) or None; points [P, 3] mm; metrics (dict or
     None); timings (seconds per stage); trainer (the trained state); confidence [H, W] in [0, 1] (NaN where
     depth is; slwarp.neural.extraction.confidence); fate [H, W] uint8 (extraction.pixel_fates()'s index per pixel)."""
 
@@ -72,10 +74,10 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
 
 
 def _import_in_background(*modules) -> None:
-    """Import these modules (None: skipped) in a daemon thread. The extraction's mesh needs trimesh, which takes
-    a fresh process about 0.85 s to import (H100 host, cProfile of `slwarp reconstruct --preset fast`); during
-    training the host mostly waits for the GPU, so the import costs nothing there. An import the main thread
-    starts meanwhile waits for this one on the module's lock."""
+    """Import these modules (None: skipped) in a daemon thread: scikit-image's marching cubes, which the CPU's
+    extraction needs, while the CPU trains (on a GPU host trimesh imported so beside the training slowed its first
+    steps: the mesh no longer needs it, extraction.surface.SurfaceMesh). An import the main thread starts
+    meanwhile waits for this one on the module's lock."""
     names = [m for m in modules if m is not None and m not in sys.modules]
 
     def run():
@@ -94,12 +96,15 @@ def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log
     from ..evaluation.metrics import depth_metrics
 
     t0 = time.perf_counter()
+    rays_ahead(scan.camera)  # the depth search's ray grid, computed while the trainer sets up
     stages = build_stages(config.extraction)  # a stage list that cannot run fails before training
     trainer = Trainer(scan, config, out_dir=out / "train" if out is not None else None, resume=resume,
                       depth_range=depth_range, progress=progress or bool(log_every_s), progress_interval_s=log_every_s,
                       overwrite=overwrite)
     t1 = time.perf_counter()
-    _import_in_background("trimesh", "skimage.measure" if trainer.device.type == "cpu" else None)
+    if trainer.device.type == "cpu":  # the CPU's marching cubes (the mesh needs no trimesh: SurfaceMesh)
+        _import_in_background("skimage.measure")
+    trainer.checkpoint_in_background = True  # the final checkpoint is written beside the extraction
     trainer.train()
     if trainer.device.type == "cuda":
         torch.cuda.synchronize(trainer.device)
@@ -119,6 +124,7 @@ def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log
                "first_steps_s": trainer.first_steps, **ext_t, "pixels": fate_counts(fate), "total_s": time.perf_counter() - t0}
     if staging is not None:
         _write_outputs(staging, scan, config, trainer, depth, confidence, mesh, points, metrics, fate, timings)
+    trainer.wait_checkpoint()
     return Reconstruction(depth, mesh, points, metrics, timings, trainer, confidence, fate)
 
 

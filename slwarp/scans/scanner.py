@@ -13,23 +13,27 @@ share it.
 """
 from __future__ import annotations
 
+import sys
+import threading
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import NamedTuple
 
 import numpy as np
 
-try:  # torch is a hard dependency of slwarp, but geometry must not need it to import
-    import torch
-except ImportError:  # pragma: no cover
-    torch = None
-
 
 class CalibrationError(ValueError):
     """A calibration that cannot describe a real device (non-finite, singular, not a rotation)."""
 
 
+def _torch():
+    """torch, once the process has imported it (a tensor cannot exist before). Geometry does not import torch itself,
+    so that a scan can load while the process imports torch (scans.prefetch)."""
+    return sys.modules.get("torch")
+
+
 def _is_torch(x) -> bool:
+    torch = _torch()
     return torch is not None and isinstance(x, torch.Tensor)
 
 
@@ -56,9 +60,9 @@ def const_like(value, like):
         return np.asarray(value, dtype=np.result_type(like.dtype, np.float32))
     arr = np.asarray(value)
     if arr.size > 16:
-        return torch.as_tensor(arr, dtype=like.dtype, device=like.device)
+        return _torch().as_tensor(arr, dtype=like.dtype, device=like.device)
     key = (arr.shape, arr.astype(np.float64).tobytes(), like.dtype, like.device)
-    return bounded_cache(_SMALL_CONSTANTS, key, lambda: torch.as_tensor(arr, dtype=like.dtype, device=like.device),
+    return bounded_cache(_SMALL_CONSTANTS, key, lambda: _torch().as_tensor(arr, dtype=like.dtype, device=like.device),
                          keep=257)
 
 
@@ -71,7 +75,7 @@ def _rotate(x, M):
 
 
 def _stack(parts, like):
-    return torch.stack(parts, dim=-1) if _is_torch(like) else np.stack(parts, axis=-1)
+    return _torch().stack(parts, dim=-1) if _is_torch(like) else np.stack(parts, axis=-1)
 
 
 def _as_float(x):
@@ -222,7 +226,7 @@ class Camera:
         xy = self.pixel_to_normalized(uv)
         one = xy[..., 0] * 0 + 1
         d = _stack([xy[..., 0], xy[..., 1], one], xy)
-        norm = torch.linalg.norm(d, dim=-1, keepdim=True) if _is_torch(d) else np.linalg.norm(d, axis=-1, keepdims=True)
+        norm = _torch().linalg.norm(d, dim=-1, keepdim=True) if _is_torch(d) else np.linalg.norm(d, axis=-1, keepdims=True)
         return d / norm
 
     @cached_property
@@ -257,13 +261,13 @@ class Camera:
         X = _as_float(X)
         z = X[..., 2]
         if _is_torch(z):
-            z = torch.where(z > 0, z, torch.full_like(z, float("nan")))
+            z = _torch().where(z > 0, z, _torch().full_like(z, float("nan")))
         else:
             z = np.where(z > 0, z, np.nan)
         x, y = X[..., 0] / z, X[..., 1] / z
         far = (x * x + y * y) > self.max_normalized_r2
         if _is_torch(far):
-            x = torch.where(far, torch.full_like(x, float("nan")), x)
+            x = _torch().where(far, _torch().full_like(x, float("nan")), x)
         else:
             x = np.where(far, np.nan, x)
         return self.normalized_to_pixel(_stack([x, y], X))
@@ -321,8 +325,10 @@ class Camera:
         )
 
 
-# the last few cameras' ray grids (camera_rays)
+# the last few cameras' ray grids (camera_rays); the lock makes a second caller wait for a grid being computed
+# (e.g. in scans.prefetch's thread) instead of computing it again
 _RAYS_CACHE: dict = {}
+_RAYS_LOCK = threading.Lock()
 
 
 def camera_rays(camera: Camera, uv: np.ndarray | None = None) -> np.ndarray:
@@ -330,7 +336,9 @@ def camera_rays(camera: Camera, uv: np.ndarray | None = None) -> np.ndarray:
     last few cameras' grids are cached, read-only: undistorting every pixel costs more than a triangulation)."""
     if uv is not None:
         return camera.pixel_to_ray(np.asarray(uv, np.float64))
-    return bounded_cache(_RAYS_CACHE, camera.cache_key, lambda: _read_only(camera.pixel_to_ray(camera.pixel_grid())))
+    with _RAYS_LOCK:
+        return bounded_cache(_RAYS_CACHE, camera.cache_key,
+                             lambda: _read_only(camera.pixel_to_ray(camera.pixel_grid())))
 
 
 def _read_only(a: np.ndarray) -> np.ndarray:

@@ -1,7 +1,8 @@
 """From a trained SDF to a mesh, a depth map and a point cloud (all in mm, camera frame).
 
 - `sdf_grid`: the field on a regular grid over the working volume, evaluated in chunks.
-- `extract_mesh`: marching cubes at level 0 (Warp's on a GPU, scikit-image's on the CPU) -> trimesh.Trimesh.
+- `extract_mesh`: marching cubes at level 0 (Warp's on a GPU, scikit-image's on the CPU) -> SurfaceMesh (trimesh on
+  demand).
 - `mesh_depth`: camera rays (through pixel centres, undistorted) cast at the mesh with Warp's BVH:
   depth = camera z of the first hit (or the first K hits), NaN where no hit.
 - `flying_pixel_filter`: removes the pixels on depth edges, where a smooth SDF bends from the foreground
@@ -51,10 +52,45 @@ def sdf_grid(field, volume: Volume, resolution: int, device, chunk: int | None =
     return (out if as_tensor else out.cpu().numpy()), lo, h
 
 
+class SurfaceMesh:
+    """A triangle mesh in mm as marching cubes gives it: vertices [V, 3] (float64), faces [F, 3] (int64, wound outward,
+    towards positive SDF) and, when the extraction has them, vertex normals [V, 3] (outward).
+
+    Anything else (volume, export, area, ...) is trimesh.Trimesh's, built on first use (`to_trimesh`): trimesh takes
+    a fresh process about 1 s of interpreter time to import (H100 host, cProfile), which the depth map, the PLY
+    writer and the ray cast do not need; imported in a thread beside the training it slowed the first steps."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, vertex_normals: np.ndarray | None = None):
+        self.vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
+        self.faces = np.asarray(faces, np.int64).reshape(-1, 3)
+        self._normals = None if vertex_normals is None else np.asarray(vertex_normals, np.float64).reshape(-1, 3)
+        self._trimesh = None
+
+    def to_trimesh(self):
+        """The same mesh as a trimesh.Trimesh (made once; process=False: vertices and faces as they are)."""
+        if self._trimesh is None:
+            import trimesh
+
+            self._trimesh = trimesh.Trimesh(self.vertices, self.faces, vertex_normals=self._normals, process=False)
+        return self._trimesh
+
+    @property
+    def vertex_normals(self) -> np.ndarray:
+        return self._normals if self._normals is not None else self.to_trimesh().vertex_normals
+
+    def __getattr__(self, name):  # only for what the class lacks: trimesh's
+        if name.startswith("_"):
+            raise AttributeError(name)
+        return getattr(self.to_trimesh(), name)
+
+    def __repr__(self) -> str:
+        return f"SurfaceMesh({len(self.vertices)} vertices, {len(self.faces)} faces)"
+
+
 def extract_mesh(field, volume: Volume, resolution: int = 384, device="cpu", progress: bool = False,
                  depth_range=None):
-    """Marching cubes of the zero level set -> trimesh.Trimesh in mm (None if the SDF never crosses 0), faces
-    wound outward (towards positive SDF) and vertex normals outward.
+    """Marching cubes of the zero level set -> a SurfaceMesh in mm (None if the SDF never crosses 0), faces wound
+    outward (towards positive SDF) and vertex normals outward; `.to_trimesh()` (or any trimesh attribute) for trimesh.
 
     On a GPU the grid stays there and Warp's marching cubes runs on it (default-rig fast, 256 cells: 0.23 s of
     scikit-image on the host saved); on the CPU scikit-image's is faster than Warp's. Both interpolate each
@@ -66,8 +102,6 @@ def extract_mesh(field, volume: Volume, resolution: int = 384, device="cpu", pro
     of the pixels of default-rig boxes and torus, vertical-rig torus and rolled-rig boxes had their first hit out of range, most
     likely on that side: beyond `far` lies the wall that every ray renders). Beyond `far` nothing is cut: there the field is the inside of the farthest surfaces, and a cut
     would close them with a cap that rays never reach."""
-    import trimesh
-
     on_gpu = torch.device(device).type == "cuda"
     values, origin, h = sdf_grid(field, volume, resolution, device, progress=progress, as_tensor=True)
     if depth_range is not None:
@@ -78,14 +112,14 @@ def extract_mesh(field, volume: Volume, resolution: int = 384, device="cpu", pro
         return None
     if on_gpu:
         verts, faces = _marching_cubes_warp(values, origin, h)
-        # normals from the faces (wound outward): the SDF's gradient direction at the surface
-        return trimesh.Trimesh(verts, faces, process=False)
+        # normals from the faces (wound outward), when asked for: the SDF's gradient direction at the surface
+        return SurfaceMesh(verts, faces)
     from skimage.measure import marching_cubes
 
     verts, faces, normals, _ = marching_cubes(values.numpy(), level=0.0, spacing=(h, h, h))
     # scikit-image winds its faces towards increasing values here (outward, as the SDF grows outside) and its
     # normals point the other way
-    return trimesh.Trimesh(verts + origin, faces, vertex_normals=-normals, process=False)
+    return SurfaceMesh(verts + origin, faces, vertex_normals=-normals)
 
 
 def _marching_cubes_warp(values: torch.Tensor, origin: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:

@@ -99,6 +99,17 @@ def pattern_model_inputs(trainer) -> tuple:
 FIRST_STEPS = 4  # steps whose host time a run records (Trainer.first_steps): two plain steps, the capture, a replay
 
 
+def _on_host(state):
+    """A copy of a checkpoint's state with every tensor in host memory (a snapshot a thread may write)."""
+    if isinstance(state, torch.Tensor):
+        return state.detach().to("cpu", copy=True)
+    if isinstance(state, dict):
+        return {k: _on_host(v) for k, v in state.items()}
+    if isinstance(state, (list, tuple)):
+        return type(state)(_on_host(v) for v in state)
+    return state
+
+
 class _SetupClock:
     """Seconds between successive marks of the trainer's set-up (Trainer.setup_phases, in timings.json): host time,
     which is where a fresh process pays its first calls (Warp module loads, CUDA start, lazy imports)."""
@@ -169,6 +180,8 @@ class Trainer:
         clock.mark("surface depth")
         self.setup_phases = clock.phases
         self.first_steps: list[float] = []
+        # train()'s final checkpoint written in a thread (reconstruct sets it, then calls wait_checkpoint)
+        self.checkpoint_in_background = False
 
     def _open_checkpoint(self, resume: bool, overwrite: bool) -> tuple[dict | None, Path | None]:
         """(the checkpoint this run continues or None, its path): checked first, as a refusal costs nothing.
@@ -272,11 +285,40 @@ class Trainer:
                           history=dataclasses.asdict(self.history), elapsed=self.elapsed, init_depth=self.init_depth,
                           pattern_blur=self.renderer.pattern_blur, identity=self.identity)
 
-    def save_checkpoint(self, path=None) -> Path | None:
-        """Atomically write the checkpoint (out_dir/checkpoint.pt unless `path`); None without either."""
+    def save_checkpoint(self, path=None, background: bool = False) -> Path | None:
+        """Atomically write the checkpoint (out_dir/checkpoint.pt unless `path`); None without either. background:
+        snapshot the state to host memory now and write it in a thread (`wait_checkpoint` joins it): the final
+        checkpoint of `fast` is about 70 MB, which the depth map need not wait for."""
         if self.out_dir is None and path is None:
             return None
-        return write_checkpoint(self.state(), Path(path) if path is not None else self.out_dir / "checkpoint.pt")
+        target = Path(path) if path is not None else self.out_dir / "checkpoint.pt"
+        self.wait_checkpoint()
+        if not background:
+            return write_checkpoint(self.state(), target)
+        state = _on_host(self.state())
+        errors: list[BaseException] = []
+
+        def write():
+            try:
+                write_checkpoint(state, target)
+            except BaseException as e:  # noqa: BLE001 - re-raised in the thread that waits for it
+                errors.append(e)
+
+        # not a daemon: an interpreter that exits (Ctrl-C during the extraction included) finishes the file first
+        self._writer = (threading.Thread(target=write, name="slwarp-checkpoint"), errors, target)
+        self._writer[0].start()
+        return target
+
+    def wait_checkpoint(self) -> Path | None:
+        """Wait for the checkpoint being written in the background, if any: its path, or the write's OSError."""
+        writer, self._writer = getattr(self, "_writer", None), None
+        if writer is None:
+            return None
+        thread, errors, target = writer
+        thread.join()
+        if errors:
+            raise errors[0]
+        return target
 
     def load_checkpoint(self, path, ck: dict | None = None):
         """Continue from the checkpoint at `path` (or its already read contents `ck`)."""
@@ -390,7 +432,8 @@ class Trainer:
                     if callback is not None:
                         callback(self)
                 bar.update()
-                if self.out_dir is not None and self.iteration % self.cfg.runtime.checkpoint_every == 0:
+                if (self.out_dir is not None and self.iteration % self.cfg.runtime.checkpoint_every == 0
+                        and self.iteration < total):  # the last one follows the loop
                     self.elapsed = time.perf_counter() - t_start
                     self.save_checkpoint()
         finally:
@@ -398,7 +441,7 @@ class Trainer:
             bar.close()
             self.elapsed = time.perf_counter() - t_start
         if self.out_dir is not None:
-            self.save_checkpoint()
+            self.save_checkpoint(background=self.checkpoint_in_background)
         return self.history
 
     def _log(self, vals: dict, bar: Progress, t_start: float) -> None:
