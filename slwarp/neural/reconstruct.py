@@ -96,8 +96,8 @@ def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log
     from ..evaluation.metrics import depth_metrics
 
     t0 = time.perf_counter()
-    rays_ahead(scan.camera)  # the depth search's ray grid, computed while the trainer sets up
     stages = build_stages(config.extraction)  # a stage list that cannot run fails before training
+    rays_ahead(scan.camera)  # the depth search's ray grid, computed while the trainer sets up
     trainer = Trainer(scan, config, out_dir=out / "train" if out is not None else None, resume=resume,
                       depth_range=depth_range, progress=progress or bool(log_every_s), progress_interval_s=log_every_s,
                       overwrite=overwrite)
