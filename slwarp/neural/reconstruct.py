@@ -52,11 +52,22 @@ class Reconstruction:
     trainer: Trainer | None = None
     confidence: np.ndarray | None = None
     fate: np.ndarray | None = None
+    writer: threading.Thread | None = field(default=None, repr=False)  # write_in_background's, until wait_written
+    _write_errors: list = field(default_factory=list, repr=False)
+
+    def wait_written(self) -> None:
+        """Wait for the output files being written in the background (reconstruct(write_in_background=True)); the
+        write's error (OSError) when it failed, in which case none of this run's files appeared."""
+        writer, self.writer = self.writer, None
+        if writer is not None:
+            writer.join()
+        if self._write_errors:
+            raise self._write_errors[0]
 
 
 def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, depth_range=None,
                 use_mask: bool = False, progress: bool = True, log_every_s: float | None = None,
-                overwrite: bool = False) -> Reconstruction:
+                overwrite: bool = False, write_in_background: bool = False) -> Reconstruction:
     """Train the neural SDF on `scan` and extract its depth map (see module docstring).
 
     use_mask: also restrict the depth map to the scan's mask (by default only to the pixels lit with
@@ -65,12 +76,47 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
     resume / overwrite: continue out_dir's checkpoint / replace it (neither: a checkpoint there is refused).
     Errors a caller may handle per scan: ScanError, ConfigError, CheckpointError (RunMismatch, CheckpointExists),
     TrainingInterrupted, TrainingDiverged, OSError.
+
+    write_in_background: return as soon as the depth map and its metrics are known, the files (and the final
+    checkpoint) written and moved into out_dir by a thread; `Reconstruction.wait_written()` waits for them (a batch
+    trains its next scan meanwhile: slwarp.batch.run_scans). The thread is not a daemon: an interpreter that exits
+    finishes the files first.
     """
     out = check_output_folder(out_dir) if out_dir is not None else None
+    args = (scan, config, out, resume, depth_range, use_mask, progress, log_every_s, overwrite)
     if out is None:
-        return _reconstruct(scan, config, None, resume, depth_range, use_mask, progress, log_every_s, overwrite)
-    with staged_outputs(out) as staging:
-        return _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log_every_s, overwrite, staging)
+        return _reconstruct(*args)[0]
+    if not write_in_background:
+        with staged_outputs(out) as staging:
+            res, jobs = _reconstruct(*args, staging)
+            _write_outputs(jobs)
+            res.trainer.wait_checkpoint()
+        return res
+    outputs = staged_outputs(out)
+    staging = outputs.__enter__()
+    try:
+        res, jobs = _reconstruct(*args, staging)
+    except BaseException:
+        if not outputs.__exit__(*sys.exc_info()):
+            raise
+        raise  # pragma: no cover - staged_outputs never swallows an exception
+
+    def finish():
+        try:
+            _write_outputs(jobs)
+            res.trainer.wait_checkpoint()
+        except BaseException as e:  # noqa: BLE001 - re-raised by wait_written, in the caller's thread
+            try:
+                outputs.__exit__(type(e), e, e.__traceback__)  # removes the staging folder, re-raises (wrapped)
+            except BaseException as wrapped:  # noqa: BLE001
+                e = wrapped
+            res._write_errors.append(e)
+        else:
+            outputs.__exit__(None, None, None)
+
+    res.writer = threading.Thread(target=finish, name="slwarp-outputs")
+    res.writer.start()
+    return res
 
 
 def _import_in_background(*modules) -> None:
@@ -92,7 +138,8 @@ def _import_in_background(*modules) -> None:
 
 
 def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log_every_s, overwrite, staging=None):
-    """reconstruct's work: the checkpoint in out/train, the other outputs written into `staging`."""
+    """reconstruct's work: (the Reconstruction, the jobs that write its files into `staging`: _output_jobs; None
+    without a staging folder); the final checkpoint goes to out/train in a thread (Trainer.wait_checkpoint)."""
     from ..evaluation.metrics import depth_metrics
 
     t0 = time.perf_counter()
@@ -122,17 +169,23 @@ def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log
     timings = {"setup_s": t1 - t0, "train_s": t2 - t1, "depth_map_s": t3 - t0, "train_wall_s_total": trainer.elapsed,
                "iterations": trainer.iteration, "setup_phases_s": trainer.setup_phases,
                "first_steps_s": trainer.first_steps, **ext_t, "pixels": fate_counts(fate), "total_s": time.perf_counter() - t0}
+    jobs = None
     if staging is not None:
-        _write_outputs(staging, scan, config, trainer, depth, confidence, mesh, points, metrics, fate, timings)
-    trainer.wait_checkpoint()
-    return Reconstruction(depth, mesh, points, metrics, timings, trainer, confidence, fate)
+        jobs = _output_jobs(staging, scan, config, trainer, depth, confidence, mesh, points, metrics, fate, timings)
+    return Reconstruction(depth, mesh, points, metrics, timings, trainer, confidence, fate), jobs
 
 
-def _write_outputs(out, scan, config, trainer, depth, confidence, mesh, points, metrics, fate, timings) -> None:
-    """Every output file of a reconstruction into the folder `out`, written concurrently. Each file is independent,
-    and the PNG encoders, numpy and the file writes leave the interpreter free most of the time, so the pictures,
-    the point cloud and the metrics overlap instead of queuing; this returns when all are written (the first failure
-    raised)."""
+def _write_outputs(jobs: list) -> None:
+    """Run the jobs of _output_jobs concurrently. Each file is independent, and the PNG encoders, numpy and the file
+    writes leave the interpreter free most of the time, so the pictures, the point cloud and the metrics overlap
+    instead of queuing; this returns when all are written (the first failure raised)."""
+    with ThreadPoolExecutor(max_workers=min(len(jobs), os.cpu_count() or 1)) as pool:
+        for done in [pool.submit(job) for job in jobs]:
+            done.result()
+
+
+def _output_jobs(out, scan, config, trainer, depth, confidence, mesh, points, metrics, fate, timings) -> list:
+    """The callables that write every output file of a reconstruction into the folder `out`."""
     from ..evaluation.metrics import confidence_metrics, error_map, metrics_document
     from ..evaluation.viz import save_confidence_map, save_depth_color, save_fate_map, save_map_with_colorbar
 
@@ -169,6 +222,4 @@ def _write_outputs(out, scan, config, trainer, depth, confidence, mesh, points, 
         jobs.append(lambda: write_mesh_ply(out / "mesh.ply", mesh))
     if metrics is not None:
         jobs.append(metrics_files)
-    with ThreadPoolExecutor(max_workers=min(len(jobs), os.cpu_count() or 1)) as pool:
-        for done in [pool.submit(job) for job in jobs]:
-            done.result()
+    return jobs
