@@ -3,6 +3,7 @@ three small scans (one broken) under torchrun's two gloo processes on the CPU, r
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -222,6 +223,49 @@ def test_batch_under_torchrun_with_a_broken_scan_then_resumed(tmp_path):
         assert rows2[name].mae == pytest.approx(rows[name]["mae"]) and rows2[name].valid_share == pytest.approx(
             rows[name]["valid_share"])
     assert json.loads((out / "summary.json").read_text())["totals"]["skipped"] == 2
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_batch_over_two_nodes_with_a_broken_scan(tmp_path):
+    """Two torchrun launchers on this machine as two nodes (c10d rendezvous), one process each, writing into one
+    output folder: every good scan is done once, by one of the two ranks, the broken one fails alone, and rank 0's
+    summary holds all four; the launcher whose node holds rank 0 exits 1 (a scan failed), the other 0."""
+    from slwarp.sim.simulate import simulate_scene
+
+    scan = simulate_scene("spheres", "random6", rig="small")
+    for name in ("a", "b", "c", "broken"):
+        scan.save(tmp_path / "scans" / name)
+    missing = tmp_path / "scans" / "broken" / "images" / f"002_{scan.names[2]}.png"
+    missing.unlink()
+    endpoint = f"127.0.0.1:{_free_port()}"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    launch = [sys.executable, "-m", "torch.distributed.run", "--nnodes", "2", "--nproc-per-node", "1",
+              "--rdzv-backend", "c10d", "--rdzv-endpoint", endpoint, "--rdzv-id", "two-nodes", "-m", "slwarp",
+              "reconstruct", "scans", "--out", "out", *[a for a in FAST if a != "--quiet"]]  # per-scan lines
+    nodes = [subprocess.Popen(launch, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                              text=True) for _ in range(2)]
+    logs = [n.communicate(timeout=300)[0] for n in nodes]
+    codes = sorted(n.returncode for n in nodes)
+    assert codes == [0, 1], logs
+    doc = json.loads((tmp_path / "out" / "summary.json").read_text())
+    rows = {r["name"]: r for r in doc["scans"]}
+    assert list(rows) == ["a", "b", "broken", "c"] and doc["mode"] == "torchrun" and doc["workers"] == 2
+    assert {r["worker"] for r in rows.values()} == {"rank 0", "rank 1"}
+    for name in ("a", "b", "c"):
+        assert rows[name]["status"] == "done" and (tmp_path / "out" / name / "depth.npy").is_file(), rows[name]
+    assert rows["broken"]["status"] == "failed" and str(missing) in rows["broken"]["error"]
+    assert doc["totals"]["done"] == 3 and doc["totals"]["failed"] == 1
+    report = "".join(logs)
+    assert report.count("4 scans: 3 done, 0 skipped (complete before), 1 failed; torchrun, 2 worker(s)") == 1, report
+    for name in ("a", "b", "c"):  # each good scan reconstructed once: one start line (rank, device) per scan
+        assert len(re.findall(rf"\] {name}: done in", report)) == 1, report
 
 
 def test_compiled_graphs_are_kept_for_scans_of_the_same_sizes(monkeypatch):

@@ -14,6 +14,8 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Callable, Sequence
 
+from .. import timeline
+
 __all__ = ["COMPLETE_OUTPUTS", "CHECKPOINT", "BatchOptions", "ScanJob", "ScanResult", "outputs_complete",
            "result_from_outputs", "error_line", "run_scan", "run_scans"]
 
@@ -170,6 +172,7 @@ def run_scans(jobs: Sequence[ScanJob], config, options: BatchOptions = BatchOpti
 
         writing: list = []
         rows.append(run_scan(job, config, options, worker, log, loaded=current, on_loaded=load_next, writing=writing))
+        timeline.mark(f"scan {k + 1}")
         if previous is not None:
             _written(*previous)
         previous = writing[0] if writing else None

@@ -91,7 +91,9 @@ def _reconstruct_batch(args, found, name: str, cfg, dev) -> int:
     options = BatchOptions(frames=args.frames, depth_range=_parse_range(args.depth_range), use_mask=args.use_mask,
                            resume=args.resume, overwrite=args.overwrite, progress=not args.quiet, log=not args.quiet,
                            outside_paths=args.allow_outside_paths)
+    timeline.mark("batch")
     summary = run_batch(found.scans, cfg, args.out, options, single=found.single, per_device=args.per_device)
+    timeline.mark("batch done")
     if summary is None:  # a rank other than 0: rank 0 reports
         return 0
     print(summary.report())

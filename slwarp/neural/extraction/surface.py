@@ -260,7 +260,7 @@ def sphere_trace_depth(field, camera, depth_range, device, valid: np.ndarray | N
     value, at least 1/512 of the range), then secant refinement of the first sign change. Pixels with no
     crossing (or outside `valid`) are NaN."""
     H, W = camera.height, camera.width
-    dirs = torch.as_tensor(camera_rays(camera).reshape(-1, 3), dtype=torch.float32, device=device)
+    dirs = torch.as_tensor(camera_rays(camera).reshape(-1, 3).astype(np.float32), device=device)  # a writable copy
     sel = torch.arange(H * W, device=device)
     if valid is not None:
         sel = sel[torch.as_tensor(valid.reshape(-1), device=device)]
