@@ -612,3 +612,42 @@ def test_variance_learning_rate_factor(small_scan, field):
             tr.step()
     moved = (abs(plain.renderer.variance.v.item() - v0[0]), abs(fast.renderer.variance.v.item() - v0[1]))
     assert moved[1] > 5 * moved[0] > 0  # Adam's steps are about the learning rate
+
+
+def test_narrowed_range_keeps_a_close_range_and_narrows_a_loose_one():
+    from slwarp.neural.start import narrowed_range
+
+    rng = np.random.default_rng(0)
+    scene = rng.uniform(1100.0, 1650.0, (60, 80))
+    scene[0, :5] = np.nan
+    (near, far), kept = narrowed_range(scene, (800.0, 2600.0), 50.0)  # a plate and a wall in a loose range
+    assert 1040.0 < near < 1060.0 and 1690.0 < far < 1710.0
+    assert np.isnan(kept[0, :5]).all() and np.isfinite(kept[1:]).all()
+    outlier = scene.copy()
+    outlier[5, 5] = 2500.0  # one wrong depth of 4800: beyond the 99.9th percentile, dropped from the map
+    (_, far2), kept2 = narrowed_range(outlier, (800.0, 2600.0), 50.0)
+    assert far2 < 1710.0 and np.isnan(kept2[5, 5])
+    close = rng.uniform(630.0, 1010.0, (60, 80))  # the virtual scanner: 450-1100 mm around 0.63-1.01 m
+    assert narrowed_range(close, (450.0, 1100.0), 50.0)[0] == (450.0, 1100.0)
+    assert narrowed_range(np.full((5, 5), np.nan), (800.0, 2600.0), 50.0)[0] == (800.0, 2600.0)
+
+
+def test_auto_range_trains_in_the_searched_range_and_resumes_in_it(small_scan, tmp_path):
+    """auto_range: with a loose range given, the trainer samples, sizes its field and checkpoints in the range the
+    depth search found; the run's identity keeps the range given, so a resumed run (no new search) matches and
+    continues in the checkpoint's range."""
+    scan = small_scan.select("0:6")
+    loose = (300.0, 3000.0)
+    cfg = tiny(iters=10, init_iters=10, auto_range=True, checkpoint_every=10)
+    tr = Trainer(scan, cfg, out_dir=tmp_path, depth_range=loose, progress=False)
+    near, far = tr.depth_range
+    assert loose[0] < near < 600.0 and 1000.0 < far < 1400.0, tr.depth_range
+    depth_of = lambda v: v.hi[2] - v.lo[2]  # noqa: E731
+    assert tr.search_info["depth_range"] == [near, far] and depth_of(tr.volume) < 0.6 * (loose[1] - loose[0])
+    wide = Trainer(scan, tiny(iters=10, init_iters=10), depth_range=loose, progress=False)
+    assert wide.depth_range == loose and depth_of(wide.volume) > depth_of(tr.volume)
+    tr.train(iters=10)  # the checkpoint at 10 of 20
+    again = Trainer(scan, cfg, out_dir=tmp_path, depth_range=loose, resume=True, progress=False)
+    assert again.iteration == 10 and again.depth_range == (near, far) and again.volume == tr.volume
+    again.train()
+    assert again.iteration == 20

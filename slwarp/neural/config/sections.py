@@ -128,6 +128,11 @@ class InitConfig:
                                "5 mm before the map's point (0: off)", min=0.0)
     surface_band_mm: float = option(0.5, "surface term: the distance (mm) along the ray of its points in "
                                     "front of and behind the initial map's point", above=0.0)
+    auto_range: bool = option(False, "after the depth search, narrow the depth range to the searched depths (0.1st-"
+                              "99.9th percentiles) plus auto_range_margin_mm when that is under 0.6 of the range given: "
+                              "ray samples and hash-grid cells where the scene is (start.narrowed_range)")
+    auto_range_margin_mm: float = option(50.0, "auto_range: the margin (mm) before and beyond the searched depths "
+                                         "(at least 0.05 of their span)", min=0.0)
     search_step_mm: float = option(1.0, "depth-search hypothesis spacing (mm)", above=0.0)
     search_stride: int = option(2, "depth search on every stride-th pixel", min=1)
 

@@ -48,8 +48,9 @@ import torch
 
 from ...devices import torch_device
 from ..config import TrainConfig
-from ..start import (checked_depth_range, fit_blur, frames_at_start, search_start, searches, set_process_flags,
-                     start_field, start_renderer, surface_depth, surface_terms_on, working_volume)
+from ..fields import Volume
+from ..start import (checked_depth_range, fit_blur, frames_at_start, narrowed_range, search_start, searches,
+                     set_process_flags, start_field, start_renderer, surface_depth, surface_terms_on, working_volume)
 from . import schedule
 from .checkpoint import (CheckpointError, CheckpointExists, RunMismatch, check_field, identity_differences,
                          make_state, read_checkpoint, restore, run_identity, write_checkpoint)
@@ -145,15 +146,29 @@ class Trainer:
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self.progress = progress
         self.progress_interval_s = progress_interval_s
-        self.depth_range = checked_depth_range(scan, depth_range)
+        # the range the run was given (its identity) and the range it trains in: the same, or narrowed to the depth
+        # search's depths (init.auto_range; a resumed run takes its checkpoint's)
+        self.depth_range = self._declared_range = checked_depth_range(scan, depth_range)
         clock = _SetupClock()
         checkpoint, ck_path = self._open_checkpoint(resume, overwrite)
+        if checkpoint is not None:
+            self.depth_range = tuple(float(x) for x in checkpoint["depth_range"])
         set_process_flags(self.device, config.runtime.matmul)
         torch.manual_seed(config.runtime.seed)
         self.generator = torch.Generator(device="cpu").manual_seed(config.runtime.seed)
         clock.mark("device")
         self.n_frames = frames_at_start(scan, config)
         lit, self.volume = working_volume(scan, config, self.n_frames, self.depth_range)
+        self.search_info, self.blur_fit = None, None
+        if init_depth is None and searches(config) and not resume:
+            init_depth, self.search_info = search_start(scan, config, self.n_frames, self.depth_range, lit,
+                                                        self._search_images(), self.device)
+            if config.init.auto_range and sdf is None:
+                self.depth_range, init_depth = narrowed_range(init_depth, self.depth_range,
+                                                              config.init.auto_range_margin_mm)
+                self.search_info["depth_range"] = list(self.depth_range)
+                self.volume = Volume.from_frustum(scan.camera, lit, self.depth_range)
+        clock.mark("depth search")
         self.field = sdf if sdf is not None else start_field(config, self.volume, self.depth_range, scan.camera)
         clock.mark("field")
         self.renderer = start_renderer(self.field, scan, config, self.n_frames, self.volume, self.depth_range,
@@ -169,8 +184,7 @@ class Trainer:
         self._steps = GraphedStep(self.device, use_graph, self._step_body, self._configure_optimizer,
                                   config.sampling.rays)
         clock.mark("optimiser")
-        self.search_info, self.blur_fit = None, None
-        self._start_map(init_depth, lit, resume, clock)
+        self._start_map(init_depth, resume, clock)
         self.iteration, self.history, self.elapsed = 0, History(), 0.0
         if checkpoint is not None:
             self.load_checkpoint(ck_path, checkpoint)
@@ -207,13 +221,14 @@ class Trainer:
                                    "--overwrite starts again and replaces it (Python: resume=True / overwrite=True)")
         return None, ck_path
 
-    def _start_map(self, init_depth, lit: np.ndarray, resume: bool, clock: _SetupClock) -> None:
-        """The starting map (the given one, else a new run's depth search) and a new run's fitted pattern blur."""
+    def _search_images(self):
+        """The frames in use as the depth search reads them: on a GPU a device tensor [N, H, W], else numpy."""
+        images = self.scan.images[: self.n_frames]
+        return torch.as_tensor(images, device=self.device) if self.device.type == "cuda" else images
+
+    def _start_map(self, init_depth, resume: bool, clock: _SetupClock) -> None:
+        """The starting map (the given one, else the new run's depth search) and a new run's fitted pattern blur."""
         cfg = self.cfg
-        if init_depth is None and searches(cfg) and not resume:
-            init_depth, self.search_info = search_start(self.scan, cfg, self.n_frames, self.depth_range, lit,
-                                                        pattern_model_inputs(self)[0], self.device)
-        clock.mark("depth search")
         if cfg.sampling.pattern_blur == "auto" and not resume:
             sigma, self.blur_fit = fit_blur(self.scan, cfg, self.n_frames, init_depth, self.device)
             self.renderer.set_pattern_blur(sigma)
@@ -264,7 +279,7 @@ class Trainer:
 
     # --- checkpoints --------------------------------------------------------------------------
     def _compute_identity(self) -> None:
-        self._identity = run_identity(self.scan, self.cfg, self.depth_range)
+        self._identity = run_identity(self.scan, self.cfg, self._declared_range)
 
     @property
     def identity(self) -> dict:
