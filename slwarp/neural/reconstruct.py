@@ -89,7 +89,11 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
     if not write_in_background:
         with staged_outputs(out) as staging:
             res, jobs = _reconstruct(*args, staging)
-            _write_outputs(jobs)
+            try:
+                _write_outputs(jobs)
+            except BaseException:
+                _settle_checkpoint(res.trainer)
+                raise
             res.trainer.wait_checkpoint()
         return res
     outputs = staged_outputs(out)
@@ -106,6 +110,7 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
             _write_outputs(jobs)
             res.trainer.wait_checkpoint()
         except BaseException as e:  # noqa: BLE001 - re-raised by wait_written, in the caller's thread
+            _settle_checkpoint(res.trainer)
             try:
                 outputs.__exit__(type(e), e, e.__traceback__)  # removes the staging folder, re-raises (wrapped)
             except BaseException as wrapped:  # noqa: BLE001
@@ -159,8 +164,13 @@ def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log
     valid = trainer.renderer.valid_map.cpu().numpy()
     if use_mask and scan.mask is not None:
         valid &= scan.mask
-    depth, confidence, mesh, ext_t, fate = extract_depth(trainer, valid, progress=progress, stages=stages,
-                                                         region=scan.mask if use_mask and scan.mask is not None else None)
+    try:
+        depth, confidence, mesh, ext_t, fate = extract_depth(
+            trainer, valid, progress=progress, stages=stages,
+            region=scan.mask if use_mask and scan.mask is not None else None)
+    except BaseException:
+        _settle_checkpoint(trainer)
+        raise
     t3 = time.perf_counter()  # the depth map is done: what follows is outputs and, with ground truth, its metrics
     points = depth_to_points(depth, scan.camera)
     metrics = None
@@ -173,6 +183,15 @@ def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log
     if staging is not None:
         jobs = _output_jobs(staging, scan, config, trainer, depth, confidence, mesh, points, metrics, fate, timings)
     return Reconstruction(depth, mesh, points, metrics, timings, trainer, confidence, fate), jobs
+
+
+def _settle_checkpoint(trainer) -> None:
+    """Wait for the trainer's checkpoint being written, its own error aside (the caller raises the first failure): a
+    failed run returns with its checkpoint on disk, never half-written."""
+    try:
+        trainer.wait_checkpoint()
+    except Exception:  # noqa: BLE001 - the error being raised matters more; the write left the last good file
+        pass
 
 
 def _write_outputs(jobs: list) -> None:
