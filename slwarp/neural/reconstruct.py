@@ -89,28 +89,20 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
     if not write_in_background:
         with staged_outputs(out) as staging:
             res, jobs = _reconstruct(*args, staging)
-            try:
-                _write_outputs(jobs)
-            except BaseException:
-                _settle_checkpoint(res.trainer)
-                raise
-            res.trainer.wait_checkpoint()
+            _write_files(res, jobs)
         return res
     outputs = staged_outputs(out)
     staging = outputs.__enter__()
     try:
         res, jobs = _reconstruct(*args, staging)
     except BaseException:
-        if not outputs.__exit__(*sys.exc_info()):
-            raise
-        raise  # pragma: no cover - staged_outputs never swallows an exception
+        outputs.__exit__(*sys.exc_info())  # removes the staging folder (and re-raises a wrapped OSError)
+        raise
 
     def finish():
         try:
-            _write_outputs(jobs)
-            res.trainer.wait_checkpoint()
+            _write_files(res, jobs)
         except BaseException as e:  # noqa: BLE001 - re-raised by wait_written, in the caller's thread
-            _settle_checkpoint(res.trainer)
             try:
                 outputs.__exit__(type(e), e, e.__traceback__)  # removes the staging folder, re-raises (wrapped)
             except BaseException as wrapped:  # noqa: BLE001
@@ -183,6 +175,17 @@ def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log
     if staging is not None:
         jobs = _output_jobs(staging, scan, config, trainer, depth, confidence, mesh, points, metrics, fate, timings)
     return Reconstruction(depth, mesh, points, metrics, timings, trainer, confidence, fate), jobs
+
+
+def _write_files(res: Reconstruction, jobs: list) -> None:
+    """The run's files (_output_jobs), then its final checkpoint (Trainer.wait_checkpoint); when a file fails, the
+    checkpoint settles before the error goes on."""
+    try:
+        _write_outputs(jobs)
+    except BaseException:
+        _settle_checkpoint(res.trainer)
+        raise
+    res.trainer.wait_checkpoint()
 
 
 def _settle_checkpoint(trainer) -> None:
