@@ -90,13 +90,13 @@ def _in_order(scans: Sequence[ScanEntry], rows: Sequence[ScanResult]) -> list[Sc
 
 def run_batch(scans: Sequence[ScanEntry], config, out: str | os.PathLike, options: BatchOptions = BatchOptions(), *,
               single: bool = False, per_device: int | None = None, log: Callable[[str], None] = print
-              ) -> BatchSummary | None:
+              ) -> BatchSummary | int:
     """Reconstruct `scans` (from `find_scans`) with `config` into `out`: one after another in this process,
     over torchrun's processes when launched by it, or over `per_device` worker processes per device (see the
     docstring of slwarp.batch). single: write the one scan's outputs into `out` itself.
 
     Writes out/summary.json and out/summary.md and returns the BatchSummary in the process that holds it (this
-    one, or rank 0 under torchrun); other ranks return None.
+    one, or rank 0 under torchrun); other ranks return the number of failed scans (rank 0 reports them).
     """
     out = Path(out)
     if per_device is not None:
@@ -124,7 +124,7 @@ def run_batch(scans: Sequence[ScanEntry], config, out: str | os.PathLike, option
     return summary
 
 
-def _run_torchrun(scans, config, out: Path, options: BatchOptions, single: bool, log) -> BatchSummary | None:
+def _run_torchrun(scans, config, out: Path, options: BatchOptions, single: bool, log) -> BatchSummary | int:
     """This process's part of a batch under torchrun (see the docstring of slwarp.batch)."""
     import torch.distributed as dist
 
@@ -156,13 +156,19 @@ def _run_torchrun(scans, config, out: Path, options: BatchOptions, single: bool,
                                                log=log)]
         gathered = [None] * world if rank == 0 else None
         dist.gather_object((device, rows), gathered, dst=0)
-        if rank != 0:
-            return None
-        results = [ScanResult.from_dict(d) for _, part in gathered for d in part]
-        summary = BatchSummary(_in_order(scans, results + skipped), "torchrun", world, time.perf_counter() - t0,
-                               [d for d, _ in gathered], config.to_dict())
-        summary.write(out)
-        return summary
+        failed = [0]
+        try:
+            if rank == 0:
+                results = [ScanResult.from_dict(d) for _, part in gathered for d in part]
+                summary = BatchSummary(_in_order(scans, results + skipped), "torchrun", world,
+                                       time.perf_counter() - t0, [d for d, _ in gathered], config.to_dict())
+                summary.write(out)
+                failed = [summary.failed]
+        finally:
+            # every rank learns whether a scan failed, so that every process exits alike: over several hosts the
+            # launchers whose processes succeed wait at torchrun's exit barrier (5 min) for those whose failed
+            dist.broadcast_object_list(failed, src=0)
+        return summary if rank == 0 else failed[0]
     finally:
         if owned:
             dist.destroy_process_group()

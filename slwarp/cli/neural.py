@@ -94,8 +94,8 @@ def _reconstruct_batch(args, found, name: str, cfg, dev) -> int:
     timeline.mark("batch")
     summary = run_batch(found.scans, cfg, args.out, options, single=found.single, per_device=args.per_device)
     timeline.mark("batch done")
-    if summary is None:  # a rank other than 0: rank 0 reports
-        return 0
+    if isinstance(summary, int):  # a rank other than 0 (the failed scans' count): rank 0 reports
+        return 1 if summary else 0
     print(summary.report())
     print(f"wrote {args.out}/summary.json and summary.md" + ("" if found.single else "; each scan's outputs in its folder"))
     return 1 if summary.failed else 0
