@@ -11,6 +11,7 @@
              with its hand-written backward
 - search:    the exhaustive depth search (the neural SDF's starting depth map)
 - hashgrid:  the multiresolution hash-grid encoding, its spatial gradient and their backward passes
+- reproject: bilinear lookups of K patterns at projector pixels, backward into patterns (atomics) and pixels
 
 Importing a kernel module defines its kernels without initialising Warp; `runtime.init()` does, on first use.
 Nothing here imports torch or slwarp's other packages: the slwarp modules that launch kernels import them.

@@ -8,10 +8,13 @@ Public functions take `backend="warp"` (default: fused Warp kernels, CPU or CUDA
     stratified_samples(...)       stratified samples with per-ray jitter
     upsample_samples(...)         one NeuS hierarchical up-sampling step
     merge_samples(...)            merge two sorted per-ray sample lists
+    reproject_patterns(...)       bilinear values of K patterns at projector pixels (differentiable in both)
 
 - `render_ops`: the fused render (one forward and one hand-written backward, kernels/render.py) as a
   torch.autograd.Function and, under torch.compile, as torch.library custom ops that stay opaque (no graph break).
 - `sampling_ops`: rays and samples (no gradients flow through them; kernels/sampling.py).
+- `pattern_ops`: pattern reprojection for pattern design (kernels/reproject.py: the backward scatters into the
+  patterns with atomics) as a torch.autograd.Function.
 - `hashgrid_ops`: the multiresolution hash-grid encoding and its spatial gradient (kernels/hashgrid.py), which the
   hash-grid field imports.
 - `twin`: the pure-torch twins, named after the ops they mirror.
@@ -19,6 +22,7 @@ Public functions take `backend="warp"` (default: fused Warp kernels, CPU or CUDA
   from torch tensors.
 """
 from .launch import BACKENDS
+from .pattern_ops import reproject_patterns
 from .render_ops import RenderInputs, RenderOutput, pack_patterns, pack_projector, render_structured_light
 from .sampling_ops import camera_rays, merge_samples, stratified_samples, upsample_samples
 
@@ -31,6 +35,7 @@ __all__ = [
     "stratified_samples",
     "upsample_samples",
     "merge_samples",
+    "reproject_patterns",
     "pack_projector",
     "pack_patterns",
 ]
