@@ -31,7 +31,9 @@ class BatchOptions:
     (a selection, see `Scan.frame_indices`), depth_range (near, far) mm for scans that declare none, use_mask,
     resume (see the docstring of slwarp.batch), overwrite (start each scan afresh over a checkpoint in its folder),
     progress (training progress of each scan; only when one process runs the batch), log (per-scan start and
-    end lines), outside_paths (files outside a scan's folder: see `load_scan`)."""
+    end lines), outside_paths (files outside a scan's folder: see `load_scan`), patterns (a pattern-set file,
+    slwarp.scans.pattern_files, whose patterns replace those of each scan's frames of the same names:
+    `Scan.with_patterns`; a path, read per scan, so that the options stay small to send to worker processes)."""
 
     frames: str | None = None
     depth_range: tuple[float, float] | None = None
@@ -41,6 +43,7 @@ class BatchOptions:
     progress: bool = False
     log: bool = True
     outside_paths: bool | None = None
+    patterns: str | None = None
 
 
 @dataclass(frozen=True)
@@ -158,7 +161,8 @@ def run_scans(jobs: Sequence[ScanJob], config, options: BatchOptions = BatchOpti
     from ..scans.prefetch import ScanPrefetch
 
     def load(job):
-        return ScanPrefetch(job.source, frames=options.frames, outside_paths=options.outside_paths)
+        return ScanPrefetch(job.source, frames=options.frames, outside_paths=options.outside_paths,
+                            patterns=options.patterns)
 
     rows: list[ScanResult] = []
     previous = None  # (row, wait) of the scan whose files are being written
@@ -212,7 +216,8 @@ def run_scan(job: ScanJob, config, options: BatchOptions = BatchOptions(), worke
     try:
         try:
             scan = (loaded.result() if loaded is not None
-                    else load_scan(job.source, frames=options.frames, outside_paths=options.outside_paths))
+                    else load_scan(job.source, frames=options.frames, outside_paths=options.outside_paths,
+                                   patterns=options.patterns))
         finally:
             if on_loaded is not None:
                 on_loaded()

@@ -31,11 +31,12 @@ def cmd_reconstruct(args) -> int:
         raise UserError("--per-device starts its own worker processes: under torchrun use --nproc-per-node "
                         "(K x GPUs for K scans per GPU) instead")
     found = find_scans(args.scans)
+    pset = _pattern_set(args.patterns)  # a bad file is reported before any scan runs
     if not found.single or args.per_device is not None or launched_by_torchrun():
         return _reconstruct_batch(args, found, name, cfg, dev)
     scan_path = args.scans[0]
     start_runtimes(dev)  # beside the scan's loading
-    scan = load_scan(scan_path, frames=args.frames, outside_paths=args.allow_outside_paths)
+    scan = load_scan(scan_path, frames=args.frames, outside_paths=args.allow_outside_paths, patterns=pset)
     timeline.mark("scan loaded")
     _warn_problems(scan)
     depth_range = _parse_range(args.depth_range)
@@ -74,6 +75,19 @@ def cmd_reconstruct(args) -> int:
     return 0
 
 
+def _pattern_set(path):
+    """The PatternSet of --patterns (None without it); a bad file is a ScanError naming it (one line)."""
+    if path is None:
+        return None
+    from ..scans.pattern_files import read_pattern_set
+
+    return read_pattern_set(path)
+
+
+PATTERNS_HELP = ("a pattern-set file (PATH/patterns.yaml or its folder, e.g. from `slwarp design-patterns`): its "
+                 "patterns and roles replace those of the scan's frames of the same names")
+
+
 def _reconstruct_batch(args, found, name: str, cfg, dev) -> int:
     """The scans `found` (slwarp.batch.find_scans) as a batch: each into --out/<name>/ (--out for a lone scan
     folder), a summary printed by the process that gathers it; exit status 1 when a scan failed."""
@@ -90,7 +104,7 @@ def _reconstruct_batch(args, found, name: str, cfg, dev) -> int:
               + f" ({describe(cfg)}) on {dev}", flush=True)
     options = BatchOptions(frames=args.frames, depth_range=_parse_range(args.depth_range), use_mask=args.use_mask,
                            resume=args.resume, overwrite=args.overwrite, progress=not args.quiet, log=not args.quiet,
-                           outside_paths=args.allow_outside_paths)
+                           outside_paths=args.allow_outside_paths, patterns=args.patterns)
     timeline.mark("batch")
     summary = run_batch(found.scans, cfg, args.out, options, single=found.single, per_device=args.per_device)
     timeline.mark("batch done")
@@ -113,6 +127,7 @@ def _add_reconstruct(p, argv=None):
                         "(GPU LOCAL_RANK %% device count)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--frames", help="use only these frames (names, globs, indices, slices; comma-separated)")
+    p.add_argument("--patterns", metavar="FILE", help=PATTERNS_HELP)
     p.add_argument("--resume", action="store_true", help="continue from OUT/train/checkpoint.pt: the same scan, frames, "
                    "depth range and options, except those marked 'may change on resume' below; with several scans: "
                    "skip the scans whose outputs are complete, continue those with a checkpoint, start the others")
@@ -136,7 +151,9 @@ def cmd_watch(args) -> int:
     from ..watch import watch
 
     _name, cfg, _dev = _config_from_args(args)
-    options = BatchOptions(frames=args.frames, depth_range=_parse_range(args.depth_range), use_mask=args.use_mask)
+    _pattern_set(args.patterns)  # a bad file is reported before the station starts
+    options = BatchOptions(frames=args.frames, depth_range=_parse_range(args.depth_range), use_mask=args.use_mask,
+                           patterns=args.patterns)
     return watch(args.inbox, args.out, cfg, options, poll_s=args.poll, settle_s=args.settle, max_scans=args.max_scans,
                  until_idle=args.until_idle, say=lambda text: print(text, flush=True))
 
@@ -152,6 +169,7 @@ def _add_watch(p, argv=None):
     p.add_argument("inbox", metavar="DIR", help="the folder scans arrive in (one sub-folder per scan)")
     p.add_argument("--out", required=True, help="output folder: OUT/<scan folder name>/ per scan")
     p.add_argument("--frames", help="use only these frames of each scan (names, globs, indices, slices)")
+    p.add_argument("--patterns", metavar="FILE", help=PATTERNS_HELP.replace("the scan's", "each scan's"))
     p.add_argument("--depth-range", help="NEAR,FAR camera depth in mm for scans that declare none")
     p.add_argument("--use-mask", action="store_true", help="also restrict each depth map to its scan's mask")
     p.add_argument("--poll", type=float, default=0.5, metavar="S", help="seconds between looks at DIR (default 0.5)")

@@ -92,7 +92,9 @@ def _add_simulate(p):
 
     p.add_argument("--scene", help="built-in scene (see --list)")
     p.add_argument("--mesh", action="append", help="mesh file in mm, camera frame (repeatable)")
-    p.add_argument("--patterns", default="random6", help="pattern set, e.g. random6, gray7, gt, random6+gray7 (default: random6)")
+    p.add_argument("--patterns", default="random6",
+                   help="pattern set, e.g. random6, gray7, gt, random6+gray7, or a pattern-set file PATH/patterns.yaml "
+                        "(see --list; default: random6)")
     p.add_argument("--rig", default="default", choices=list(RIG_NAMES),
                    help="built-in rig: geometry default, vertical, oblique or rolled, at full resolution or small "
                         "(small, small-vertical, ...; see --list; default: default)")

@@ -11,6 +11,8 @@ writes it to scan.yaml:
     white, black            full-on and full-off frames
     ps_{col|row}_p{P}_s{k}of{N}   N-step phase shift with period P px, step k:
                             0.5 + 0.5 cos(2 pi u / P - 2 pi k / N)
+    design{K}_{i}           i-th of K optimised grey-level patterns (`designed_names`; stored as a pattern-set
+                            file: slwarp.scans.pattern_files)
 
 Gray code with n bits cuts the axis into 2^n stripes of W / 2^n px (10 px for 7 bits on 1280 columns);
 pixel u lies in stripe floor(u 2^n / W) and bit k is bit (n-1-k) of that stripe's Gray code g = s ^ (s >> 1).
@@ -20,11 +22,12 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
-from .roles import FrameRole
+from .roles import FrameRole, resolve_roles
 
 __all__ = [
     "PatternSet",
@@ -38,6 +41,7 @@ __all__ = [
     "ground_truth_set",
     "named_set",
     "NAMED_SETS",
+    "designed_names",
     "gray_to_binary",
     "binary_to_gray",
 ]
@@ -45,10 +49,17 @@ __all__ = [
 
 @dataclass
 class PatternSet:
-    """patterns [N, H, W] float32 in [0, 1] and their frame names."""
+    """patterns [N, H, W] float32 in [0, 1] and their frame names.
+
+    roles: declared roles, frame name -> role (a FrameRole, a scan.yaml mapping or a role string), for frames
+    whose names follow no slwarp contract (the others take their name's role; see slwarp.scans.roles); a
+    simulated scan writes them to scan.yaml. source: the pattern-set file it was read from, if any (errors name it).
+    """
 
     patterns: np.ndarray
     names: list[str]
+    roles: dict | None = None
+    source: str | None = field(default=None, compare=False)
 
     def __post_init__(self):
         self.patterns = np.asarray(self.patterns, dtype=np.float32)
@@ -56,6 +67,11 @@ class PatternSet:
             raise ValueError(f"PatternSet: {self.patterns.shape} patterns for {len(self.names)} names")
         if len(set(self.names)) != len(self.names):
             raise ValueError(f"PatternSet: duplicate frame names in {self.names}")
+        if self.roles:
+            stray = sorted(set(self.roles) - set(self.names))
+            if stray:
+                raise ValueError(f"PatternSet: roles for frames it does not have: {stray}")
+            resolve_roles(self.names, self.roles)  # RoleError (a ValueError) naming the frame
 
     def __len__(self) -> int:
         return len(self.names)
@@ -63,11 +79,17 @@ class PatternSet:
     def __add__(self, other: "PatternSet") -> "PatternSet":
         dup = [n for n in other.names if n in self.names]
         other = other.subset([n for n in other.names if n not in dup])  # a combined set keeps one copy
-        return PatternSet(np.concatenate([self.patterns, other.patterns]), self.names + other.names)
+        roles = {**(self.roles or {}), **(other.roles or {})} or None
+        return PatternSet(np.concatenate([self.patterns, other.patterns]), self.names + other.names, roles)
 
     def subset(self, names: list[str]) -> "PatternSet":
         idx = [self.names.index(n) for n in names]
-        return PatternSet(self.patterns[idx], list(names))
+        roles = {n: r for n, r in (self.roles or {}).items() if n in names} or None
+        return PatternSet(self.patterns[idx], list(names), roles, source=self.source)
+
+    def frame_roles(self) -> list[FrameRole | None]:
+        """[N] the role of each frame: declared (`roles`) or from its name; None where it has none."""
+        return resolve_roles(self.names, self.roles)
 
     @property
     def width(self) -> int:
@@ -196,6 +218,14 @@ def number_theoretic_pmp(width: int, height: int, periods=(48, 70), steps: int =
     return phase_shift(width, height, p1, steps, axis) + phase_shift(width, height, p2, steps, axis)
 
 
+def designed_names(count: int) -> list[str]:
+    """The frame names of a designed (optimised) set of `count` patterns: design{count}_0 .. design{count}_{count-1}
+    (role {kind: designed, index: i, count: count})."""
+    if int(count) < 1:
+        raise ValueError(f"a designed pattern set has at least 1 pattern, got count={count}")
+    return [FrameRole("designed", index=i, count=int(count)).name for i in range(int(count))]
+
+
 def ground_truth_set(width: int, height: int, axis: str = "col") -> PatternSet:
     """7 Gray code patterns with inverses + 4-step phase shift with a 40 px period (18 patterns)."""
     return gray_code(width, height, 7, axis, inverse=True) + phase_shift(width, height, 40.0, 4, axis)
@@ -217,6 +247,8 @@ NAMED_SETS = {
     "gt": "ground truth set: gray7inv + 4-step phase shift, period 40 px (18 patterns)",
     "NAME_row": "any of these codes over the projector rows instead of its columns (gt_row, npmp6_row, cgc7_row; "
                 "periods W become H)",
+    "FILE": "a pattern-set file, PATH/patterns.yaml or its folder: e.g. a set written by `slwarp design-patterns` "
+            "(its size must be the projector's)",
 }
 
 
@@ -251,12 +283,40 @@ def _one_named(name: str, width: int, height: int, seed: int) -> PatternSet:
     raise ValueError(f"unknown pattern set {name!r}; known: " + ", ".join(NAMED_SETS))
 
 
+def _from_file(path: str, width: int, height: int) -> PatternSet:
+    """The pattern-set file `path` (slwarp.scans.pattern_files), which must be the projector's size."""
+    from .pattern_files import read_pattern_set
+
+    pset = read_pattern_set(path)
+    if (pset.width, pset.height) != (width, height):
+        raise ValueError(f"{pset.source}: the pattern set is {pset.width}x{pset.height}, the projector "
+                         f"{width}x{height}")
+    return pset
+
+
+def _one_part(part: str, width: int, height: int, seed: int) -> PatternSet:
+    from .pattern_files import is_pattern_set_path
+
+    if is_pattern_set_path(part):
+        return _from_file(part, width, height)
+    if "/" in part or "\\" in part:  # meant as a path: say so rather than "unknown pattern set"
+        raise ValueError(f"{part}: no pattern-set file there (need PATH/patterns.yaml, a .yaml file, or a folder "
+                         "holding patterns.yaml)")
+    return _one_named(part, width, height, seed)
+
+
 def named_set(spec: str, width: int, height: int, seed: int = 0) -> PatternSet:
-    """A named pattern set (see NAMED_SETS), or several joined with '+' (duplicate frames kept once)."""
+    """A named pattern set (see NAMED_SETS) or a pattern-set file, or several joined with '+' (duplicate frames
+    kept once). A file must be width x height (ValueError naming it and both sizes)."""
+    from .pattern_files import is_pattern_set_path
+
+    whole = spec.strip()
+    if is_pattern_set_path(whole) and ("+" not in whole or Path(whole).exists()):  # a file name may hold a '+'
+        return _from_file(whole, width, height)
     parts = [p.strip() for p in spec.split("+") if p.strip()]
     if not parts:
         raise ValueError("empty pattern set name")
-    out = _one_named(parts[0], width, height, seed)
+    out = _one_part(parts[0], width, height, seed)
     for p in parts[1:]:
-        out = out + _one_named(p, width, height, seed)
+        out = out + _one_part(p, width, height, seed)
     return out

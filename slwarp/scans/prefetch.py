@@ -22,18 +22,19 @@ from .scanner import camera_rays
 
 
 class ScanPrefetch:
-    """load_scan(path, frames, outside_paths=...) and the camera's ray grid, in a daemon thread started here."""
+    """load_scan(path, frames, outside_paths=..., patterns=...) and the camera's ray grid, in a daemon thread started
+    here."""
 
-    def __init__(self, path, frames=None, outside_paths: bool | None = None):
+    def __init__(self, path, frames=None, outside_paths: bool | None = None, patterns=None):
         self.path = path
         self._scan, self._error = None, None
-        self._thread = threading.Thread(target=self._run, args=(path, frames, outside_paths), name="slwarp-scan",
-                                        daemon=True)
+        self._thread = threading.Thread(target=self._run, args=(path, frames, outside_paths, patterns),
+                                        name="slwarp-scan", daemon=True)
         self._thread.start()
 
-    def _run(self, path, frames, outside_paths) -> None:
+    def _run(self, path, frames, outside_paths, patterns) -> None:
         try:
-            self._scan = load_scan(path, frames=frames, outside_paths=outside_paths)
+            self._scan = load_scan(path, frames=frames, outside_paths=outside_paths, patterns=patterns)
         except BaseException as e:  # noqa: BLE001 - raised in the thread that asks for the scan
             self._error = e
             return

@@ -9,10 +9,13 @@ role string (the selector grammar below, every field given):
     {kind: uniform, level: 0.78}                         uniform frame at another level (0 = black, 1 = white)
     random | {kind: random, size: 20, index: 0}          random binary pattern (square size in px when known;
                                                          index and inverse optional)
+    {kind: designed, index: 0, count: 4}                 i-th pattern (0-based) of an optimised set of `count`
+                                                         grey-level patterns (slwarp.scans.pattern_files)
 
 Without a declared role, slwarp's own frame names are the fallback (`role_from_name`):
 
     gc_{col|row}_b{k}[_inv]   ps_{col|row}_p{P}_s{k}of{N}   white   black   rand{size}_{i}   uniform_{level}
+    design{K}_{i}
 
 A frame with neither has no role: the neural method uses it, the decoders do not. Roles are resolved once,
 when a Scan is built (`resolve_roles`); the decoders read roles, never names. A declared role that is
@@ -20,13 +23,15 @@ incomplete, malformed, contradicts the frame's slwarp-style name, or repeats ano
 `RoleError` naming the frame and the problem.
 
 Selector grammar (`--frames`, `slwarp info`): KIND[:QUALIFIER]..., KIND one of gray, phase, white, black,
-uniform, random; a QUALIFIER is `col` or `row` (axis), `inv` or `noinv` (inverse or not), or FIELD=VALUE
-or FIELD=LO-HI (an inclusive range) with FIELD one of bit, period, step, steps, size, index, level:
+uniform, random, designed; a QUALIFIER is `col` or `row` (axis), `inv` or `noinv` (inverse or not), or
+FIELD=VALUE or FIELD=LO-HI (an inclusive range) with FIELD one of bit, period, step, steps, size, index, count,
+level:
 
     gray:col                  every column Gray code frame (bits and inverses)
     gray:col:bit=0-6:noinv    the 7 most significant column bits, no inverses (GC(7))
     phase:row:period=40       the steps of the 40 px row phase shift
     random:size=20            the random patterns of 20 px squares
+    designed:count=4          the 4 patterns of a designed set of 4 (designed:index=0-2: its first 3)
 """
 from __future__ import annotations
 
@@ -37,7 +42,7 @@ from dataclasses import dataclass, fields
 __all__ = ["KINDS", "FrameRole", "RoleError", "RoleSelector", "role_from_name", "parse_role", "resolve_roles",
            "parse_selector", "describe_roles", "role_groups"]
 
-KINDS = ("gray", "phase", "white", "black", "uniform", "random")
+KINDS = ("gray", "phase", "white", "black", "uniform", "random", "designed")
 AXES = ("col", "row")
 # the fields each kind may have, and which of them it must have
 _FIELDS = {
@@ -47,8 +52,9 @@ _FIELDS = {
     "black": (set(), set()),
     "uniform": ({"level"}, set()),
     "random": ({"size", "index", "inverse"}, set()),
+    "designed": ({"index", "count"}, {"index", "count"}),
 }
-_INT_FIELDS = ("bit", "step", "steps", "index")
+_INT_FIELDS = ("bit", "step", "steps", "index", "count")
 _FLOAT_FIELDS = ("period", "size", "level")
 
 
@@ -60,7 +66,8 @@ class RoleError(ValueError):
 class FrameRole:
     """What a frame is. kind: one of KINDS; axis: 'col' or 'row' (gray, phase); bit: Gray code bit, 0 = most
     significant; inverse: the inverted pattern (gray, random); period: projector px, step and steps: k of N
-    (phase); size: random square size px (None: unknown); index: i-th random pattern; level: uniform level."""
+    (phase); size: random square size px (None: unknown); index: i-th random or designed pattern (0-based);
+    count: the designed set's size K; level: uniform level."""
 
     kind: str
     axis: str | None = None
@@ -72,6 +79,7 @@ class FrameRole:
     size: float | None = None
     index: int | None = None
     level: float | None = None
+    count: int | None = None
 
     @property
     def unique(self) -> bool:
@@ -88,7 +96,7 @@ class FrameRole:
         parts = [self.kind]
         if self.axis:
             parts.append(self.axis)
-        for f in ("bit", "period", "step", "steps", "size", "index", "level"):
+        for f in ("bit", "period", "step", "steps", "size", "count", "index", "level"):
             v = getattr(self, f)
             if v is not None:
                 parts.append(f"{f}={_fmt(v)}")
@@ -101,7 +109,7 @@ class FrameRole:
         if self.kind in ("white", "black"):
             return self.kind
         d = {"kind": self.kind}
-        for f in ("axis", "bit", "inverse", "period", "step", "steps", "size", "index", "level"):
+        for f in ("axis", "bit", "inverse", "period", "step", "steps", "size", "index", "count", "level"):
             v = getattr(self, f)
             if f == "inverse":
                 if self.kind == "gray" or v:
@@ -123,6 +131,8 @@ class FrameRole:
             return f"uniform_{_fmt(self.level)}"
         if self.kind == "random" and self.size is not None and self.index is not None:
             return f"rand{_fmt(self.size)}_{self.index}" + ("_inv" if self.inverse else "")
+        if self.kind == "designed":
+            return f"design{self.count}_{self.index}"
         return None
 
 
@@ -144,6 +154,7 @@ _NAME_PATTERNS = [
     (re.compile(rf"uniform_{_NUM}"), lambda m: FrameRole("uniform", level=float(m[1]))),
     (re.compile(rf"rand{_NUM}_(\d+)(_inv)?"),
      lambda m: FrameRole("random", size=float(m[1]), index=int(m[2]), inverse=bool(m[3]))),
+    (re.compile(r"design(\d+)_(\d+)"), lambda m: FrameRole("designed", index=int(m[2]), count=int(m[1]))),
 ]
 
 
@@ -187,6 +198,11 @@ def _check(role: FrameRole) -> FrameRole:
         raise RoleError(f"level must be in [0, 1] (0 = black, 1 = white), got {role.level}")
     if role.index is not None and role.index < 0:
         raise RoleError(f"index must be >= 0, got {role.index}")
+    if role.count is not None:
+        if role.count < 1:
+            raise RoleError(f"count must be >= 1 (the designed set's size), got {role.count}")
+        if role.index is not None and role.index >= role.count:
+            raise RoleError(f"index must be in 0..count-1 ({role.count - 1}), got index={role.index}")
     return role
 
 
@@ -343,7 +359,7 @@ def parse_selector(token: str) -> RoleSelector | None:
             key, val = q.split("=", 1)
             if key not in _INT_FIELDS + _FLOAT_FIELDS:
                 raise RoleError(f"selector {token!r}: unknown field {key!r} (fields: bit, period, step, steps, size, "
-                                "index, level)")
+                                "index, count, level)")
             m = re.fullmatch(rf"{_NUM}(?:-{_NUM})?", val)
             if not m:
                 raise RoleError(f"selector {token!r}: {key}= needs a number or a range LO-HI, got {val!r}")
@@ -388,6 +404,8 @@ def role_groups(names: list[str], roles: list[FrameRole | None]) -> list[tuple[s
             key = ("phase", r.axis, r.period, r.steps)
         elif r.kind == "random":
             key = ("random", r.size)
+        elif r.kind == "designed":
+            key = ("designed", r.count)
         else:
             key = (r.kind, r.level)
         groups.setdefault(key, []).append(i)
@@ -413,6 +431,8 @@ def role_groups(names: list[str], roles: list[FrameRole | None]) -> list[tuple[s
             n_inv = sum(r.inverse for r in members)
             if n_inv:
                 label += f" ({n_inv} inverse{'s' if n_inv > 1 else ''})"
+        elif kind == "designed":
+            label = f"designed:count={key[1]} (index={_ranges([r.index for r in members])})"
         else:
             label = kind + (f":level={_fmt(key[1])}" if kind == "uniform" and key[1] is not None else "")
         out.append((label, [names[i] for i in idx]))

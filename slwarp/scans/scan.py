@@ -215,6 +215,29 @@ class Scan:
         idx = self.frame_indices(frames)
         return replace(self, images=self.images[idx], patterns=self.patterns[idx], names=[self.names[i] for i in idx])
 
+    def with_patterns(self, pset) -> "Scan":
+        """This scan with the patterns (and roles) of the PatternSet `pset` for its frames of the same names, e.g. a
+        designed set (slwarp.scans.pattern_files.read_pattern_set) the scan's patterns folder lacks or holds an older
+        version of. Every frame of `pset` must be one of the scan's, and `pset` the projector's size: else ScanError
+        naming the pattern set (pset.source) and the scan. The other frames keep their patterns and roles."""
+        where, src = self.source or "scan", pset.source or "the pattern set"
+        if pset.patterns.shape[1:] != (self.projector.height, self.projector.width):
+            raise ScanError(f"{src}: the pattern set is {pset.width}x{pset.height}, the projector of {where} is "
+                            f"{self.projector.width}x{self.projector.height}")
+        missing = [n for n in pset.names if n not in self.names]
+        if missing:
+            raise ScanError(f"{src}: frames {_names(missing)} of the pattern set are not in {where} (its frames: "
+                            f"{_names(self.names, 8)})")
+        patterns = self.patterns.copy()
+        declared = dict(self.declared_roles or {})
+        for name, pat, role in zip(pset.names, pset.patterns, pset.frame_roles()):
+            patterns[self.names.index(name)] = pat
+            declared.pop(name, None)  # the set's role replaces what scan.yaml declared
+            if role is not None:
+                declared[name] = role
+        meta = {**self.meta, "pattern_set": pset.source} if pset.source else self.meta
+        return replace(self, patterns=patterns, declared_roles=declared, meta=meta)
+
     def has(self, *names: str) -> bool:
         return all(n in self.names for n in names)
 
@@ -324,12 +347,15 @@ class Scan:
 
 
 def load_scan(path: str | os.PathLike, frames=None, capture: int | str | None = None,
-              outside_paths: bool | None = None) -> Scan:
+              outside_paths: bool | None = None, patterns=None) -> Scan:
     """Load a scan, detecting the layout: native (scan.yaml), NeSS (config.ini) or procam
     (calibration_result.xml). `frames` selects a subset (see `Scan.frame_indices`); `capture` picks
     capture_N in the procam layout (default: the first one). outside_paths: whether files outside the scan folder
     (links followed) may be read: None: only when scan.yaml says `allow_outside_paths: true`; True: yes; False:
-    never, whatever scan.yaml says (a scan from others). ScanError naming the entry otherwise."""
+    never, whatever scan.yaml says (a scan from others). ScanError naming the entry otherwise.
+    patterns: a PatternSet or a pattern-set file (slwarp.scans.pattern_files) whose patterns replace those of the
+    frames of the same names (`Scan.with_patterns`), before `frames` selects (a selection may then use the set's
+    roles)."""
     path = Path(path)
     if not path.exists():
         raise ScanError(f"scan not found: {path}")
@@ -351,6 +377,12 @@ def load_scan(path: str | os.PathLike, frames=None, capture: int | str | None = 
             f"{path}: no scan found: missing {SCAN_FILE} (native layout), config.ini (NeSS layout) or "
             "calibration_result.xml (procam layout)"
         )
+    if patterns is not None:
+        if not hasattr(patterns, "names"):  # a path
+            from .pattern_files import read_pattern_set
+
+            patterns = read_pattern_set(patterns)
+        scan = scan.with_patterns(patterns)
     return scan.select(frames) if frames is not None else scan
 
 

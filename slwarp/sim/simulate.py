@@ -311,7 +311,7 @@ def simulate(objects: list[SceneObject], camera: Camera, projector: Projector, p
     timings = {**geom.timings, "patterns_s": t2 - t1, "imaging_s": t3 - t2, "total_s": t3 - t0}
     info = {"simulator": asdict(options), "timings": timings, **(meta or {})}
     return Scan(camera, projector, images, patterns.patterns, patterns.names, depth_range=tuple(depth_range),
-                gt_depth=depth, mask=mask, meta=info)
+                gt_depth=depth, mask=mask, meta=info, declared_roles=patterns.roles)
 
 
 def simulate_scene(scene: str = "bunny", patterns: str | PatternSet = "random6", rig: str = "default",
