@@ -64,7 +64,7 @@ BAD_VALUES = [
     (["reconstruct", "scan", "--out", "o", "--per-device", "0"],
      "slwarp reconstruct: error: --per-device: '0' is not allowed; it takes an integer >= 1", "slwarp reconstruct"),
     (["recontsruct"], "slwarp: error: COMMAND: invalid choice: 'recontsruct' (choose from 'demo', 'info', "
-     "'simulate', 'decode', 'evaluate', 'reconstruct', 'watch')", "slwarp"),
+     "'simulate', 'decode', 'evaluate', 'reconstruct', 'design-patterns', 'watch')", "slwarp"),
 ]
 
 

@@ -6,6 +6,7 @@
     slwarp evaluate PRED SCAN             depth metrics of a depth map against the scan's ground truth
     slwarp reconstruct SCAN... --out D    the neural SDF method: train, then depth, mesh, point cloud (several
                                           scans: a batch, sharded over torchrun's processes; see slwarp.batch)
+    slwarp design-patterns --rig R --out D   projector patterns optimised for a rig (slwarp.design)
     slwarp demo                           the paper's comparison on an embedded default scene
 
     slwarp --version                      slwarp's version, with torch's and Warp's
@@ -19,8 +20,9 @@ one-line message naming the file or option and the problem (SLWARP_DEBUG=1 shows
 command line argparse rejects adds one line pointing to the command's --help, never the usage. Anything else is
 a bug and keeps its traceback.
 
-Modules: `scans` (info, simulate), `decode` (decode, evaluate), `neural` (reconstruct, watch, demo), `options` (the
-options and help the commands share), `errors` (what is reported as bad input); here the parser and `main`.
+Modules: `scans` (info, simulate), `decode` (decode, evaluate), `neural` (reconstruct, watch, demo), `design`
+(design-patterns), `options` (the options and help the commands share), `errors` (what is reported as bad input);
+here the parser and `main`.
 """
 from __future__ import annotations
 
@@ -33,6 +35,7 @@ from .. import timeline
 timeline.mark("started")  # the interpreter has started and imported the command's module
 
 # the commands, imported after the mark, which times the interpreter's start (they import nothing heavy at the top)
+from .design import _add_design, cmd_design  # noqa: E402
 from .decode import _add_decode, _add_evaluate, cmd_decode, cmd_evaluate  # noqa: E402
 from .errors import _VALUE_ERRORS_ARE_USER_ERRORS, UserError, _interrupted, _report, _user_errors  # noqa: E402
 from .neural import _add_demo, _add_reconstruct, _add_watch, cmd_demo, cmd_reconstruct, cmd_watch  # noqa: E402
@@ -42,7 +45,7 @@ from .scans import _add_info, _add_simulate, cmd_info, cmd_simulate  # noqa: E40
 
 # what others import from here: main, entry, build_parser, and these
 __all__ = ["main", "entry", "build_parser", "version_text", "UserError", "COMMON_OPTIONS", "cmd_info", "cmd_simulate",
-           "cmd_decode", "cmd_evaluate", "cmd_reconstruct", "cmd_watch", "cmd_demo"]
+           "cmd_decode", "cmd_evaluate", "cmd_reconstruct", "cmd_watch", "cmd_demo", "cmd_design"]
 
 
 def build_parser(argv=None) -> argparse.ArgumentParser:
@@ -75,6 +78,8 @@ _COMMANDS = {
     "evaluate": ("depth metrics (MAE, RMSE, >1/2/5 mm, completeness) against a scan's ground truth, and how well a "
                  "confidence map ranks the errors", _add_evaluate),
     "reconstruct": ("depth, mesh and point cloud from a scan with the neural SDF method", _add_reconstruct),
+    "design-patterns": ("projector patterns optimised for a rig's geometry, blur and noise (PNGs + a pattern-set file)",
+                        _add_design),
     "watch": ("a scanning station: reconstruct each scan folder that appears in a folder, in one warm process",
               _add_watch),
 }

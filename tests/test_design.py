@@ -1,0 +1,110 @@
+"""Pattern design (slwarp.design, `slwarp design-patterns`): the objective's gradient through the Warp reprojection
+matches its torch twin, a short descent lowers the objective, binary output keeps every pixel's code, and a designed
+set written by the command is read back and projected by `slwarp simulate --patterns`."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from slwarp.cli import main as cli_main
+from slwarp.design import CodeModel, DesignOptions, NoiseModel, binarise, code_image, design_patterns, miss_loss
+from slwarp.design.optimise import normalised_codes
+from slwarp.scans.pattern_files import read_pattern_set
+from slwarp.sim.rigs import DEPTH_RANGE_MM, make_rig
+
+CAMERA, PROJECTOR = make_rig("small")
+
+
+@pytest.fixture(scope="module")
+def model():
+    return CodeModel(CAMERA, PROJECTOR, DEPTH_RANGE_MM, NoiseModel())
+
+
+def test_hypotheses_follow_the_epipolar_line(model):
+    # hypotheses every 0.5 px or less along the longest line; the direction is a unit vector
+    assert model.hypotheses >= model.span_px / 0.5
+    assert np.isclose(np.linalg.norm(model.direction), 1.0)
+    g = torch.Generator()
+    g.manual_seed(0)
+    b = model.batch(64, 3, g)
+    # the hypothesis nearest the truth is within one hypothesis spacing (0.5 px) of it, on every pixel
+    assert float(b.dist.min(1).values.max()) <= 0.5 + 1e-3
+    # the true pixels are on the projector image (unlit ones were dropped)
+    assert bool(((b.uv_true[:, 0] > -0.5) & (b.uv_true[:, 0] < PROJECTOR.width - 0.5)).all())
+
+
+def test_objective_gradient_warp_matches_twin(model):
+    g = torch.Generator()
+    g.manual_seed(1)
+    batch = model.batch(96, 3, g)
+    theta = torch.randn(3, model.code_length, generator=g)
+    grads, losses = [], []
+    for backend in ("warp", "torch"):
+        th = theta.clone().requires_grad_(True)
+        loss = miss_loss(code_image(normalised_codes(th), model.coords), batch, model.noise, backend=backend)
+        loss.backward()
+        grads.append(th.grad)
+        losses.append(float(loss.detach()))
+    assert losses[0] == pytest.approx(losses[1], rel=1e-4)
+    assert float(grads[1].abs().max()) > 0
+    assert torch.allclose(grads[0], grads[1], rtol=1e-3, atol=1e-3 * float(grads[1].abs().max()))
+
+
+def test_codes_span_zero_to_one_at_every_pixel():
+    theta = torch.randn(4, 50)
+    c = normalised_codes(theta)
+    assert torch.allclose(c.min(0).values, torch.zeros(50)) and torch.allclose(c.max(0).values, torch.ones(50))
+    b = binarise(np.random.default_rng(0).random((3, 5, 7)))
+    assert set(np.unique(b)) <= {0.0, 1.0}
+    assert (b.max(0) == 1).all() and (b.min(0) == 0).all()
+
+
+def test_a_short_design_lowers_its_objective():
+    # 3 patterns: with every pixel's code spanning 0..1, 2 patterns leave a pixel one bit (which frame is brighter)
+    # and nothing for the descent to shape
+    opts = DesignOptions(count=3, iterations=30, pixels=512, validation_pixels=1024, report_every=10, seed=3)
+    res = design_patterns(CAMERA, PROJECTOR, DEPTH_RANGE_MM, opts, baselines=())
+    h = res.history
+    assert h["iteration"] == [0, 10, 20, 30]
+    assert min(h["loss"][1:]) < h["loss"][0] - 0.01
+    assert res.patterns.names == ["design3_0", "design3_1", "design3_2"]
+    p = res.patterns.patterns
+    assert p.shape == (3, PROJECTOR.height, PROJECTOR.width)
+    # 8-bit values, each pixel's code spanning 0..1
+    assert np.allclose(p * 255, np.rint(p * 255), atol=1e-4)
+    assert np.allclose(p.max(0), 1.0) and np.allclose(p.min(0), 0.0)
+
+
+def test_design_patterns_command_writes_a_set_that_simulate_projects(tmp_path, capsys):
+    out = tmp_path / "design"
+    assert cli_main(["design-patterns", "--rig", "small", "--count", "3", "--iterations", "4", "--pixels", "256",
+                     "--device", "cpu", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "designed 3" in text and "random6" in text and "gray7" in text
+    for f in ("patterns.yaml", "design.json", "design.png", "design3_0.png", "design3_2.png"):
+        assert (out / f).is_file(), f
+    doc = json.loads((out / "design.json").read_text())
+    assert doc["history"]["iteration"][-1] == 4 and doc["options"]["count"] == 3
+    pset = read_pattern_set(out)
+    assert pset.names == ["design3_0", "design3_1", "design3_2"]
+    scan_dir = tmp_path / "scan"
+    assert cli_main(["simulate", "--scene", "bunny", "--rig", "small", "--patterns", f"random6+{out}",
+                     "--out", str(scan_dir), "--device", "cpu"]) == 0
+    assert cli_main(["info", str(scan_dir), "--roles", "--frames", "designed"]) == 0
+    assert "designed" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--rig", "small", "--scan", "x"], "either --rig"),
+    (["--rig", "nowhere"], "unknown rig"),
+    (["--rig", "small", "--count", "1"], "at least 2 patterns"),
+    (["--rig", "small", "--depth-range", "900,500"], "--depth-range"),
+    (["--rig", "small", "--modulation", "0.5"], "--modulation"),
+])
+def test_design_patterns_bad_input_is_one_line(tmp_path, capsys, argv, message):
+    assert cli_main(["design-patterns", "--out", str(tmp_path / "o"), "--device", "cpu", *argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1
