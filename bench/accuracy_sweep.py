@@ -62,7 +62,9 @@ def _init_worker(devices, threads: int, keep: str | None = None) -> None:
         torch.cuda.set_device(torch.device(_DEVICE))
 
 
-def _scan(rig: str, scene: str, seed: int, axis_hint: str | None = None):
+def _scan(rig: str, scene: str, seed: int, designs: str | None = None):
+    """(scan, depth axis): random6 + gray7 along the depth axis, and with `designs` (a folder of
+    <rig>/design<K>/patterns.yaml, bench.designed_patterns) every design of the rig after them."""
     from slwarp.decode import choose_plane_axis
     from slwarp.sim.rigs import make_rig
     from slwarp.sim.simulate import SimOptions, simulate_scene
@@ -70,8 +72,17 @@ def _scan(rig: str, scene: str, seed: int, axis_hint: str | None = None):
     _, projector = make_rig(rig)
     axis = choose_plane_axis(projector)
     gray = "gray7" if axis == "col" else "gray7_row"
+    spec = f"random6+{gray}" + "".join(f"+{p}" for p in rig_designs(designs, rig))
     sim_device = _DEVICE if _DEVICE and _DEVICE.startswith("cuda") else None
-    return simulate_scene(scene, f"random6+{gray}", rig, SimOptions(seed=seed), device=sim_device), axis
+    return simulate_scene(scene, spec, rig, SimOptions(seed=seed), device=sim_device), axis
+
+
+def rig_designs(designs: str | None, rig: str) -> list[str]:
+    """The pattern-set files <designs>/<rig>/design<K>/patterns.yaml, by K."""
+    if not designs:
+        return []
+    found = sorted(Path(designs, rig).glob("design*/patterns.yaml"), key=lambda p: int(p.parent.name[6:] or 0))
+    return [str(p) for p in found]
 
 
 def error_split(depth: np.ndarray, scan) -> dict:
@@ -128,7 +139,7 @@ def run_job(job: dict) -> dict:
     (and the error maps in the --keep folder when one is given)."""
     t0 = time.perf_counter()
     try:
-        scan, axis = _scan(job["rig"], job["scene"], job["seed"])
+        scan, axis = _scan(job["rig"], job["scene"], job["seed"], job.get("designs"))
         out = {"job": job, "device": _DEVICE, "axis": axis, "methods": {}}
         if job["kind"] == "classical":
             from slwarp.decode import reconstruct_depth
@@ -151,7 +162,7 @@ def run_job(job: dict) -> dict:
             rec = reconstruct(scan.select(neural_frames(job, axis)), cfg, progress=False)
             m = dict(rec.metrics)
             m.update(error_split(rec.depth, scan))
-            keep_error_map(job, job["label"], rec.depth, scan, rec.fate)
+            keep_error_map(job, method_label(job), rec.depth, scan, rec.fate)
             m.update(train_s=rec.timings.get("train_s"), total_s=rec.timings.get("total_s"),
                      iterations=rec.timings.get("iterations"), extract_s=rec.timings.get("total_s", 0.0)
                      - rec.timings.get("train_s", 0.0) - rec.timings.get("setup_s", 0.0))
@@ -160,14 +171,14 @@ def run_job(job: dict) -> dict:
             valid = rec.trainer.renderer.valid_map.cpu().numpy()
             m["lost"] = lost_pixels(scan.mask, valid, rec.timings)
             m.update(refine_facts(rec.timings))
-            out["methods"][job["label"]] = m
+            out["methods"][method_label(job)] = m
             # the same trained field extracted again with other extraction options (--also-extract)
             trainer = rec.trainer
             for variant in job.get("also_extract", []):
                 trainer.cfg = cfg.with_options(**parse_overrides(variant.replace(":", ",")))
                 t1 = time.perf_counter()
                 depth, _, _, ext_t, fate = extract_depth(trainer, valid)
-                label = f"{job['label']}+{variant}"
+                label = f"{method_label(job)}+{variant}"
                 m = {**depth_metrics(depth, scan.gt_depth, scan.mask), **error_split(depth, scan),
                      "train_s": rec.timings.get("train_s"), "extract_s": time.perf_counter() - t1,
                      "lost": lost_pixels(scan.mask, valid, ext_t)}
@@ -182,9 +193,20 @@ def run_job(job: dict) -> dict:
 
 
 def neural_frames(job: dict, axis: str) -> str:
-    """The frame selector a neural run trains on: the 6 random patterns, or (job["frames"] == "gray7") the 7 most
-    significant Gray code images along the depth axis, no inverses: what the real captures give (bench.real_captures)."""
-    return f"gray:{axis}:bit=0-6:noinv" if job.get("frames") == "gray7" else "rand*"
+    """The frame selector a neural run trains on: the 6 random patterns, (job["frames"] == "gray7") the 7 most
+    significant Gray code images along the depth axis, no inverses: what the real captures give (bench.real_captures),
+    or ("design<K>") the rig's designed set of K patterns."""
+    frames = job.get("frames") or "random6"
+    if frames == "gray7":
+        return f"gray:{axis}:bit=0-6:noinv"
+    if frames.startswith("design"):
+        return f"designed:count={int(frames[6:])}"
+    return "rand*"
+
+
+def method_label(job: dict) -> str:
+    """A neural run's name in the tables: the preset label, and the frames when a sweep trains on several sets."""
+    return job.get("tag") or job["label"]
 
 
 def job_key(job: dict) -> str:
@@ -262,6 +284,14 @@ def summarise(results: list[dict], rigs: list[str], scenes: list[str], labels: l
     return table
 
 
+def _frames_prose(frames: str | None) -> str:
+    sets = (frames or "random6").split(",")
+    prose = {"random6": "the 6 random patterns",
+             "gray7": "the 7 most significant Gray code images (no inverses), as on the real captures"}
+    names = [prose.get(f, f"the rig's designed set of {f[6:]} patterns (bench.designed_patterns)") for f in sets]
+    return names[0] if len(names) == 1 else "each of: " + "; ".join(names) + " (one design per rig, from no scene)"
+
+
 def markdown(doc: dict) -> str:
     from slwarp.evaluation.metrics import format_table
 
@@ -272,9 +302,7 @@ def markdown(doc: dict) -> str:
           (f"`{doc['command']}`: the tables of the finished runs in its --state. " if doc.get("report") else
            f"`{doc['command']}`; {doc['workers']} runs at a time on {max(doc['gpus'], 1)} device(s); {doc['wall_s'] / 60:.1f} min. ")
           + (f"{doc['note']} " if doc.get("note") else "") + "Scans: `random6+gray7` (rows on the vertical rig), "
-          f"SimOptions(seed={doc['seed']}); ours trains on "
-          + ("the 7 most significant Gray code images (no inverses), as on the real captures"
-             if doc.get("neural_frames") == "gray7" else "the 6 random patterns") + "; GC(k) interp decodes k Gray code "
+          f"SimOptions(seed={doc['seed']}); ours trains on " + _frames_prose(doc.get("neural_frames")) + "; GC(k) interp decodes k Gray code "
           "images without inverses. Metrics over the GT mask, means over the scenes "
           f"({', '.join(scenes)}).", ""]
     if doc["overrides"]:
@@ -345,9 +373,12 @@ def main(argv=None) -> int:
     ap.add_argument("--small", action="store_true", help="each geometry's small-resolution rig")
     ap.add_argument("--scenes", default=None, help="comma-separated scenes (default: every built-in scene)")
     ap.add_argument("--seed", type=int, default=0, help="simulator noise seed")
-    ap.add_argument("--neural-frames", choices=("random6", "gray7"), default="random6",
-                    help="what the neural presets train on: the paper's 6 random patterns, or the 7 Gray code images "
-                         "the classical GC(7) decodes (the real captures' case)")
+    ap.add_argument("--designs", default=None, help="a folder of designed pattern sets, <rig>/design<K>/patterns.yaml "
+                    "(bench.designed_patterns): the scans carry them too, and --neural-frames may name design<K>")
+    ap.add_argument("--neural-frames", default="random6",
+                    help="what the neural presets train on, comma-separated: random6 (the paper's 6 random patterns), "
+                         "gray7 (the 7 Gray code images the classical GC(7) decodes: the real captures' case) or "
+                         "design<K> (with --designs); several: every preset on each, named 'PRESET on SET'")
     ap.add_argument("--workers-per-gpu", type=int, default=4, help="processes per GPU (CUDA)")
     ap.add_argument("--workers", type=int, default=None, help="processes on the CPU (default 1)")
     ap.add_argument("--state", default=None, help="folder of finished runs (default <out>/accuracy-state)")
@@ -388,16 +419,24 @@ def main(argv=None) -> int:
     state = Path(args.state) if args.state else out / "accuracy-state"
     state.mkdir(parents=True, exist_ok=True)
 
+    frame_sets = args.neural_frames.split(",")
+    for fs in frame_sets:
+        if fs not in ("random6", "gray7") and not (fs.startswith("design") and fs[6:].isdigit() and args.designs):
+            ap.error(f"--neural-frames {fs!r}: random6, gray7 or design<K> (design<K> needs --designs)")
+    several = len(frame_sets) > 1
+    designs = {"designs": str(Path(args.designs).resolve())} if args.designs else {}
     jobs = []
     for r in rigs:
         for s in scenes:
-            for label in labels:  # neural runs first: they are the long ones
-                name, *variant = label.split(":")
-                jobs.append({"kind": "neural", "label": label, "preset": name,
-                             "overrides": {**overrides, **parse_overrides(",".join(variant))}, "rig": r, "scene": s,
-                             "seed": args.seed, **({"also_extract": also} if also else {}),
-                             **({"frames": args.neural_frames} if args.neural_frames != "random6" else {})})
-            jobs.append({"kind": "classical", "rig": r, "scene": s, "seed": args.seed})
+            for fs in frame_sets:
+                for label in labels:  # neural runs first: they are the long ones
+                    name, *variant = label.split(":")
+                    jobs.append({"kind": "neural", "label": label, "preset": name,
+                                 "overrides": {**overrides, **parse_overrides(",".join(variant))}, "rig": r, "scene": s,
+                                 "seed": args.seed, **({"also_extract": also} if also else {}),
+                                 **({"frames": fs} if fs != "random6" or several else {}),
+                                 **({"tag": f"{label} on {fs}"} if several else {}), **designs})
+            jobs.append({"kind": "classical", "rig": r, "scene": s, "seed": args.seed, **designs})
     results, todo = [], []
     for j in jobs:
         f = state / (job_key(j) + ".json")
@@ -441,6 +480,8 @@ def main(argv=None) -> int:
                         f.cancel()
                     break
     errors = [{"key": job_key(r["job"]), "error": r["error"]} for r in results if "error" in r]
+    if several:
+        labels = [f"{lab} on {fs}" for fs in frame_sets for lab in labels]
     all_labels = labels + [f"{lab}+{v}" for lab in labels for v in also]
     command = " ".join(["python -m bench.accuracy_sweep"] + _without_note(list(sys.argv[1:] if argv is None else argv)))
     doc = {"date": datetime.date.today().isoformat(), "device": "cuda" if cuda else "cpu", "device_name": name,
