@@ -103,6 +103,8 @@ def test_design_patterns_command_writes_a_set_that_simulate_projects(tmp_path, c
     (["--rig", "small", "--count", "1"], "at least 2 patterns"),
     (["--rig", "small", "--depth-range", "900,500"], "--depth-range"),
     (["--rig", "small", "--modulation", "0.5"], "--modulation"),
+    (["--rig", "small", "--modulation", "0.9,0.1"], "modulation range"),
+    (["--rig", "small", "--blur-px", "-1"], "blur"),
 ])
 def test_design_patterns_bad_input_is_one_line(tmp_path, capsys, argv, message):
     assert cli_main(["design-patterns", "--out", str(tmp_path / "o"), "--device", "cpu", *argv]) == 2

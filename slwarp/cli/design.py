@@ -28,9 +28,9 @@ def cmd_design(args) -> int:
 
     camera, projector, depth_range, source = _rig_of(args)
     device = torch_device(args.device or "auto")
-    noise = NoiseModel(ambient=args.ambient, modulation=_pair(args.modulation, "--modulation"),
-                       read_noise=args.read_noise, full_well=args.full_well, blur_px=args.blur_px)
     try:
+        noise = NoiseModel(ambient=args.ambient, modulation=_pair(args.modulation, "--modulation"),
+                           read_noise=args.read_noise, full_well=args.full_well, blur_px=args.blur_px)
         opts = DesignOptions(count=args.count, iterations=args.iterations, pixels=args.pixels, lr=args.lr,
                              tol_px=args.tol_px, binary=args.binary, seed=args.seed, noise=noise,
                              report_every=max(1, min(100, args.iterations // 10 or 1)))
