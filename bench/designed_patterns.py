@@ -30,7 +30,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 
-def design_one(rig: str, count: int, folder: str, iterations: int, device: str, seed: int) -> dict:
+def design_one(rig: str, count: int, folder: str, iterations: int, device: str, seed: int, pixels: int = 4096) -> dict:
     """Design `count` patterns for `rig` into folder (reused when its design.json says the same options)."""
     import torch
 
@@ -41,13 +41,13 @@ def design_one(rig: str, count: int, folder: str, iterations: int, device: str, 
 
     out = Path(folder)
     done = out / "design.json"
-    key = {"rig": rig, "count": count, "iterations": iterations, "seed": seed}
+    key = {"rig": rig, "count": count, "iterations": iterations, "seed": seed, "pixels": pixels}
     if done.is_file():
         prev = json.loads(done.read_text())
         if prev.get("key") == key:
             return prev
     camera, projector = make_rig(rig)
-    opts = DesignOptions(count=count, iterations=iterations, seed=seed)
+    opts = DesignOptions(count=count, iterations=iterations, seed=seed, pixels=pixels)
     if device.startswith("cuda"):
         torch.cuda.set_device(torch.device(device))
     res = design_patterns(camera, projector, DEPTH_RANGE_MM, opts, device=device, baselines=())
@@ -68,6 +68,7 @@ def main(argv=None) -> int:
     ap.add_argument("--small", action="store_true", help="each geometry's small-resolution rig")
     ap.add_argument("--scenes", default=None, help="comma-separated scenes (default: every built-in scene)")
     ap.add_argument("--iterations", type=int, default=1500, help="descent steps per design (default 1500)")
+    ap.add_argument("--pixels", type=int, default=4096, help="camera pixels per design step (default 4096)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--designs", default=None, help="folder of the designs (default <out>/designs)")
     ap.add_argument("--workers-per-gpu", type=int, default=4)
@@ -96,7 +97,8 @@ def main(argv=None) -> int:
     # one process per design: each design is a few kernels per step, so several share a GPU well
     workers = min(len(todo), 6 if cuda else (args.workers or 1))
     with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
-        futs = {(r, k): pool.submit(design_one, r, k, str(designs / r / f"design{k}"), args.iterations, dev, args.seed)
+        futs = {(r, k): pool.submit(design_one, r, k, str(designs / r / f"design{k}"), args.iterations, dev, args.seed,
+                                          args.pixels)
                 for r, k in todo}
         made = {}
         for (r, k), f in futs.items():
