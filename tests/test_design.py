@@ -62,6 +62,18 @@ def test_codes_span_zero_to_one_at_every_pixel():
     assert (b.max(0) == 1).all() and (b.min(0) == 0).all()
 
 
+def test_evaluate_patterns_takes_the_auto_backend(model):
+    g = torch.Generator()
+    g.manual_seed(2)
+    batch = model.batch(64, 6, g)
+    from slwarp.design import evaluate_patterns
+    from slwarp.scans.patterns import named_set
+
+    pats = torch.as_tensor(named_set("random6", PROJECTOR.width, PROJECTOR.height).patterns)
+    m = evaluate_patterns(model, pats, batch, DesignOptions(count=6))  # backend "auto": the twin on the CPU
+    assert 0.0 < m["loss"] < 1.0 and 0.0 <= m["miss_rate"] <= 1.0
+
+
 def test_a_short_design_lowers_its_objective():
     # 3 patterns: with every pixel's code spanning 0..1, 2 patterns leave a pixel one bit (which frame is brighter)
     # and nothing for the descent to shape

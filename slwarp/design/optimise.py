@@ -129,7 +129,7 @@ def evaluate_patterns(model: CodeModel, patterns: torch.Tensor, batch, opts: Des
     with torch.no_grad():
         seen = blur_patterns(patterns, opts.noise.blur_px)
         loss, info = miss_loss(seen, batch, opts.noise, tol_px=opts.tol_px, softness=opts.softness,
-                               backend=opts.backend, details=True)
+                               backend=_backend(opts.backend, patterns.device), details=True)
     return {"loss": float(loss), "miss_rate": info["miss_rate"]}
 
 
@@ -144,8 +144,7 @@ def design_patterns(camera, projector, depth_range, opts: DesignOptions, *, devi
 
     t0 = time.perf_counter()
     device = torch.device(device)
-    if opts.backend == "auto":
-        opts = replace(opts, backend="warp" if device.type == "cuda" else "torch")
+    opts = replace(opts, backend=_backend(opts.backend, device))
     K, H, W = opts.count, projector.height, projector.width
     model = CodeModel(camera, projector, depth_range, opts.noise, step_px=opts.step_px, device=device)
     g = torch.Generator(device=device)
@@ -234,6 +233,11 @@ class GlobalAdam:
         m_hat = self.m / (1 - b1 ** self.t)
         v_hat = self.v / (1 - b2 ** self.t)
         self.param.sub_(self.lr * m_hat / (v_hat.sqrt() + self.eps))
+
+
+def _backend(backend: str, device: torch.device) -> str:
+    """The reprojection's backend: "auto" is Warp on CUDA and the torch twin on the CPU."""
+    return ("warp" if device.type == "cuda" else "torch") if backend == "auto" else backend
 
 
 def _seeded(device, seed: int) -> torch.Generator:
