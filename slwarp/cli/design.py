@@ -16,6 +16,11 @@ from .errors import UserError
 from .options import _add_outside_paths, _parse_range, _positive_int
 
 BASELINES = ("random6", "gray6", "gray7")  # scored beside the design on the same validation pixels
+# (steps, camera pixels per step) by default: on a GPU a design of 4 for the default rig takes 27 s (H100); on 2 CPU
+# cores 300 steps of 1024 pixels took 116 s for the small rig and reached the objective of the GPU's 1500 x 4096
+# (9.2% against 8.9% misses: bench/results/designed-patterns-cpu.md, design-patterns-cli-cuda-default4.md)
+GPU_STEPS = (1500, 4096)
+CPU_STEPS = (300, 1024)
 
 
 def cmd_design(args) -> int:
@@ -31,9 +36,11 @@ def cmd_design(args) -> int:
     try:
         noise = NoiseModel(ambient=args.ambient, modulation=_pair(args.modulation, "--modulation"),
                            read_noise=args.read_noise, full_well=args.full_well, blur_px=args.blur_px)
-        opts = DesignOptions(count=args.count, iterations=args.iterations, pixels=args.pixels, lr=args.lr,
+        steps, pixels = CPU_STEPS if device.type == "cpu" else GPU_STEPS
+        steps = steps if args.iterations is None else args.iterations
+        opts = DesignOptions(count=args.count, iterations=steps, pixels=args.pixels or pixels, lr=args.lr,
                              tol_px=args.tol_px, binary=args.binary, seed=args.seed, noise=noise,
-                             report_every=max(1, min(100, args.iterations // 10 or 1)))
+                             report_every=max(1, min(100, steps // 10 or 1)))
     except ValueError as e:
         raise UserError(f"design-patterns: {e}") from None
     axis_baselines = _baselines_for(camera, projector, depth_range)
@@ -147,8 +154,8 @@ def _add_design(p):
     p.add_argument("--count", type=_positive_int, default=4, help="patterns to design (default 4)")
     p.add_argument("--out", required=True, help="output folder: PNGs + patterns.yaml, design.json, design.png")
     p.add_argument("--depth-range", help="NEAR,FAR camera depth in mm (default: the rig's or the scan's)")
-    p.add_argument("--iterations", type=int, default=1500, help="descent steps (default 1500)")
-    p.add_argument("--pixels", type=_positive_int, default=4096, help="camera pixels per step (default 4096)")
+    p.add_argument("--iterations", type=int, help="descent steps (default 1500 on a GPU, 300 on the CPU)")
+    p.add_argument("--pixels", type=_positive_int, help="camera pixels per step (default 4096 on a GPU, 1024 on the CPU)")
     p.add_argument("--lr", type=float, default=0.05, help="step size (default 0.05)")
     p.add_argument("--tol-px", type=float, default=2.0,
                    help="a code comparison misses when it picks a depth farther than this along the line (projector px; default 2)")
