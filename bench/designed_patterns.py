@@ -34,9 +34,8 @@ def design_one(rig: str, count: int, folder: str, iterations: int, device: str, 
     """Design `count` patterns for `rig` into folder (reused when its design.json says the same options)."""
     import torch
 
-    from slwarp.cli.design import save_design_preview
+    from slwarp.cli.design import write_design
     from slwarp.design import DesignOptions, design_patterns
-    from slwarp.scans.pattern_files import write_pattern_set
     from slwarp.sim.rigs import DEPTH_RANGE_MM, make_rig
 
     out = Path(folder)
@@ -51,13 +50,8 @@ def design_one(rig: str, count: int, folder: str, iterations: int, device: str, 
     if device.startswith("cuda"):
         torch.cuda.set_device(torch.device(device))
     res = design_patterns(camera, projector, DEPTH_RANGE_MM, opts, device=device, baselines=())
-    write_pattern_set(out, res.patterns, {"source": f"rig {rig}", "depth_range_mm": list(DEPTH_RANGE_MM),
-                                          "final": res.final})
-    save_design_preview(out / "design.png", res)
-    doc = {"key": key, "device": device, **res.to_json()}
-    doc["options"]["noise"] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(opts.noise).items()}
-    done.write_text(json.dumps(doc, indent=1))
-    return doc
+    write_design(out, res, f"rig {rig}", DEPTH_RANGE_MM, {"key": key, "device": device})
+    return json.loads(done.read_text())
 
 
 def main(argv=None) -> int:

@@ -29,7 +29,6 @@ def cmd_design(args) -> int:
 
     from ..design import DesignOptions, NoiseModel, design_patterns
     from ..devices import torch_device
-    from ..scans.pattern_files import write_pattern_set
 
     camera, projector, depth_range, source = _rig_of(args)
     device = torch_device(args.device or "auto")
@@ -52,17 +51,7 @@ def cmd_design(args) -> int:
                               progress=say)
     except ValueError as e:  # a rig whose rays miss the projector over the depth range
         raise UserError(f"design-patterns: {source}: {e}") from None
-    out = Path(args.out)
-    meta = {"source": source, "depth_range_mm": list(depth_range), "count": opts.count, "binary": opts.binary,
-            "objective": "expected miss along the epipolar line (slwarp.design.objective)",
-            "final": res.final, "interrupted": res.interrupted,
-            "date": time.strftime("%Y-%m-%d"), "noise": {k: (list(v) if isinstance(v, tuple) else v)
-                                                         for k, v in vars(noise).items()}}
-    yaml_path = write_pattern_set(out, res.patterns, meta)
-    doc = {"source": source, "device": str(device), "torch": torch.__version__, **res.to_json()}
-    doc["options"]["noise"] = meta["noise"]
-    (out / "design.json").write_text(json.dumps(doc, indent=2))
-    save_design_preview(out / "design.png", res)
+    yaml_path = write_design(args.out, res, source, depth_range, {"device": str(device), "torch": torch.__version__})
     lines = [f"{'set':<16} {'loss':>7} {'misses':>8}",
              f"{f'designed {opts.count}':<16} {res.final['loss']:7.4f} {100 * res.final['miss_rate']:7.2f}%"]
     lines += [f"{name:<16} {m['loss']:7.4f} {100 * m['miss_rate']:7.2f}%" for name, m in res.baselines.items()]
@@ -73,6 +62,23 @@ def cmd_design(args) -> int:
         print("slwarp design-patterns: interrupted; the best patterns so far are written", file=sys.stderr)
         return 130
     return 0
+
+
+def write_design(folder, res, source: str, depth_range, extra: dict | None = None):
+    """A design's folder: the pattern set (PNGs + patterns.yaml, its meta saying where the design came from), design.json
+    (`extra`, then the DesignResult) and design.png. Returns the path of patterns.yaml."""
+    from ..scans.pattern_files import write_pattern_set
+
+    out = Path(folder)
+    doc = {"source": source, "depth_range_mm": list(depth_range), **(extra or {}), **res.to_json()}
+    meta = {"source": source, "depth_range_mm": list(depth_range), "count": res.options.count,
+            "binary": res.options.binary, "objective": "expected miss along the epipolar line (slwarp.design.objective)",
+            "final": res.final, "interrupted": res.interrupted, "date": time.strftime("%Y-%m-%d"),
+            "noise": doc["options"]["noise"]}
+    yaml_path = write_pattern_set(out, res.patterns, meta)
+    (out / "design.json").write_text(json.dumps(doc, indent=2))
+    save_design_preview(out / "design.png", res)
+    return yaml_path
 
 
 def _pair(text: str, flag: str) -> tuple[float, float]:

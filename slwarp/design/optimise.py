@@ -88,7 +88,9 @@ class DesignResult:
     interrupted: bool = False
 
     def to_json(self) -> dict:
+        """Plain JSON / YAML types (tuples as lists)."""
         opts = asdict(self.options)
+        opts["noise"] = {k: list(v) if isinstance(v, tuple) else v for k, v in opts["noise"].items()}
         return {"options": opts, "history": self.history, "final": self.final, "baselines": self.baselines,
                 "timings": self.timings, "hypotheses": self.hypotheses, "epipolar_span_px": self.span_px,
                 "interrupted": self.interrupted}
