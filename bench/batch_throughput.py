@@ -23,7 +23,10 @@ compiles (or loads) the training graphs for its first scan and reuses them for t
 Each configuration is one command with its own time limit (--time-limit; the process group is stopped after it):
 its throughput is the scans completed over the command's wall time (process start-up included), per hour, so a
 configuration cut short still gives one; a configuration that fails is recorded with its log's last lines and
-the others go on. Results go to <out>/batch-throughput-<cuda|cpu>.json and .md; a later call with the same
+the others go on. Python's bytecode: `--bytecode warm` (default) compiles the installed packages into
+<work>/pycache first (PYTHONPYCACHEPREFIX), as a user's machine, which keeps its bytecode caches, has them (the lent
+GPU machines have none, and each process there compiled torch from source: seconds per process); `as-is` leaves
+it as the machine has it. Results go to <out>/batch-throughput-<cuda|cpu>.json and .md; a later call with the same
 scans and settings adds its configurations to them (so that each configuration can run in its own call).
 """
 from __future__ import annotations
@@ -133,21 +136,26 @@ def compile_cache_env(folder: Path) -> dict:
 
 
 def run_config(cfg: dict, scans_dir: Path, work: Path, reconstruct_args: list[str], gpu_ids: list[str], cpu: bool,
-               time_limit: float, kernel_cache: Path, compile_cache: str = "warm") -> dict:
+               time_limit: float, kernel_cache: Path, compile_cache: str = "warm", base_env: dict | None = None) -> dict:
     """Run one configuration as its own command (process group), at most `time_limit` s; its numbers.
-    compile_cache "warm": torch.compile's caches of the work folder (the warm-up's); "cold": fresh ones."""
+    compile_cache "warm": torch.compile's caches of the work folder (the warm-up's); "cold": fresh ones.
+    base_env: the environment to start from (default this process's)."""
     from slwarp.batch import outputs_complete
 
     out = work / cfg["name"]
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", "SLWARP_KERNEL_CACHE": str(kernel_cache),
+    env = {**(base_env or os.environ), "PYTHONUNBUFFERED": "1", "SLWARP_KERNEL_CACHE": str(kernel_cache),
+           "SLWARP_TIMELINE": str(work / f"{cfg['name']}.timeline.jsonl"),
            **compile_cache_env(work if compile_cache == "warm" else out)}
     if not cpu:
         env["CUDA_VISIBLE_DEVICES"] = ",".join(gpu_ids[: cfg["gpus"]])
     cmd = command(cfg, scans_dir, out / "outputs", reconstruct_args)
     log_path = work / f"{cfg['name']}.log"
     print(f"[{cfg['name']}] {' '.join(cmd)}", flush=True)
+    timeline_path = Path(env["SLWARP_TIMELINE"])
+    timeline_path.unlink(missing_ok=True)
+    spawned = time.time()
     t0 = time.perf_counter()
     with open(log_path, "w") as log:
         proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
@@ -175,11 +183,25 @@ def run_config(cfg: dict, scans_dir: Path, work: Path, reconstruct_args: list[st
         row.update(done=t["done"], failed=t["failed"], batch_wall_s=t["wall_s"], mean_mae=t["mean_mae"],
                    mean_scan_s=sum(s["seconds"] for s in done) / len(done) if done else None,
                    errors=sorted({s["error"] for s in doc["scans"] if s["error"]}), stages=stage_means(done))
+    row["first_scan_done_s"] = first_scans(timeline_path, spawned)
     if timed_out or summary.is_file() is False or rc not in (0, 1):
         row["log_tail"] = log_path.read_text()[-2000:]
     print(f"[{cfg['name']}] {completed} scans in {wall:.1f} s: {row['scans_per_hour']:.1f} scans/h"
           + (" (time limit)" if timed_out else "") + (f"; exit status {rc}" if rc else ""), flush=True)
     return row
+
+
+def first_scans(path: Path, spawned: float) -> list[float] | None:
+    """Seconds from the command's spawn to each process's first finished scan (its 'scan 1' mark, slwarp.timeline),
+    earliest first: the start-up a batch pays before its GPUs are all busy. None without marks."""
+    if not path.is_file():
+        return None
+    done = []
+    for line in path.read_text().splitlines():
+        marks = dict(json.loads(line)["marks"])
+        if "scan 1" in marks:
+            done.append(marks["scan 1"] - spawned)
+    return sorted(done) or None
 
 
 STAGES = ("setup", "train", "extract", "other")  # the columns of stage_means
@@ -234,19 +256,27 @@ def markdown(doc: dict) -> str:
              f"Efficiency: throughput over {unit.lower()}s x that of one {unit.lower()} at the same scans per "
              f"{unit.lower()} (target >= {TARGET_EFFICIENCY}). torch.compile's caches: "
              + ("filled by the warm-up and shared (as a station's)" if s.get("compile_cache", "cold") == "warm"
-                else "empty at the start of each configuration") + ".", "",
+                else "empty at the start of each configuration") + ". Python's bytecode: "
+             + ("compiled first, as a user's machine keeps it" if s.get("bytecode") == "warm" else "as the machine had it")
+             + ".", "",
              f"| configuration | {unit}s | scans per {unit} | launcher | done / failed | wall s | scans/h | vs 1x1 | "
-             "efficiency | mean s per scan | mean MAE mm |",
-             "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
+             "efficiency | mean s per scan | first scans done s | mean MAE mm |",
+             "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
 
     def f(v, fmt):
         return "-" if v is None else fmt.format(v)
+
+    def first_done(times):  # per process: the first to finish its first scan and the last
+        if not times:
+            return "-"
+        return f"{times[0]:.1f}" if len(times) == 1 else f"{times[0]:.1f}-{times[-1]:.1f}"
 
     for r in doc["configs"]:
         state = f"{r.get('done', r['completed'])} / {r.get('failed', '-')}" + (" (time limit)" if r["timed_out"] else "")
         lines.append(f"| {r['name']} | {r['gpus']} | {r['per_gpu']} | {r['launcher']} | {state} | {r['wall_s']:.1f} | "
                      f"{r['scans_per_hour']:.1f} | {f(r.get('vs_1x1'), '{:.2f}x')} | {f(r.get('efficiency'), '{:.2f}')} | "
-                     f"{f(r.get('mean_scan_s'), '{:.1f}')} | {f(r.get('mean_mae'), '{:.3f}')} |")
+                     f"{f(r.get('mean_scan_s'), '{:.1f}')} | {first_done(r.get('first_scan_done_s'))} | "
+                     f"{f(r.get('mean_mae'), '{:.3f}')} |")
     lines.append("")
     staged = [r for r in doc["configs"] if r.get("stages")]
     if staged:
@@ -293,6 +323,9 @@ def main(argv=None) -> int:
     p.add_argument("--compile-cache", choices=["warm", "cold"], default="warm",
                    help="torch.compile's caches: warm (filled by the warm-up, shared, as a station's) or cold (empty "
                         "in each configuration); default %(default)s")
+    p.add_argument("--bytecode", choices=["warm", "as-is"], default="warm",
+                   help="Python's bytecode: compiled into <work>/pycache first, as a user's machine has it (warm, "
+                        "default), or as this machine has it (as-is)")
     p.add_argument("--smoke", action="store_true", help="CPU smoke test: " + ", ".join(f"{k} {v}" for k, v in SMOKE.items()))
     p.add_argument("--cpu", action="store_true", help="run on the CPU even when CUDA is present")
     p.add_argument("--_prepare", help=argparse.SUPPRESS)
@@ -313,6 +346,14 @@ def main(argv=None) -> int:
     spec = {"dir": str(scans_dir), "scans": args.scans, "scenes": scenes, "rig": args.rig, "patterns": args.patterns,
             "cpu": args.cpu}
     print(f"preparing {args.scans} scans in {scans_dir} ...", flush=True)
+    base_env = dict(os.environ)
+    bytecode_s = None
+    if args.bytecode == "warm":
+        from bench.command_wall import compile_bytecode
+
+        base_env["PYTHONPYCACHEPREFIX"] = str(work / "pycache")
+        bytecode_s = compile_bytecode(work / "pycache")
+        print(f"bytecode compiled into {work / 'pycache'} in {bytecode_s:.1f} s", flush=True)
     kernel_cache = work / "kernel-cache"
     prep = subprocess.run([sys.executable, __file__, "--_prepare", json.dumps(spec)], capture_output=True, text=True,
                           env={**os.environ, "SLWARP_KERNEL_CACHE": str(kernel_cache)})
@@ -347,7 +388,7 @@ def main(argv=None) -> int:
                 *reconstruct_args, "--iters", "20", "--init-iters", "10"]
         shutil.rmtree(work / "warmup", ignore_errors=True)
         t0 = time.perf_counter()
-        w = subprocess.run(warm, cwd=REPO, env={**os.environ, "SLWARP_KERNEL_CACHE": str(kernel_cache),
+        w = subprocess.run(warm, cwd=REPO, env={**base_env, "SLWARP_KERNEL_CACHE": str(kernel_cache),
                                                  **(compile_cache_env(work) if args.compile_cache == "warm" else {}),
                                                  **({} if cpu else {"CUDA_VISIBLE_DEVICES": gpu_ids[0]})},
                            capture_output=True, text=True)
@@ -355,12 +396,12 @@ def main(argv=None) -> int:
               flush=True)
     setup = {"cpu": cpu, "device": info["device"], "scans": args.scans, "scenes": scenes, "rig": args.rig,
              "patterns": args.patterns, "preset": preset, "set": args.set, "smoke": args.smoke,
-             "compile_cache": args.compile_cache}
+             "compile_cache": args.compile_cache, "bytecode": args.bytecode}
     rows = []
     for c in configs:
         try:
             rows.append(run_config(c, scans_dir, work, reconstruct_args, gpu_ids, cpu, args.time_limit, kernel_cache,
-                                   args.compile_cache))
+                                   args.compile_cache, base_env))
         except Exception as e:  # a configuration that cannot even start: recorded, the others go on
             rows.append({**c, "command": "", "returncode": None, "timed_out": False, "wall_s": 0.0, "completed": 0,
                          "scans_per_hour": 0.0, "errors": [f"{type(e).__name__}: {e}"]})
@@ -376,7 +417,7 @@ def main(argv=None) -> int:
     rows.sort(key=lambda r: (r["gpus"], r["per_gpu"], order[(r["gpus"], r["per_gpu"], r["launcher"])]))
     add_scaling(rows)
     doc = {"device": info["device"], "gpus": gpus if not cpu else 1, "date": datetime.date.today().isoformat(),
-           "setup": setup, "configs": rows,
+           "setup": setup, "configs": rows, "bytecode_s": bytecode_s,
            "bench_command": " ".join(["python -m bench.batch_throughput", *(sys.argv[1:] if argv is None else argv)])}
     path.write_text(json.dumps(doc, indent=1) + "\n")
     text = markdown(doc)

@@ -165,6 +165,20 @@ def test_cli_refuses_bad_batch_commands(tmp_path, capsys, monkeypatch):
     assert "--nproc-per-node" in capsys.readouterr().err
 
 
+def test_visible_device_count_without_torch(monkeypatch):
+    """The device count the command line starts its workers for, read without torch: CUDA_VISIBLE_DEVICES up
+    to its first invalid entry, one for the CPU or a named GPU."""
+    from slwarp.batch import visible_device_count
+
+    assert visible_device_count("cpu") == 1 and visible_device_count("cuda:3") == 1
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,0,1")
+    assert visible_device_count("cuda") == 3 and visible_device_count("auto") == 3
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "1,-1,0")
+    assert visible_device_count("cuda") == 1
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "")
+    assert visible_device_count("auto") == 1 and visible_device_count("cuda") is None  # no GPU: the CPU / an error
+
+
 # A batch end to end: the 'tiny' preset cut to a few iterations, on the torch twin with sphere-traced depth so that
 # the worker processes compile no Warp kernel (the numbers do not matter here, only that each scan runs where the
 # plan says and its outputs and summary line come back).
@@ -223,6 +237,35 @@ def test_batch_under_torchrun_with_a_broken_scan_then_resumed(tmp_path):
         assert rows2[name].mae == pytest.approx(rows[name]["mae"]) and rows2[name].valid_share == pytest.approx(
             rows[name]["valid_share"])
     assert json.loads((out / "summary.json").read_text())["totals"]["skipped"] == 2
+
+
+def test_per_device_workers_start_before_the_command_imports_torch(tmp_path):
+    """`reconstruct SCANS --per-device 2` as a user runs it: its two workers are started before the command's
+    own imports (their first marks come before its 'imports' mark), share the three scans, the broken one fails
+    alone, and the summary holds all three."""
+    from slwarp.sim.simulate import simulate_scene
+
+    scan = simulate_scene("spheres", "random6", rig="small")
+    for name in ("a", "b", "broken"):
+        scan.save(tmp_path / "scans" / name)
+    (tmp_path / "scans" / "broken" / "images" / f"002_{scan.names[2]}.png").unlink()
+    marks = tmp_path / "timeline.jsonl"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "SLWARP_TIMELINE": str(marks)}
+    run = subprocess.run([sys.executable, "-m", "slwarp", "reconstruct", "scans", "--out", "out", "--per-device", "2",
+                          *FAST], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 1, run.stdout + run.stderr  # a scan failed
+    doc = json.loads((tmp_path / "out" / "summary.json").read_text())
+    rows = {r["name"]: r for r in doc["scans"]}
+    assert doc["mode"] == "per-device" and doc["workers"] == 2 and list(rows) == ["a", "b", "broken"]
+    assert [rows[k]["status"] for k in ("a", "b", "broken")] == ["done", "done", "failed"]
+    assert {r["worker"] for r in rows.values()} <= {"worker 0", "worker 1"}
+    assert rows["a"]["mae"] == pytest.approx(rows["b"]["mae"])
+    assert all((tmp_path / "out" / k / "config.yaml").is_file() for k in ("a", "b"))
+    lines = [json.loads(line) for line in marks.read_text().splitlines()]
+    parent = next(doc for doc in lines if any(name == "imports" for name, _ in doc["marks"]))
+    imports = dict(parent["marks"])["imports"]
+    workers = [dict(doc["marks"]) for doc in lines if doc["pid"] != parent["pid"]]
+    assert len(workers) == 2 and all(w["worker started"] < imports for w in workers), lines
 
 
 def _free_port() -> int:

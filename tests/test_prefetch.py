@@ -71,10 +71,21 @@ def test_batch_loads_ahead_and_a_broken_scan_fails_alone(saved_scan, tmp_path, m
     cfg = preset("tiny", device="cpu", iters=3, init_iters=2, mc_resolution=32, rays=64)
     jobs = [ScanJob(name, src, tmp_path / "out" / name, 1) for name, src in
             (("a", saved_scan), ("broken", broken), ("c", saved_scan))]
-    rows = run_scans(jobs, cfg, BatchOptions(progress=False, log=False))
+    drawn, final = [], []
+
+    def queue():  # a worker's queue: each job drawn once the scan before it is in memory
+        for job in jobs:
+            drawn.append((job.name, len(loads)))
+            yield job
+
+    rows = run_scans(queue(), cfg, BatchOptions(progress=False, log=False),
+                     on_row=lambda row: final.append((row.name, row.status, (Path(row.out_dir) / "depth.npy").is_file())))
     assert [r.status for r in rows] == ["done", "failed", "done"]
     assert "broken" in rows[1].error or "missing.png" in rows[1].error
     assert loads == [("a", True), ("broken", True), ("c", True)]
+    assert drawn == [("a", 0), ("broken", 1), ("c", 2)]  # one ahead: during the scan before
+    # each row reported once final, in order, with its files on disk
+    assert final == [("a", "done", True), ("broken", "failed", False), ("c", "done", True)]
     for r in (rows[0], rows[2]):
         out = Path(r.out_dir)
         assert (out / "depth.npy").is_file() and (out / "train" / "checkpoint.pt").is_file()

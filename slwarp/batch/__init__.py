@@ -13,8 +13,9 @@ How the scans run (the same per-scan work, `run_scan`, everywhere):
   summary. Gloo carries only the plan and the summary (a few kB), so it works on CPUs and GPUs alike and needs
   no NCCL set-up. N = 2 x GPUs runs two scans per GPU at a time;
 - with `per_device=K` (no torchrun): K worker processes per device (every visible GPU for device "cuda", the
-  one given for "cuda:N", the CPU for "cpu"), started here, pulling scans largest first from a queue; a worker
-  that dies loses only the scan it held.
+  one given for "cuda:N", the CPU for "cpu"), started here (a WorkerPool; the command line starts it before it
+  imports torch), pulling scans largest first from a queue, each loading its next scan and writing its last one
+  while it trains; a worker that dies loses only the scans it held.
 
 Each scan writes into out/<name>/ (out/ itself for a single scan folder: `Discovery.single`). A scan that fails
 is reported with a one-line error (and its traceback in summary.json); the others go on. With resume=True a
@@ -29,7 +30,7 @@ from __future__ import annotations
 from .discovery import (SCAN_MARKERS, Discovery, ScanEntry, find_scans, is_scan_folder, largest_first, scan_cost,
                         shard, unique_names)
 from .jobs import BatchOptions, ScanJob, ScanResult, outputs_complete, run_scan, run_scans
-from .launch import launched_by_torchrun, run_batch, worker_cores, worker_devices
+from .launch import WorkerPool, launched_by_torchrun, run_batch, visible_device_count, worker_cores, worker_devices
 from .summary import BatchSummary
 
 __all__ = [
@@ -50,6 +51,8 @@ __all__ = [
     "run_scan",
     "run_scans",
     "run_batch",
+    "WorkerPool",
+    "visible_device_count",
     "launched_by_torchrun",
     "worker_devices",
     "worker_cores",

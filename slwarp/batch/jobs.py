@@ -12,7 +12,7 @@ import time
 import traceback
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Iterable, Sequence
 
 from .. import timeline
 
@@ -151,37 +151,55 @@ def _fit_compiled(scan, config) -> None:
     _compiled_for = key
 
 
-def run_scans(jobs: Sequence[ScanJob], config, options: BatchOptions = BatchOptions(), worker: str = "main",
-              log: Callable[[str], None] = print) -> list[ScanResult]:
+def run_scans(jobs: Iterable[ScanJob], config, options: BatchOptions = BatchOptions(), worker: str = "main",
+              log: Callable[[str], None] = print, on_row: Callable[[ScanResult], None] | None = None
+              ) -> list[ScanResult]:
     """run_scan over `jobs` in order, each scan loading (frames decoded, camera rays computed: scans.prefetch) in a
     thread while the scan before it trains, and its files written in a thread while the next one trains
     (reconstruct's write_in_background; a scan whose files fail is marked failed when they do). Why: a `fast` scan
     after the first took 3.6-3.9 s in a batch on an H100, of which loading was about 0.3 s and the files 0.4 s.
-    A row's `seconds` ends when its depth map and metrics are known; the batch's wall time counts everything."""
+    A row's `seconds` ends when its depth map and metrics are known; the batch's wall time counts everything.
+
+    jobs: any iterable, drawn one ahead (the next job is taken once the current scan is in memory: a worker of a
+    queue, slwarp.batch.launch, holds at most two). on_row: called with each row once it is final (its files
+    written or failed), in order."""
     from ..scans.prefetch import ScanPrefetch
 
     def load(job):
         return ScanPrefetch(job.source, frames=options.frames, outside_paths=options.outside_paths,
                             patterns=options.patterns)
 
+    def final(row: ScanResult, wait: Callable[[], None] | None = None) -> None:
+        if wait is not None:
+            _written(row, wait)
+        if on_row is not None:
+            on_row(row)
+
+    todo = iter(jobs)
     rows: list[ScanResult] = []
     previous = None  # (row, wait) of the scan whose files are being written
-    ahead = load(jobs[0]) if jobs else None
-    for k, job in enumerate(jobs):
-        current, ahead = ahead, None
+    job = next(todo, None)
+    ahead = load(job) if job is not None else None
+    while job is not None:
+        current, ahead, following = ahead, None, [None]
 
-        def load_next(k=k):
+        def load_next():
             nonlocal ahead
-            ahead = load(jobs[k + 1]) if k + 1 < len(jobs) else None
+            following[0] = next(todo, None)
+            ahead = load(following[0]) if following[0] is not None else None
 
         writing: list = []
-        rows.append(run_scan(job, config, options, worker, log, loaded=current, on_loaded=load_next, writing=writing))
-        timeline.mark(f"scan {k + 1}")
+        row = run_scan(job, config, options, worker, log, loaded=current, on_loaded=load_next, writing=writing)
+        rows.append(row)
+        timeline.mark(f"scan {len(rows)}")
         if previous is not None:
-            _written(*previous)
+            final(*previous)
         previous = writing[0] if writing else None
+        if previous is None:
+            final(row)
+        job = following[0]
     if previous is not None:
-        _written(*previous)
+        final(*previous)
     return rows
 
 

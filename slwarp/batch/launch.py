@@ -11,12 +11,13 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Callable, Sequence
 
+from .. import timeline
 from .discovery import ScanEntry, largest_first, scan_cost, shard
 from .jobs import (BatchOptions, ScanJob, ScanResult, error_line, outputs_complete, result_from_outputs, run_scan,
                    run_scans)
 from .summary import BatchSummary
 
-__all__ = ["COLLECTIVE_TIMEOUT", "run_batch", "launched_by_torchrun", "worker_devices", "worker_cores"]
+__all__ = ["COLLECTIVE_TIMEOUT", "run_batch", "WorkerPool", "visible_device_count", "launched_by_torchrun", "worker_devices", "worker_cores"]
 
 # Ranks that finish their share wait at the gather for the slowest one: hours on a large batch (gloo's
 # default of 30 minutes would abort a healthy run). A rank that dies is torchrun's to notice, not this timeout's.
@@ -89,35 +90,42 @@ def _in_order(scans: Sequence[ScanEntry], rows: Sequence[ScanResult]) -> list[Sc
 
 
 def run_batch(scans: Sequence[ScanEntry], config, out: str | os.PathLike, options: BatchOptions = BatchOptions(), *,
-              single: bool = False, per_device: int | None = None, log: Callable[[str], None] = print
-              ) -> BatchSummary | int:
+              single: bool = False, per_device: int | None = None, pool: WorkerPool | None = None,
+              log: Callable[[str], None] = print) -> BatchSummary | int:
     """Reconstruct `scans` (from `find_scans`) with `config` into `out`: one after another in this process,
     over torchrun's processes when launched by it, or over `per_device` worker processes per device (see the
-    docstring of slwarp.batch). single: write the one scan's outputs into `out` itself.
+    docstring of slwarp.batch). single: write the one scan's outputs into `out` itself. pool: the WorkerPool to
+    run them on (started early by the caller, with this config and `options`); closed here.
 
     Writes out/summary.json and out/summary.md and returns the BatchSummary in the process that holds it (this
     one, or rank 0 under torchrun); other ranks return the number of failed scans (rank 0 reports them).
     """
     out = Path(out)
-    if per_device is not None:
-        if per_device < 1:
-            raise ValueError(f"per_device must be >= 1, got {per_device}")
+    try:
+        if per_device is not None:
+            if per_device < 1:
+                raise ValueError(f"per_device must be >= 1, got {per_device}")
+            if launched_by_torchrun():
+                raise ValueError("per_device starts its own worker processes: under torchrun give --nproc-per-node "
+                                 "(K x GPUs for K scans per GPU) instead")
+        if launched_by_torchrun() or per_device is not None or pool is not None:
+            options = replace(options, progress=False)  # bars of several processes would interleave
         if launched_by_torchrun():
-            raise ValueError("per_device starts its own worker processes: under torchrun give --nproc-per-node "
-                             "(K x GPUs for K scans per GPU) instead")
-    if launched_by_torchrun() or per_device is not None:
-        options = replace(options, progress=False)  # bars of several processes would interleave
-    if launched_by_torchrun():
-        return _run_torchrun(scans, config, out, options, single, log)
-    t0 = time.perf_counter()
-    jobs, skipped = _plan(scans, out, single, options.resume)
-    if per_device is not None:
-        devices = worker_devices(config.runtime.device)
-        rows, workers = _run_spawned(jobs, config, options, devices, per_device, log), min(per_device * len(devices), len(jobs))
-        mode = "per-device"
-    else:
-        devices, workers, mode = [config.runtime.device], 1, "sequential"
-        rows = run_scans(jobs, config, options, log=log)
+            return _run_torchrun(scans, config, out, options, single, log)
+        t0 = time.perf_counter()
+        jobs, skipped = _plan(scans, out, single, options.resume)
+        if per_device is not None or pool is not None:
+            devices = worker_devices(config.runtime.device)
+            if pool is None and jobs:
+                pool = WorkerPool(min(per_device * len(devices), len(jobs)), _Fixed(config), options)
+            rows = pool.run(jobs) if jobs else []
+            workers, mode = min(pool.count if pool else 0, len(jobs)), "per-device"
+        else:
+            devices, workers, mode = [config.runtime.device], 1, "sequential"
+            rows = run_scans(jobs, config, options, log=log)
+    finally:
+        if pool is not None:
+            pool.close()
     summary = BatchSummary(_in_order(scans, rows + skipped), mode, workers, time.perf_counter() - t0, devices,
                            config.to_dict())
     summary.write(out)
@@ -174,83 +182,187 @@ def _run_torchrun(scans, config, out: Path, options: BatchOptions, single: bool,
             dist.destroy_process_group()
 
 
-def _run_spawned(jobs: list[ScanJob], config, options: BatchOptions, devices: list[str], per_device: int,
-                 log) -> list[ScanResult]:
-    """Run `jobs` on per_device worker processes per device; each worker pulls the next scan (largest first)
-    from a queue. A worker that dies (killed, out of host memory) fails the scan it held; the others go on."""
-    import multiprocessing as mp
-    import queue
-
-    n = min(per_device * len(devices), len(jobs))
-    if n == 0:
-        return []
-    ctx = mp.get_context("spawn")  # CUDA cannot be used in forked children
-    todo, events = ctx.Queue(), ctx.Queue()
-    for i in largest_first([j.cost for j in jobs]):
-        todo.put(i)
-    for _ in range(n):
-        todo.put(None)  # one stop sign per worker
-    procs = [ctx.Process(target=_queue_worker, name=f"slwarp-worker-{w}",
-                         args=(w, devices[w % len(devices)], n, jobs, config, options, todo, events))
-             for w in range(n)]
-    for p in procs:
-        p.start()
-    results: dict[int, ScanResult] = {}
-    held: dict[int, int] = {}  # worker -> the job it runs
-
-    def handle(event) -> None:
-        kind, w, payload = event
-        if kind == "start":
-            held[w] = payload
-        else:
-            results[held.pop(w)] = ScanResult.from_dict(payload)
-
-    try:
-        while any(p.is_alive() for p in procs):
-            try:
-                handle(events.get(timeout=0.5))
-            except queue.Empty:
-                pass
-        while True:  # what the last workers sent before they ended
-            try:
-                handle(events.get(timeout=0.1))
-            except queue.Empty:
+def visible_device_count(device: str) -> int | None:
+    """How many devices `worker_devices` will give for the device a user asked for ('auto', 'cpu', 'cuda',
+    'cuda:N'), found without importing torch: 1 for the CPU or one named GPU; for 'cuda' and 'auto' the GPUs
+    CUDA_VISIBLE_DEVICES lists, else those the NVIDIA driver lists in /proc ('auto' with none: the CPU, 1).
+    None when it cannot tell (no driver listing: another platform or a sandbox). Why: `WorkerPool` starts its
+    workers before the command imports torch (about 2 s), so that their own imports overlap the command's."""
+    if device == "cpu" or device.startswith("cuda:"):
+        return 1
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if visible is not None:
+        count = 0
+        for entry in visible.split(","):  # CUDA stops at the first invalid entry ("-1" hides every GPU)
+            entry = entry.strip()
+            if not entry or entry.startswith("-"):
                 break
-    except KeyboardInterrupt:  # the workers got the same interrupt and stop at their next step
-        for p in procs:
-            p.join(timeout=60)
+            count += 1
+    else:
+        listing = Path("/proc/driver/nvidia/gpus")
+        if not listing.is_dir():
+            return 1 if device == "auto" and not Path("/dev/nvidiactl").exists() else None
+        count = sum(1 for _ in listing.iterdir())
+    if count == 0:
+        return 1 if device == "auto" else None  # 'cuda' with no GPU: the command's own check says so
+    return count
+
+
+class WorkerPool:
+    """Worker processes (spawned) that reconstruct scans pulled from a queue, largest first: `count` of them,
+    worker w on devices[w % len(devices)] of `worker_devices(config.runtime.device)`, bound to its share of the
+    cores (`_enter_worker`). Each builds its TrainConfig with `make_config()` (a picklable callable) and starts its
+    runtimes as soon as it starts, so a pool made before the batch is planned (the command line makes it before
+    importing torch) pays the workers' start-up while this process imports and plans. `run(jobs)` hands out
+    the scans and returns their rows; a worker that dies (killed, out of host memory) fails the scans it held,
+    the others go on. `close()` (also on leaving a `with`) stops workers that got no scans."""
+
+    def __init__(self, count: int, make_config: Callable, options: BatchOptions):
+        import multiprocessing as mp
+
+        ctx = mp.get_context("spawn")  # CUDA cannot be used in forked children
+        self.count = count
+        self._todo, self._events = ctx.Queue(), ctx.Queue()
+        self._procs = [ctx.Process(target=_queue_worker, name=f"slwarp-worker-{w}",
+                                   args=(w, count, make_config, options, self._todo, self._events))
+                       for w in range(count)]
+        self._closed = False
+        for p in self._procs:
+            p.start()
+
+    def __enter__(self) -> "WorkerPool":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop the workers (those still waiting for a scan end at their stop sign; any left after 10 s are
+        terminated)."""
+        if self._closed:
+            return
+        self._closed = True
+        for _ in self._procs:
+            self._todo.put(None)
+        for p in self._procs:
+            p.join(timeout=10)
             if p.is_alive():
                 p.terminate()
-        raise
-    finally:
-        todo.cancel_join_thread()  # stop signs left by a dead worker must not hold this process at exit
-    for w, p in enumerate(procs):
-        p.join()
-        if w in held:
-            job = jobs[held[w]]
-            results[held[w]] = ScanResult(job.name, job.source, job.out_dir, "failed", worker=f"worker {w}",
-                                          device=devices[w % len(devices)],
-                                          error=f"the worker process ended (exit code {p.exitcode}) during this scan")
-    for i, job in enumerate(jobs):
-        if i not in results:
-            results[i] = ScanResult(job.name, job.source, job.out_dir, "failed",
-                                    error="not run: every worker process ended before it")
-    return [results[i] for i in range(len(jobs))]
+                p.join()
+        self._todo.cancel_join_thread()  # stop signs left by a dead worker must not hold this process at exit
+
+    def run(self, jobs: list[ScanJob]) -> list[ScanResult]:
+        """Reconstruct `jobs` on the workers (one run per pool); their rows, in the order of `jobs`."""
+        import queue
+
+        if self._closed:
+            raise RuntimeError("this WorkerPool is closed")
+        for i in largest_first([j.cost for j in jobs]):
+            self._todo.put((i, jobs[i]))
+        for _ in self._procs:
+            self._todo.put(None)  # one stop sign per worker
+        results: dict[int, ScanResult] = {}
+        held: dict[int, set[int]] = {w: set() for w in range(self.count)}  # worker -> the jobs it took
+        devices: dict[int, str] = {}
+
+        def handle(event) -> None:
+            kind, w, payload = event
+            if kind == "device":
+                devices[w] = payload
+            elif kind == "start":
+                held[w].add(payload)
+            else:
+                i, row = payload
+                held[w].discard(i)
+                results[i] = ScanResult.from_dict(row)
+
+        procs = self._procs
+        try:
+            while any(p.is_alive() for p in procs):
+                try:
+                    handle(self._events.get(timeout=0.5))
+                except queue.Empty:
+                    pass
+            while True:  # what the last workers sent before they ended
+                try:
+                    handle(self._events.get(timeout=0.1))
+                except queue.Empty:
+                    break
+        except KeyboardInterrupt:  # the workers got the same interrupt and stop at their next step
+            for p in procs:
+                p.join(timeout=60)
+                if p.is_alive():
+                    p.terminate()
+            raise
+        finally:
+            self._closed = True
+            self._todo.cancel_join_thread()
+        for w, p in enumerate(procs):
+            p.join()
+            for i in sorted(held[w]):
+                job = jobs[i]
+                results[i] = ScanResult(job.name, job.source, job.out_dir, "failed", worker=f"worker {w}",
+                                        device=devices.get(w, ""),
+                                        error=f"the worker process ended (exit code {p.exitcode}) during this scan")
+        for i, job in enumerate(jobs):
+            if i not in results:
+                results[i] = ScanResult(job.name, job.source, job.out_dir, "failed",
+                                        error="not run: every worker process ended before it")
+        return [results[i] for i in range(len(jobs))]
 
 
-def _queue_worker(w: int, device: str, workers: int, jobs, config, options, todo, events) -> None:
-    """Worker w of the `workers` processes of `_run_spawned`: scans from `todo` until a stop sign, each reported
+class _Fixed:
+    """make_config for a TrainConfig known when the pool starts (picklable, unlike a lambda)."""
+
+    def __init__(self, config):
+        self.config = config
+
+    def __call__(self):
+        return self.config
+
+
+def _queue_worker(w: int, workers: int, make_config: Callable, options: BatchOptions, todo, events) -> None:
+    """Worker w of the `workers` processes of a WorkerPool: scans from `todo` ((index, ScanJob), None to stop),
+    loaded one ahead and written in the background as `run_scans` does; each scan's taking and final row reported
     to `events`."""
+    timeline.mark("worker started")
     try:
+        config = make_config()
+        devices = worker_devices(config.runtime.device)
+        device = devices[w % len(devices)]
         _enter_worker(device, w, workers)
+        events.put(("device", w, device))
         cfg = config.with_options(device=device)
-        while (i := todo.get()) is not None:
-            events.put(("start", w, i))
-            events.put(("done", w, run_scan(jobs[i], cfg, options, worker=f"worker {w}").to_dict()))
+        _warm_up(device)
+
+        def taken():
+            while (item := todo.get()) is not None:
+                i, job = item
+                index[job.out_dir] = i
+                events.put(("start", w, i))
+                yield job
+
+        index: dict[str, int] = {}
+        timeline.mark("worker ready")
+        run_scans(taken(), cfg, options, worker=f"worker {w}",
+                  on_row=lambda row: events.put(("done", w, (index[row.out_dir], row.to_dict()))))
+        timeline.mark("worker done")
     except KeyboardInterrupt:
         sys.exit(130)
     except Exception as e:  # TrainingInterrupted (a signal during training, checkpoint saved): stop as asked
         if hasattr(e, "exit_status"):
             sys.exit(e.exit_status)
         raise
+    finally:
+        timeline.write()
 
+
+def _warm_up(device: str) -> None:
+    """What a worker's first scan needs, started before it has one: the runtimes (Warp, the CUDA context) in a
+    thread, and the reconstruction's modules imported here."""
+    import torch
+
+    from ..devices import start_runtimes
+
+    start_runtimes(torch.device(device))
+    from ..neural import reconstruct  # noqa: F401 - the first scan's imports, while the batch is being planned

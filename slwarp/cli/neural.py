@@ -15,6 +15,62 @@ from .scans import _warn_problems
 def cmd_reconstruct(args) -> int:
     """One scan folder: reconstructed here into --out. Several scans (or a folder of them, or a glob), under
     torchrun, or with --per-device: a batch (_reconstruct_batch)."""
+    pool = _early_pool(args)  # --per-device: the workers start before this process imports torch
+    try:
+        return _reconstruct(args, pool)
+    finally:
+        if pool is not None:
+            pool.close()
+
+
+def _early_pool(args):
+    """The WorkerPool of `reconstruct --per-device K` (not under torchrun), started now, while this process has
+    imported nothing heavy: its workers' imports and runtime starts (about 2-3 s) overlap this process's own and
+    its planning. None when there is no --per-device, or the device count cannot be told without torch (the
+    batch then starts its workers itself)."""
+    if args.per_device is None or "WORLD_SIZE" in os.environ:
+        return None
+    from ..batch.launch import WorkerPool, visible_device_count
+
+    count = visible_device_count(_requested_device(args))
+    if count is None:
+        return None
+    return WorkerPool(args.per_device * count, _WorkerConfig(args), _batch_options(args, progress=False))
+
+
+class _WorkerConfig:
+    """A worker's TrainConfig from the command line, made in the worker (picklable: the parsed arguments)."""
+
+    def __init__(self, args):
+        self.args = args
+
+    def __call__(self):
+        return _config_from_args(self.args)[1]
+
+
+def _requested_device(args) -> str:
+    """The device the command line asks for, unresolved: --device, else the --config file's, else 'auto'."""
+    if getattr(args, "device", None):
+        return args.device
+    if args.config:
+        try:
+            from ..neural.config import load_config, preset
+
+            return load_config(args.config, base=preset("tiny")).runtime.device
+        except Exception:  # noqa: BLE001 - a bad file is reported by the command itself
+            return "auto"
+    return "auto"
+
+
+def _batch_options(args, progress: bool):
+    from ..batch.jobs import BatchOptions
+
+    return BatchOptions(frames=args.frames, depth_range=_parse_range(args.depth_range), use_mask=args.use_mask,
+                        resume=args.resume, overwrite=args.overwrite, progress=progress, log=not args.quiet,
+                        outside_paths=args.allow_outside_paths, patterns=args.patterns)
+
+
+def _reconstruct(args, pool) -> int:
     import numpy as np
     import torch
 
@@ -33,7 +89,7 @@ def cmd_reconstruct(args) -> int:
     found = find_scans(args.scans)
     pset = _pattern_set(args.patterns)  # a bad file is reported before any scan runs
     if not found.single or args.per_device is not None or launched_by_torchrun():
-        return _reconstruct_batch(args, found, name, cfg, dev)
+        return _reconstruct_batch(args, found, name, cfg, dev, pool)
     scan_path = args.scans[0]
     start_runtimes(dev)  # beside the scan's loading
     scan = load_scan(scan_path, frames=args.frames, outside_paths=args.allow_outside_paths, patterns=pset)
@@ -88,10 +144,10 @@ PATTERNS_HELP = ("a pattern-set file (PATH/patterns.yaml or its folder, e.g. fro
                  "patterns and roles replace those of the scan's frames of the same names")
 
 
-def _reconstruct_batch(args, found, name: str, cfg, dev) -> int:
+def _reconstruct_batch(args, found, name: str, cfg, dev, pool=None) -> int:
     """The scans `found` (slwarp.batch.find_scans) as a batch: each into --out/<name>/ (--out for a lone scan
     folder), a summary printed by the process that gathers it; exit status 1 when a scan failed."""
-    from ..batch import BatchOptions, run_batch
+    from ..batch import run_batch
     from ..neural.describe import describe
 
     rank = int(os.environ.get("RANK", 0))
@@ -102,11 +158,10 @@ def _reconstruct_batch(args, found, name: str, cfg, dev) -> int:
                f"torchrun, {os.environ['WORLD_SIZE']} processes" if "WORLD_SIZE" in os.environ else "one after another")
         print(f"reconstructing {len(found.scans)} scans ({how}) with preset '{name}'" + (f" + {args.config}" if args.config else "")
               + f" ({describe(cfg)}) on {dev}", flush=True)
-    options = BatchOptions(frames=args.frames, depth_range=_parse_range(args.depth_range), use_mask=args.use_mask,
-                           resume=args.resume, overwrite=args.overwrite, progress=not args.quiet, log=not args.quiet,
-                           outside_paths=args.allow_outside_paths, patterns=args.patterns)
+    options = _batch_options(args, progress=not args.quiet)
     timeline.mark("batch")
-    summary = run_batch(found.scans, cfg, args.out, options, single=found.single, per_device=args.per_device)
+    summary = run_batch(found.scans, cfg, args.out, options, single=found.single, per_device=args.per_device,
+                        pool=pool)
     timeline.mark("batch done")
     if isinstance(summary, int):  # a rank other than 0 (the failed scans' count): rank 0 reports
         return 1 if summary else 0
