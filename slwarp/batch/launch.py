@@ -249,7 +249,16 @@ class WorkerPool:
             if p.is_alive():
                 p.terminate()
                 p.join()
-        self._todo.cancel_join_thread()  # stop signs left by a dead worker must not hold this process at exit
+        self._release()
+
+    def _release(self) -> None:
+        """Let go of the queues, so that their semaphores are unlinked now: the command ends with os._exit, which
+        runs no exit handler (multiprocessing's resource tracker then warned of leaked semaphores)."""
+        for q in (self._todo, self._events):
+            if q is not None:
+                q.cancel_join_thread()  # stop signs left by a dead worker must not hold this process at exit
+                q.close()
+        self._todo = self._events = None
 
     def run(self, jobs: list[ScanJob]) -> list[ScanResult]:
         """Reconstruct `jobs` on the workers (one run per pool); their rows, in the order of `jobs`."""
@@ -265,9 +274,13 @@ class WorkerPool:
         held: dict[int, set[int]] = {w: set() for w in range(self.count)}  # worker -> the jobs it took
         devices: dict[int, str] = {}
 
+        finished: set[int] = set()  # workers done with the queue, their rows sent
+
         def handle(event) -> None:
             kind, w, payload = event
-            if kind == "device":
+            if kind == "bye":
+                finished.add(w)
+            elif kind == "device":
                 devices[w] = payload
             elif kind == "start":
                 held[w].add(payload)
@@ -278,7 +291,7 @@ class WorkerPool:
 
         procs = self._procs
         try:
-            while any(p.is_alive() for p in procs):
+            while len(finished) < len(procs) and any(p.is_alive() for p in procs):
                 try:
                     handle(self._events.get(timeout=0.5))
                 except queue.Empty:
@@ -296,7 +309,6 @@ class WorkerPool:
             raise
         finally:
             self._closed = True
-            self._todo.cancel_join_thread()
         for w, p in enumerate(procs):
             p.join()
             for i in sorted(held[w]):
@@ -308,6 +320,7 @@ class WorkerPool:
             if i not in results:
                 results[i] = ScanResult(job.name, job.source, job.out_dir, "failed",
                                         error="not run: every worker process ended before it")
+        self._release()
         return [results[i] for i in range(len(jobs))]
 
 
@@ -355,6 +368,14 @@ def _queue_worker(w: int, workers: int, make_config: Callable, options: BatchOpt
         raise
     finally:
         timeline.write()
+    # Every file is written and every row sent (run_scans waits for the last scan's files). Why not a plain return:
+    # the interpreter's teardown (torch's, Warp's and CUDA's exit handlers) took 1-2 s, which the batch waited for.
+    events.put(("bye", w, None))
+    events.close()
+    events.join_thread()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
 
 
 def _warm_up(device: str) -> None:

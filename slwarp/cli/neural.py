@@ -35,7 +35,10 @@ def _early_pool(args):
     count = visible_device_count(_requested_device(args))
     if count is None:
         return None
-    return WorkerPool(args.per_device * count, _WorkerConfig(args), _batch_options(args, progress=False))
+    timeline.mark("pool")
+    pool = WorkerPool(args.per_device * count, _WorkerConfig(args), _batch_options(args, progress=False))
+    timeline.mark("pool started")
+    return pool
 
 
 class _WorkerConfig:

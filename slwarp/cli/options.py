@@ -71,12 +71,18 @@ def _given(argv, flag: str) -> str | None:
 
 def _chosen_preset(argv) -> str:
     """The preset a reconstruct or demo command line runs with: --preset, else the device's default
-    (slwarp.neural.config.DEFAULT_PRESET; the device from --device, default auto). Used for the defaults --help shows."""
-    from ..devices import DeviceError, torch_device
+    (slwarp.neural.config.DEFAULT_PRESET; the device from --device, default auto). Used for the defaults --help shows
+    (and nothing else: the options' values come from `_config_from_args`), so a command line that asks for no help
+    gets the CPU's default without importing torch to look for CUDA (about 1.5 s of a command's start, before
+    `reconstruct --per-device` starts its workers)."""
     from ..neural.config import PRESETS, default_preset_name
 
     if _given(argv, "--preset") in PRESETS:
         return _given(argv, "--preset")
+    if argv is not None and not any(a in ("-h", "--help") or a.startswith("--help-all") for a in argv):
+        return default_preset_name("cpu")
+    from ..devices import DeviceError, torch_device
+
     try:
         return default_preset_name(torch_device(_given(argv, "--device") or "auto"))
     except DeviceError:
