@@ -245,8 +245,12 @@ def markdown(doc: dict) -> str:
     s = doc["setup"]
     unit = "CPU" if s["cpu"] else "GPU"
     lines = [f"# Batch throughput, {doc['device']}, {doc['date']}", ""]
-    if doc.get("bench_command"):
-        lines += [f"`{doc['bench_command']}`", ""]
+    calls = doc.get("bench_commands") or ([doc["bench_command"]] if doc.get("bench_command") else [])
+    if len(calls) > 1:
+        lines += ["Configurations from these calls, one after another on the same machine:", "",
+                  *[f"    {c}" for c in calls], ""]
+    elif calls:
+        lines += [f"`{calls[0]}`", ""]
     if s.get("smoke"):
         lines += ["Smoke test (`--smoke`): tiny settings that check the commands run; the numbers say nothing of the "
                   "throughput of real scans.", ""]
@@ -408,17 +412,20 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     path = out / f"batch-throughput-{'cpu' if cpu else 'cuda'}.json"
+    command_line = " ".join(["python -m bench.batch_throughput", *(sys.argv[1:] if argv is None else argv)])
+    commands = [command_line]
     if path.is_file():  # same scans and settings: keep the configurations this call did not run
         old = json.loads(path.read_text())
         if old.get("setup") == setup:
             names = {r["name"] for r in rows}
             rows = [r for r in old["configs"] if r["name"] not in names] + rows
+            commands = old.get("bench_commands", [old.get("bench_command")]) + commands
     order = {(r["gpus"], r["per_gpu"], r["launcher"]): i for i, r in enumerate(rows)}
     rows.sort(key=lambda r: (r["gpus"], r["per_gpu"], order[(r["gpus"], r["per_gpu"], r["launcher"])]))
     add_scaling(rows)
     doc = {"device": info["device"], "gpus": gpus if not cpu else 1, "date": datetime.date.today().isoformat(),
            "setup": setup, "configs": rows, "bytecode_s": bytecode_s,
-           "bench_command": " ".join(["python -m bench.batch_throughput", *(sys.argv[1:] if argv is None else argv)])}
+           "bench_command": command_line, "bench_commands": [c for c in commands if c]}
     path.write_text(json.dumps(doc, indent=1) + "\n")
     text = markdown(doc)
     path.with_suffix(".md").write_text(text)
