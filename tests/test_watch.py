@@ -80,6 +80,14 @@ def test_the_station_reconstructs_scan_after_scan_and_reports_a_broken_one(small
     bad = station.reconstruct(broken, tmp_path / "b")
     assert bad.status == "failed" and bad.error.startswith("ScanError:") and not (tmp_path / "b" / "depth.npy").exists()
     assert [r.status for r in station.results] == ["done", "failed"]
+    # files in the background: the call returns with the depth map; written(row) comes once the files are complete
+    reported = []
+    row = station.reconstruct(small_scan, tmp_path / "c", written=lambda r: reported.append(
+        (r.name, r.status, outputs_complete(tmp_path / "c"))))
+    station.wait_written()
+    assert row.status == "done" and reported == [(small_scan.name, "done", True)]
+    bad = station.reconstruct(broken, tmp_path / "d", written=lambda r: reported.append((r.name, r.status, False)))
+    assert bad.status == "failed" and reported[-1] == ("broken", "failed", False)  # said at once: no files to wait for
 
 
 def _wait_for(predicate, timeout: float, what: str, proc, lines: list) -> None:

@@ -17,7 +17,7 @@ from typing import Callable, Iterable, Sequence
 from .. import timeline
 
 __all__ = ["COMPLETE_OUTPUTS", "CHECKPOINT", "BatchOptions", "ScanJob", "ScanResult", "outputs_complete",
-           "result_from_outputs", "error_line", "run_scan", "run_scans"]
+           "result_from_outputs", "error_line", "run_scan", "run_scans", "settle_written"]
 
 # Outputs `reconstruct` writes, config.yaml last: a folder holding all of them holds a finished run.
 COMPLETE_OUTPUTS = ("depth.npy", "timings.json", "config.yaml")
@@ -171,7 +171,7 @@ def run_scans(jobs: Iterable[ScanJob], config, options: BatchOptions = BatchOpti
 
     def final(row: ScanResult, wait: Callable[[], None] | None = None) -> None:
         if wait is not None:
-            _written(row, wait)
+            settle_written(row, wait)
         if on_row is not None:
             on_row(row)
 
@@ -203,7 +203,7 @@ def run_scans(jobs: Iterable[ScanJob], config, options: BatchOptions = BatchOpti
     return rows
 
 
-def _written(row: ScanResult, wait: Callable[[], None]) -> None:
+def settle_written(row: ScanResult, wait: Callable[[], None]) -> None:
     """Wait for a scan's files (Reconstruction.wait_written); a failure makes its row failed."""
     try:
         wait()
