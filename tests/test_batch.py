@@ -6,6 +6,8 @@ import os
 import re
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -266,6 +268,43 @@ def test_per_device_workers_start_before_the_command_imports_torch(tmp_path):
     imports = dict(parent["marks"])["imports"]
     workers = [dict(doc["marks"]) for doc in lines if doc["pid"] != parent["pid"]]
     assert len(workers) == 2 and all(w["worker started"] < imports for w in workers), lines
+
+
+def test_a_worker_that_dies_fails_the_scans_it_held_and_no_other(tmp_path):
+    """A WorkerPool whose only worker is killed during its first scan: that scan and the one it had drawn ahead
+    (being loaded) are failed with the worker's exit code, the scan it never took is 'not run', and run() returns."""
+    import signal as signals
+
+    from slwarp.batch import BatchOptions, ScanJob, WorkerPool
+    from slwarp.neural.config import preset
+    from slwarp.sim.simulate import simulate_scene
+
+    scan = simulate_scene("spheres", "random6", rig="small")
+    for name in ("a", "b", "c"):
+        scan.save(tmp_path / "scans" / name)
+    cfg = preset("tiny", device="cpu", iters=2000, init="sphere", rays=128, mc_resolution=32, backend="torch",
+                 depth_method="sphere")
+    from slwarp.batch.launch import _Fixed
+
+    jobs = [ScanJob(n, str(tmp_path / "scans" / n), str(tmp_path / "out" / n), 1.0) for n in ("a", "b", "c")]
+    pool = WorkerPool(1, _Fixed(cfg), BatchOptions(log=False))
+    staging = tmp_path / "out" / f".a.partial-{pool._procs[0].pid}"  # reconstruct('a') has begun
+
+    def kill_when_training():
+        t = time.monotonic()
+        while not staging.exists() and time.monotonic() - t < 120:
+            time.sleep(0.05)
+        time.sleep(0.5)  # 'b' is drawn once 'a' is in memory
+        os.kill(pool._procs[0].pid, signals.SIGKILL)
+
+    killer = threading.Thread(target=kill_when_training)
+    killer.start()
+    rows = pool.run(jobs)
+    killer.join()
+    assert [r.status for r in rows] == ["failed", "failed", "failed"], rows
+    assert all("the worker process ended (exit code -9) during this scan" == r.error for r in rows[:2]), rows
+    assert rows[2].error == "not run: every worker process ended before it"
+    assert not (tmp_path / "out" / "a" / "depth.npy").exists()
 
 
 def _free_port() -> int:
