@@ -165,7 +165,7 @@ def _add_design(p):
     p.add_argument("--lr", type=float, default=0.05, help="step size (default 0.05)")
     p.add_argument("--tol-px", type=float, default=2.0,
                    help="a code comparison misses when it picks a depth farther than this along the line (projector px; default 2)")
-    p.add_argument("--binary", action="store_true", help="round the patterns to black and white at the end (DLP projectors)")
+    p.add_argument("--binary", action="store_true", help="black and white patterns (DLP projectors): sharpened during the descent, rounded at the end")
     p.add_argument("--blur-px", type=float, default=1.0, help="the camera's view of the pattern: Gaussian sigma in projector px (default 1)")
     p.add_argument("--ambient", type=float, default=0.08, help="ambient offset up to this, full scale (default 0.08)")
     p.add_argument("--modulation", default="0.15,0.8", help="LO,HI range of the pattern's modulation at the camera, full scale (default 0.15,0.8)")

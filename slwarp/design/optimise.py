@@ -42,8 +42,9 @@ class DesignOptions:
     """How to design K patterns. iterations: Adam steps; pixels: camera pixels per step; lr: Adam's learning rate on
     theta; tol_px: a miss is a hypothesis farther than this (projector px) from the truth; step_px: the spacing of the
     depth hypotheses along the line (projector px); softness: scales the posterior's noise; init_scale_px: smoothness
-    of the start (projector px); binary: round to 0/1 at the end; seed: every random draw; validation_pixels: the
-    fixed batch that picks the best patterns; report_every: steps between validations; backend: "warp" (the
+    of the start (projector px); binary: sharpened towards 0/1 over the descent's last two thirds (BINARY_START),
+    scored as rounded, rounded at the end; seed: every random draw; validation_pixels: the fixed batch that picks
+    the best patterns; report_every: steps between validations; backend: "warp" (the
     reprojection's Warp kernels), "torch" (its twin) or "auto": Warp on CUDA, the twin on the CPU (Warp's CPU kernels run
     on one core, torch's on all of them: 3x faster on 2 cores)."""
 
@@ -108,15 +109,30 @@ def _span_unit(s: torch.Tensor) -> torch.Tensor:
     return (s - lo) / (hi - lo).clamp_min(1.0e-6)
 
 
-def binarise(patterns: np.ndarray) -> np.ndarray:
-    """[K, Hp, Wp] in [0, 1] -> 0/1 with each pixel's highest value 1 and lowest 0 (every pixel keeps a code)."""
-    p = np.asarray(patterns, np.float32)
-    out = (p >= 0.5).astype(np.float32)
-    hi, lo = p.argmax(0), p.argmin(0)
-    rows, cols = np.indices(p.shape[1:])
-    out[hi, rows, cols] = 1.0
-    out[lo, rows, cols] = 0.0
-    return out
+def binarise(patterns):
+    """[K, Hp, Wp] in [0, 1] -> 0/1 with each pixel's highest value 1 and lowest 0 (every pixel keeps a code);
+    a numpy array or a torch tensor, returned as the same kind."""
+    t = torch.as_tensor(np.asarray(patterns, np.float32)) if isinstance(patterns, np.ndarray) else patterns
+    out = (t >= 0.5).to(t.dtype)
+    out.scatter_(0, t.argmax(0, keepdim=True), 1.0)
+    out.scatter_(0, t.argmin(0, keepdim=True), 0.0)
+    return out.numpy() if isinstance(patterns, np.ndarray) else out
+
+
+# binary designs: the descent sharpens the patterns towards black and white over its last part, so that the
+# rounding at the end changes little (rounding a grey design of 4 afterwards took the small rig's misses from 8.6%
+# to 23.6%, worse than 6 random patterns' 16.4%)
+BINARY_START = 1.0 / 3.0  # the share of the descent before the sharpening starts
+BINARY_BETA = (2.0, 40.0)  # the sharpening's slope: sigmoid(beta (p - 0.5)), from the first to the last step
+
+
+def _sharpness(it: int, iterations: int) -> float:
+    """beta of step `it` (0: none) for a binary design, rising geometrically over the descent's last part."""
+    start = BINARY_START * iterations
+    if it < start:
+        return 0.0
+    f = (it - start) / max(iterations - start, 1.0)
+    return BINARY_BETA[0] * (BINARY_BETA[1] / BINARY_BETA[0]) ** f
 
 
 def _smooth_start(K: int, L: int, scale_px: float, generator: torch.Generator, device) -> torch.Tensor:
@@ -176,7 +192,7 @@ def design_patterns(camera, projector, depth_range, opts: DesignOptions, *, devi
     def validate(it: int):
         nonlocal best
         pats = patterns_of(theta.detach())
-        m = evaluate_patterns(model, pats, val, opts)
+        m = evaluate_patterns(model, binarise(pats) if opts.binary else pats, val, opts)  # as they will be shown
         history["iteration"].append(it)
         history["loss"].append(m["loss"])
         history["miss_rate"].append(m["miss_rate"])
@@ -191,7 +207,11 @@ def design_patterns(camera, projector, depth_range, opts: DesignOptions, *, devi
         validate(0)
         for it in range(1, opts.iterations + 1):
             batch = model.batch(opts.pixels, K, g)
-            seen = blur_patterns(patterns_of(theta), opts.noise.blur_px)
+            pats = patterns_of(theta)
+            beta = _sharpness(it, opts.iterations) if opts.binary else 0.0
+            if beta > 0.0:
+                pats = torch.sigmoid(beta * (pats - 0.5))
+            seen = blur_patterns(pats, opts.noise.blur_px)
             loss = miss_loss(seen, batch, opts.noise, tol_px=opts.tol_px, softness=opts.softness, backend=opts.backend)
             theta.grad = None
             loss.backward()
