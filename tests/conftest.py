@@ -34,6 +34,27 @@ def device(request):
     return request.param
 
 
+@pytest.fixture
+def capture_cuda_graph():
+    """capture(step) -> (graph, step's outputs in the graph's memory): step() run once on a side stream (kernels
+    built and launches recorded before the capture, as CUDA graphs require), then captured; replay the graph after
+    copying new inputs into the tensors step reads."""
+    import torch
+
+    def capture(step):
+        stream = torch.cuda.Stream()
+        stream.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(stream):
+            step()
+        torch.cuda.current_stream().wait_stream(stream)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            out = step()
+        return graph, out
+
+    return capture
+
+
 @pytest.fixture(scope="session")
 def chessboard_path():
     """The real capture procam_chessboard (docs/real-captures.md); the test is skipped, saying where it looked and

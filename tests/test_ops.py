@@ -347,7 +347,7 @@ def test_upsample_placement_follows_the_cdf_rules(device):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-def test_sampling_ops_capture_in_a_cuda_graph():
+def test_sampling_ops_capture_in_a_cuda_graph(capture_cuda_graph):
     """Up-sampling and merge in one CUDA graph (scratch allocated inside it, no host synchronisation): the
     replay gives the eager result, also for new inputs copied into the captured tensors."""
     z, sdf, o, d = upsample_rays(64, 24, "cuda")
@@ -356,14 +356,7 @@ def test_sampling_ops_capture_in_a_cuda_graph():
         z_new = ops.upsample_samples(z, sdf, o, d, 16, 0.64)
         return ops.merge_samples(z, sdf, z_new, z_new * 0.5)
 
-    stream = torch.cuda.Stream()
-    stream.wait_stream(torch.cuda.current_stream())
-    with torch.cuda.stream(stream):
-        step()  # warm-up: kernels built and launches recorded before the capture
-    torch.cuda.current_stream().wait_stream(stream)
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
-        out = step()
+    graph, out = capture_cuda_graph(step)
     z2, sdf2, _, _ = upsample_rays(64, 24, "cuda", seed=5)
     for dst, src in ((z, z2), (sdf, sdf2)):
         dst.copy_(src)

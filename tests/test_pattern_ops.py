@@ -181,7 +181,7 @@ def test_warp_pattern_gradient_matches_finite_differences(device):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-def test_reproject_captures_in_a_cuda_graph():
+def test_reproject_captures_in_a_cuda_graph(capture_cuda_graph):
     """Forward and backward into the patterns in one CUDA graph (no host synchronisation): the replay gives the
     eager gradient, also for new uv copied into the captured tensor."""
     pats = make_patterns("cuda", seed=17).requires_grad_()
@@ -191,14 +191,7 @@ def test_reproject_captures_in_a_cuda_graph():
     def step():
         return torch.autograd.grad((ops.reproject_patterns(pats, uv) * cot).sum(), pats)[0]
 
-    stream = torch.cuda.Stream()
-    stream.wait_stream(torch.cuda.current_stream())
-    with torch.cuda.stream(stream):
-        step()  # warm-up: kernels built and launches recorded before the capture
-    torch.cuda.current_stream().wait_stream(stream)
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
-        g = step()
+    graph, g = capture_cuda_graph(step)
     uv.copy_(random_uv(2000, seed=20).cuda())
     graph.replay()
     torch.cuda.synchronize()
