@@ -3,10 +3,12 @@
     slwarp watch INBOX --out OUT --preset fast          # the command
     station = Station(preset("fast"), options)          # the same warm worker from Python
     row = station.reconstruct("inbox/part_017", "out/part_017")
+    rows = station.run(jobs, on_row=print)              # many ScanJobs, loading and writing beside the training
 
 The process keeps what a process pays once (imports, the device's start, kernel modules, compiled graphs of
-the scans' size), so each scan after the first costs its reconstruction alone; a scan's files are written while the
-next one trains (as in a batch: 0.4 s of a `fast` scan on an H100), and its line is printed once they are complete. A scan folder is taken once it is
+the scans' size), so each scan after the first costs its reconstruction alone. As in a batch (slwarp.batch.run_scans),
+a scan that is ready loads while the one before trains and its files are written while the next one trains (0.3 and
+0.4 s of a `fast` scan on an H100); its line is printed as soon as its files are complete. A scan folder is taken once it is
 complete: its scan.yaml parses and every file it names (frames' images and patterns, gt_depth, mask) is present,
 and no file of the folder has changed size or time for `settle_s` (a scanner still copying frames is waited for).
 A scan's files are read from inside its folder only (slwarp.scans.scan.load_scan with outside_paths=False).
@@ -27,10 +29,9 @@ import threading
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterable
 
-from .batch import SCAN_MARKERS, BatchOptions, ScanJob, ScanResult, outputs_complete, run_scan
-from .batch.jobs import settle_written
+from .batch import SCAN_MARKERS, BatchOptions, ScanJob, ScanResult, outputs_complete, run_scan, run_scans
 from .scans.scan import SCAN_FILE, inside_folder
 
 DEFAULT_POLL_S = 0.5
@@ -97,40 +98,25 @@ class Station:
         self.config = config.validate()
         self.options = options
         self.results: list[ScanResult] = []
-        self._writers: list[threading.Thread] = []
 
-    def reconstruct(self, source: str | os.PathLike, out_dir: str | os.PathLike, name: str | None = None,
-                    written: Callable[[ScanResult], None] | None = None) -> ScanResult:
-        """Reconstruct the scan folder `source` into `out_dir`. Without `written`, its files are complete when this
-        returns. With it, this returns once the depth map is known, the files are written in a thread (the caller
-        goes on with the next scan meanwhile) and `written(row)` is called from that thread once they are complete,
-        the row marked failed if they failed; `wait_written()` waits for every such write."""
+    def reconstruct(self, source: str | os.PathLike, out_dir: str | os.PathLike, name: str | None = None) -> ScanResult:
+        """Reconstruct the scan folder `source` into `out_dir`; its files are complete when this returns."""
         job = ScanJob(name or Path(source).name, str(source), str(out_dir))
-        if written is None:
-            row = run_scan(job, self.config, self.options, worker="station")
-        else:
-            writing: list = []
-            row = run_scan(job, self.config, self.options, worker="station", writing=writing)
-            if writing:
-                wait = writing[0][1]
-
-                def finish(row=row, wait=wait):
-                    settle_written(row, wait)
-                    written(row)
-
-                self._writers = [t for t in self._writers if t.is_alive()]
-                self._writers.append(threading.Thread(target=finish, name="slwarp-station-files"))
-                self._writers[-1].start()
-            else:  # failed before its files: nothing to wait for
-                written(row)
+        row = run_scan(job, self.config, self.options, worker="station")
         self.results.append(row)
         return row
 
-    def wait_written(self) -> None:
-        """Wait for the files of every scan still being written (reconstruct(written=...))."""
-        for t in self._writers:
-            t.join()
-        self._writers = []
+    def run(self, jobs: Iterable[ScanJob], on_row: Callable[[ScanResult], None] | None = None,
+            should_stop: Callable[[], bool] | None = None) -> list[ScanResult]:
+        """Reconstruct `jobs` (any iterable, drawn one ahead) one after another, each loading while the one before
+        trains and writing its files while the next one trains (slwarp.batch.run_scans): on_row(row) as soon as a
+        scan's files are complete; should_stop() is asked before each scan starts."""
+        def final(row: ScanResult) -> None:
+            self.results.append(row)  # also the rows finished before a stop during a later scan's training
+            if on_row is not None:
+                on_row(row)
+
+        return run_scans(jobs, self.config, self.options, worker="station", on_row=final, should_stop=should_stop)
 
 
 @dataclass
@@ -220,39 +206,40 @@ class Watcher:
                     self.say(f"{folder.name}: done before (outputs in {self.out / folder.name})")
             rows: list[ScanResult] = []
             lock = threading.Lock()
+            drawn: list[str] = []  # the scans handed to the station, in order
 
-            def report(row: ScanResult) -> None:  # the scan's files are complete (or failed): its line
+            def report(row: ScanResult) -> None:  # the scan's files are complete (or it failed): its line
                 with lock:
+                    rows.append(row)
                     self.say(line(row))
                     if row.status == "failed":
                         seen = self.seen[row.name]
                         seen.failed = seen.signature
 
-            try:
-                while not self.stopping.is_set():
-                    todo = self.ready()
-                    if not todo and until_idle and not self._pending():
-                        break
-                    for folder in todo:
-                        if self.stopping.is_set():
-                            break
-                        try:  # its files are written while the next scan trains; report() says its line then
-                            row = self.station.reconstruct(folder, self.out / folder.name, name=folder.name,
-                                                           written=report)
-                        except TrainingInterrupted as e:  # a signal during training: its checkpoint is saved
-                            with lock:
-                                self.say(f"{folder.name}: interrupted; it continues from its checkpoint on the next start")
-                            self.stop(e.signum)
-                            break
-                        rows.append(row)
-                        if max_scans is not None and len(rows) >= max_scans:
-                            self.stop()
-                            break
-                    if not self.stopping.is_set() and not self.ready():  # idle: the last scan's line before waiting
-                        self.station.wait_written()
-                    self.stopping.wait(self.poll_s)
-            finally:
-                self.station.wait_written()  # a finished scan is never lost, nor its line
+            def jobs(todo):
+                for folder in todo:
+                    if max_scans is not None and len(drawn) >= max_scans:
+                        return
+                    drawn.append(folder.name)
+                    yield ScanJob(folder.name, str(folder), str(self.out / folder.name))
+
+            while not self.stopping.is_set():
+                todo = self.ready()
+                if not todo and until_idle and not self._pending():
+                    break
+                try:  # the next scan loads while one trains, its files are written while the next one trains
+                    self.station.run(jobs(todo), on_row=report, should_stop=self.stopping.is_set)
+                except TrainingInterrupted as e:  # a signal during training: its checkpoint is saved
+                    done = {r.name for r in rows}
+                    name = next((n for n in drawn if n not in done), "the scan")
+                    with lock:
+                        self.say(f"{name}: interrupted; it continues from its checkpoint on the next start")
+                    self.stop(e.signum)
+                    break
+                if max_scans is not None and len(drawn) >= max_scans:
+                    self.stop()
+                    break
+                self.stopping.wait(self.poll_s)
             return rows
 
     def _pending(self) -> bool:

@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from slwarp.batch import outputs_complete
+from slwarp.batch import ScanJob, outputs_complete
 from slwarp.watch import Station, Watcher, scan_complete
 
 # the `tiny` preset cut to a few iterations, on the torch twin with sphere-traced depth (no Warp kernel to compile
@@ -80,14 +80,17 @@ def test_the_station_reconstructs_scan_after_scan_and_reports_a_broken_one(small
     bad = station.reconstruct(broken, tmp_path / "b")
     assert bad.status == "failed" and bad.error.startswith("ScanError:") and not (tmp_path / "b" / "depth.npy").exists()
     assert [r.status for r in station.results] == ["done", "failed"]
-    # files in the background: the call returns with the depth map; written(row) comes once the files are complete
+    # scan after scan: the next loads while one trains, each one's files are written while the next trains, and
+    # on_row(row) comes once its files are complete, in order; should_stop ends the run before a scan starts
     reported = []
-    row = station.reconstruct(small_scan, tmp_path / "c", written=lambda r: reported.append(
-        (r.name, r.status, outputs_complete(tmp_path / "c"))))
-    station.wait_written()
-    assert row.status == "done" and reported == [(small_scan.name, "done", True)]
-    bad = station.reconstruct(broken, tmp_path / "d", written=lambda r: reported.append((r.name, r.status, False)))
-    assert bad.status == "failed" and reported[-1] == ("broken", "failed", False)  # said at once: no files to wait for
+    jobs = [ScanJob(n, str(src), str(tmp_path / n)) for n, src in (("c", small_scan), ("d", broken), ("e", small_scan),
+                                                                     ("f", small_scan))]
+    asked = []  # should_stop is asked before each scan: stop before the fourth
+    rows = station.run(iter(jobs), on_row=lambda r: reported.append((r.name, r.status, outputs_complete(r.out_dir))),
+                       should_stop=lambda: asked.append(1) or len(asked) > 3)
+    assert [r.name for r in rows] == ["c", "d", "e"] and [r.status for r in rows] == ["done", "failed", "done"]
+    assert reported == [("c", "done", True), ("d", "failed", False), ("e", "done", True)]
+    assert not (tmp_path / "f").exists() and [r.name for r in station.results[-3:]] == ["c", "d", "e"]
 
 
 def _wait_for(predicate, timeout: float, what: str, proc, lines: list) -> None:

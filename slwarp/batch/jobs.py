@@ -12,12 +12,12 @@ import time
 import traceback
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Callable, Iterable, Sequence
+from typing import Callable, Iterable
 
 from .. import timeline
 
 __all__ = ["COMPLETE_OUTPUTS", "CHECKPOINT", "BatchOptions", "ScanJob", "ScanResult", "outputs_complete",
-           "result_from_outputs", "error_line", "run_scan", "run_scans", "settle_written"]
+           "result_from_outputs", "error_line", "run_scan", "run_scans"]
 
 # Outputs `reconstruct` writes, config.yaml last: a folder holding all of them holds a finished run.
 COMPLETE_OUTPUTS = ("depth.npy", "timings.json", "config.yaml")
@@ -152,8 +152,8 @@ def _fit_compiled(scan, config) -> None:
 
 
 def run_scans(jobs: Iterable[ScanJob], config, options: BatchOptions = BatchOptions(), worker: str = "main",
-              log: Callable[[str], None] = print, on_row: Callable[[ScanResult], None] | None = None
-              ) -> list[ScanResult]:
+              log: Callable[[str], None] = print, on_row: Callable[[ScanResult], None] | None = None,
+              should_stop: Callable[[], bool] | None = None) -> list[ScanResult]:
     """run_scan over `jobs` in order, each scan loading (frames decoded, camera rays computed: scans.prefetch) in a
     thread while the scan before it trains, and its files written in a thread while the next one trains
     (reconstruct's write_in_background; a scan whose files fail is marked failed when they do). Why: a `fast` scan
@@ -161,49 +161,63 @@ def run_scans(jobs: Iterable[ScanJob], config, options: BatchOptions = BatchOpti
     A row's `seconds` ends when its depth map and metrics are known; the batch's wall time counts everything.
 
     jobs: any iterable, drawn one ahead (the next job is taken once the current scan is in memory: a worker of a
-    queue, slwarp.batch.launch, holds at most two). on_row: called with each row once it is final (its files
-    written or failed), in order."""
+    queue, slwarp.batch.launch, holds at most two). on_row: called with each row as soon as it is final (its files
+    written, or failed), in order, from a thread of this call's own. should_stop: asked before each scan starts;
+    True ends the run there (a job drawn ahead is left). Every row is final, and reported, when this returns or
+    raises (a stop during training: TrainingInterrupted)."""
+    import queue
+    import threading
+
     from ..scans.prefetch import ScanPrefetch
 
     def load(job):
         return ScanPrefetch(job.source, frames=options.frames, outside_paths=options.outside_paths,
                             patterns=options.patterns)
 
-    def final(row: ScanResult, wait: Callable[[], None] | None = None) -> None:
-        if wait is not None:
-            settle_written(row, wait)
-        if on_row is not None:
-            on_row(row)
+    finals: queue.Queue = queue.Queue()  # (row, wait for its files or None), in order; None ends
+    errors: list[BaseException] = []
 
+    def reporter() -> None:
+        while (item := finals.get()) is not None:
+            row, wait = item
+            try:
+                if wait is not None:
+                    _settle_written(row, wait)
+                if on_row is not None:
+                    on_row(row)
+            except BaseException as e:  # noqa: BLE001 - raised in the caller's thread once all are reported
+                errors.append(e)
+
+    thread = threading.Thread(target=reporter, name="slwarp-scan-rows")
+    thread.start()
     todo = iter(jobs)
     rows: list[ScanResult] = []
-    previous = None  # (row, wait) of the scan whose files are being written
-    job = next(todo, None)
-    ahead = load(job) if job is not None else None
-    while job is not None:
-        current, ahead, following = ahead, None, [None]
+    try:
+        job = next(todo, None)
+        ahead = load(job) if job is not None else None
+        while job is not None and not (should_stop is not None and should_stop()):
+            current, ahead, following = ahead, None, [None]
 
-        def load_next():
-            nonlocal ahead
-            following[0] = next(todo, None)
-            ahead = load(following[0]) if following[0] is not None else None
+            def load_next():
+                nonlocal ahead
+                following[0] = next(todo, None)
+                ahead = load(following[0]) if following[0] is not None else None
 
-        writing: list = []
-        row = run_scan(job, config, options, worker, log, loaded=current, on_loaded=load_next, writing=writing)
-        rows.append(row)
-        timeline.mark(f"scan {len(rows)}")
-        if previous is not None:
-            final(*previous)
-        previous = writing[0] if writing else None
-        if previous is None:
-            final(row)
-        job = following[0]
-    if previous is not None:
-        final(*previous)
+            writing: list = []
+            row = run_scan(job, config, options, worker, log, loaded=current, on_loaded=load_next, writing=writing)
+            rows.append(row)
+            timeline.mark(f"scan {len(rows)}")
+            finals.put(writing[0] if writing else (row, None))
+            job = following[0]
+    finally:
+        finals.put(None)
+        thread.join()
+    if errors:
+        raise errors[0]
     return rows
 
 
-def settle_written(row: ScanResult, wait: Callable[[], None]) -> None:
+def _settle_written(row: ScanResult, wait: Callable[[], None]) -> None:
     """Wait for a scan's files (Reconstruction.wait_written); a failure makes its row failed."""
     try:
         wait()
