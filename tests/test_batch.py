@@ -270,6 +270,26 @@ def test_per_device_workers_start_before_the_command_imports_torch(tmp_path):
     assert len(workers) == 2 and all(w["worker started"] < imports for w in workers), lines
 
 
+def test_workers_beyond_per_device_take_nothing(tmp_path):
+    """A pool started for more devices than torch sees (the count read without torch was wrong): the workers
+    beyond per_device x the devices end without a scan, the others do every scan, and `active` counts them."""
+    from slwarp.batch import BatchOptions, ScanJob, WorkerPool
+    from slwarp.batch.launch import _Fixed
+    from slwarp.neural.config import preset
+    from slwarp.sim.simulate import simulate_scene
+
+    scan = simulate_scene("spheres", "random6", rig="small")
+    for name in ("a", "b"):
+        scan.save(tmp_path / "scans" / name)
+    cfg = preset("tiny", device="cpu", iters=5, init="sphere", rays=128, mc_resolution=32, backend="torch",
+                 depth_method="sphere")
+    jobs = [ScanJob(n, str(tmp_path / "scans" / n), str(tmp_path / "out" / n), 1.0) for n in ("a", "b")]
+    pool = WorkerPool(3, _Fixed(cfg), BatchOptions(log=False), per_device=1)  # one device: the CPU
+    rows = pool.run(jobs)
+    assert [r.status for r in rows] == ["done", "done"] and {r.worker for r in rows} == {"worker 0"}
+    assert pool.active == 1 and all(p.exitcode == 0 for p in pool._procs)
+
+
 def test_a_worker_that_dies_fails_the_scans_it_held_and_no_other(tmp_path):
     """A WorkerPool whose only worker is killed during its first scan: that scan and the one it had drawn ahead
     (being loaded) are failed with the worker's exit code, the scan it never took is 'not run', and run() returns."""

@@ -117,9 +117,9 @@ def run_batch(scans: Sequence[ScanEntry], config, out: str | os.PathLike, option
         if per_device is not None or pool is not None:
             devices = worker_devices(config.runtime.device)
             if pool is None and jobs:
-                pool = WorkerPool(min(per_device * len(devices), len(jobs)), _Fixed(config), options)
+                pool = WorkerPool(min(per_device * len(devices), len(jobs)), _Fixed(config), options, per_device)
             rows = pool.run(jobs) if jobs else []
-            workers, mode = min(pool.count if pool else 0, len(jobs)), "per-device"
+            workers, mode = min(pool.active if pool else 0, len(jobs)), "per-device"
         else:
             devices, workers, mode = [config.runtime.device], 1, "sequential"
             rows = run_scans(jobs, config, options, log=log)
@@ -217,14 +217,17 @@ class WorkerPool:
     the scans and returns their rows; a worker that dies (killed, out of host memory) fails the scans it held,
     the others go on. `close()` (also on leaving a `with`) stops workers that got no scans."""
 
-    def __init__(self, count: int, make_config: Callable, options: BatchOptions):
+    def __init__(self, count: int, make_config: Callable, options: BatchOptions, per_device: int | None = None):
+        """count: workers to start; per_device: at most this many per device of the config (a worker beyond it,
+        when the count read without torch was more than torch sees, ends at once)."""
         import multiprocessing as mp
 
         ctx = mp.get_context("spawn")  # CUDA cannot be used in forked children
         self.count = count
+        self.active = 0  # the workers that took part (known after run)
         self._todo, self._events = ctx.Queue(), ctx.Queue()
         self._procs = [ctx.Process(target=_queue_worker, name=f"slwarp-worker-{w}",
-                                   args=(w, count, make_config, options, self._todo, self._events))
+                                   args=(w, count, per_device, make_config, options, self._todo, self._events))
                        for w in range(count)]
         self._closed = False
         for p in self._procs:
@@ -320,6 +323,7 @@ class WorkerPool:
             if i not in results:
                 results[i] = ScanResult(job.name, job.source, job.out_dir, "failed",
                                         error="not run: every worker process ended before it")
+        self.active = len(devices)
         self._release()
         return [results[i] for i in range(len(jobs))]
 
@@ -334,32 +338,35 @@ class _Fixed:
         return self.config
 
 
-def _queue_worker(w: int, workers: int, make_config: Callable, options: BatchOptions, todo, events) -> None:
+def _queue_worker(w: int, workers: int, per_device: int | None, make_config: Callable, options: BatchOptions, todo,
+                  events) -> None:
     """Worker w of the `workers` processes of a WorkerPool: scans from `todo` ((index, ScanJob), None to stop),
     loaded one ahead and written in the background as `run_scans` does; each scan's taking and final row reported
-    to `events`."""
+    to `events`. A worker beyond per_device x the devices torch sees takes nothing."""
     timeline.mark("worker started")
     try:
         config = make_config()
         devices = worker_devices(config.runtime.device)
-        device = devices[w % len(devices)]
-        _enter_worker(device, w, workers)
-        events.put(("device", w, device))
-        cfg = config.with_options(device=device)
-        _warm_up(device)
+        active = workers if per_device is None else min(workers, per_device * len(devices))
+        if w < active:
+            device = devices[w % len(devices)]
+            _enter_worker(device, w, active)
+            events.put(("device", w, device))
+            cfg = config.with_options(device=device)
+            _warm_up(device)
 
-        def taken():
-            while (item := todo.get()) is not None:
-                i, job = item
-                index[job.out_dir] = i
-                events.put(("start", w, i))
-                yield job
+            def taken():
+                while (item := todo.get()) is not None:
+                    i, job = item
+                    index[job.out_dir] = i
+                    events.put(("start", w, i))
+                    yield job
 
-        index: dict[str, int] = {}
-        timeline.mark("worker ready")
-        run_scans(taken(), cfg, options, worker=f"worker {w}",
-                  on_row=lambda row: events.put(("done", w, (index[row.out_dir], row.to_dict()))))
-        timeline.mark("worker done")
+            index: dict[str, int] = {}
+            timeline.mark("worker ready")
+            run_scans(taken(), cfg, options, worker=f"worker {w}",
+                      on_row=lambda row: events.put(("done", w, (index[row.out_dir], row.to_dict()))))
+            timeline.mark("worker done")
     except KeyboardInterrupt:
         sys.exit(130)
     except Exception as e:  # TrainingInterrupted (a signal during training, checkpoint saved): stop as asked

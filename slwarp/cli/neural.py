@@ -36,7 +36,8 @@ def _early_pool(args):
     if count is None:
         return None
     timeline.mark("pool")
-    pool = WorkerPool(args.per_device * count, _WorkerConfig(args), _batch_options(args, progress=False))
+    pool = WorkerPool(args.per_device * count, _WorkerConfig(args), _batch_options(args, progress=False),
+                      per_device=args.per_device)
     timeline.mark("pool started")
     return pool
 
