@@ -240,18 +240,15 @@ class WorkerPool:
         self.close()
 
     def close(self) -> None:
-        """Stop the workers (those still waiting for a scan end at their stop sign; any left after 10 s are
-        terminated)."""
+        """Stop the workers of a pool that is not running scans (`run` closes the pool it ran): they hold no scan,
+        so they are terminated at once (a bad command line is reported without waiting for their start-up)."""
         if self._closed:
             return
         self._closed = True
-        for _ in self._procs:
-            self._todo.put(None)
         for p in self._procs:
-            p.join(timeout=10)
-            if p.is_alive():
-                p.terminate()
-                p.join()
+            p.terminate()
+        for p in self._procs:
+            p.join()
         self._release()
 
     def _release(self) -> None:
