@@ -15,12 +15,9 @@ from .scans import _warn_problems
 def cmd_reconstruct(args) -> int:
     """One scan folder: reconstructed here into --out. Several scans (or a folder of them, or a glob), under
     torchrun, or with --per-device: a batch (_reconstruct_batch)."""
-    from ..batch.discovery import find_scans
-
-    found = find_scans(args.scans)  # a scan that is not there is reported before anything starts
     pool = _early_pool(args)  # --per-device: the workers start before this process imports torch
     try:
-        return _reconstruct(args, found, pool)
+        return _reconstruct(args, pool)
     finally:
         if pool is not None:
             pool.close()
@@ -77,11 +74,11 @@ def _batch_options(args, progress: bool):
                         outside_paths=args.allow_outside_paths, patterns=args.patterns)
 
 
-def _reconstruct(args, found, pool) -> int:
+def _reconstruct(args, pool) -> int:
     import numpy as np
     import torch
 
-    from ..batch import launched_by_torchrun
+    from ..batch import find_scans, launched_by_torchrun
     from ..devices import start_runtimes
     from ..evaluation.metrics import format_table
     from ..neural.describe import describe
@@ -93,6 +90,7 @@ def _reconstruct(args, found, pool) -> int:
     if args.per_device is not None and launched_by_torchrun():
         raise UserError("--per-device starts its own worker processes: under torchrun use --nproc-per-node "
                         "(K x GPUs for K scans per GPU) instead")
+    found = find_scans(args.scans)
     pset = _pattern_set(args.patterns)  # a bad file is reported before any scan runs
     if not found.single or args.per_device is not None or launched_by_torchrun():
         return _reconstruct_batch(args, found, name, cfg, dev, pool)
