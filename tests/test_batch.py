@@ -270,6 +270,17 @@ def test_per_device_workers_start_before_the_command_imports_torch(tmp_path):
     assert len(workers) == 2 and all(w["worker started"] < imports for w in workers), lines
 
 
+def test_per_device_with_a_missing_scan_starts_no_worker(tmp_path):
+    """A --per-device command that will fail on its scans starts no worker: the error comes as without it."""
+    marks = tmp_path / "timeline.jsonl"
+    env = {**os.environ, "SLWARP_TIMELINE": str(marks)}
+    run = subprocess.run([sys.executable, "-m", "slwarp", "reconstruct", str(tmp_path / "typo"), "--out", "out",
+                          "--per-device", "2", *FAST], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2 and "scan not found" in run.stderr, run.stderr
+    lines = [json.loads(line) for line in marks.read_text().splitlines()]
+    assert len(lines) == 1 and not any(name.startswith("pool") for name, _ in lines[0]["marks"]), lines
+
+
 def test_workers_beyond_per_device_take_nothing(tmp_path):
     """A pool started for more devices than torch sees (the count read without torch was wrong): the workers
     beyond per_device x the devices end without a scan, the others do every scan, and `active` counts them."""

@@ -30,10 +30,15 @@ def _early_pool(args):
     batch then starts its workers itself)."""
     if args.per_device is None or "WORLD_SIZE" in os.environ:
         return None
+    from ..batch.discovery import find_scans
     from ..batch.launch import WorkerPool, visible_device_count
 
     count = visible_device_count(_requested_device(args))
     if count is None:
+        return None
+    try:  # no workers for a command that will fail: the command reports its errors in their order
+        find_scans(args.scans)
+    except Exception:  # noqa: BLE001
         return None
     timeline.mark("pool")
     pool = WorkerPool(args.per_device * count, _WorkerConfig(args), _batch_options(args, progress=False),
