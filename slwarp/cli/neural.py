@@ -28,10 +28,11 @@ def _early_pool(args):
     imported nothing heavy: its workers' imports and runtime starts (about 2-3 s) overlap this process's own and
     its planning. None when there is no --per-device, or the device count cannot be told without torch (the
     batch then starts its workers itself)."""
-    if args.per_device is None or "WORLD_SIZE" in os.environ:
-        return None
     from ..batch.discovery import find_scans
-    from ..batch.launch import WorkerPool, visible_device_count
+    from ..batch.launch import WorkerPool, launched_by_torchrun, visible_device_count
+
+    if args.per_device is None or launched_by_torchrun():
+        return None
 
     count = visible_device_count(_requested_device(args))
     if count is None:
