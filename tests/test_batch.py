@@ -181,6 +181,35 @@ def test_visible_device_count_without_torch(monkeypatch):
     assert visible_device_count("auto") == 1 and visible_device_count("cuda") is None  # no GPU: the CPU / an error
 
 
+def test_workers_and_torchrun_ranks_see_only_their_gpu(monkeypatch):
+    """The GPUs dealt out before any worker starts CUDA: worker w gets entry w % GPUs of CUDA_VISIBLE_DEVICES and
+    keeps the launcher's name for it; a worker beyond per_device x GPUs is idle; without a GPU listing, nothing is
+    dealt. A torchrun rank pins itself by LOCAL_RANK, and its rows name the GPU as the launcher numbered it."""
+    from slwarp.batch import launch
+
+    monkeypatch.setattr(launch, "_PINNED", None)
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "3,5")
+    assert launch.visible_device_ids("auto") == ["3", "5"] and launch.visible_device_ids("cuda:1") == ["5"]
+    assert launch.visible_device_ids("cuda:2") is None and launch.visible_device_ids("cpu") is None
+    assert launch._worker_slots("cuda", 5, 2) == [("3", "cuda:0", 4), ("5", "cuda:1", 4), ("3", "cuda:0", 4),
+                                                  ("5", "cuda:1", 4), "idle"]
+    assert launch._worker_slots("cuda:1", 2, 2) == [("5", "cuda:1", 2), ("5", "cuda:1", 2)]
+    assert launch._worker_slots("cpu", 2, 1) == [None, None] and launch._worker_slots(None, 1, 1) == [None]
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "")
+    assert launch._worker_slots("auto", 2, 1) == [None, None]
+
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "3,5")
+    launch.pin_torchrun_rank("auto")  # not under torchrun: nothing
+    assert os.environ["CUDA_VISIBLE_DEVICES"] == "3,5" and launch.device_label("cuda:0") == "cuda:0"
+    for name, value in (("WORLD_SIZE", "2"), ("RANK", "1"), ("LOCAL_RANK", "1")):
+        monkeypatch.setenv(name, value)
+    launch.pin_torchrun_rank("cpu")  # a CPU run: nothing
+    assert os.environ["CUDA_VISIBLE_DEVICES"] == "3,5"
+    launch.pin_torchrun_rank("auto")
+    assert os.environ["CUDA_VISIBLE_DEVICES"] == "5"
+    assert launch.device_label("cuda:0") == "cuda:1" and launch.device_label("cpu") == "cpu"
+
+
 # A batch end to end: the 'tiny' preset cut to a few iterations, on the torch twin with sphere-traced depth so that
 # the worker processes compile no Warp kernel (the numbers do not matter here, only that each scan runs where the
 # plan says and its outputs and summary line come back).

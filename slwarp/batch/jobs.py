@@ -153,7 +153,7 @@ def _fit_compiled(scan, config) -> None:
 
 def run_scans(jobs: Iterable[ScanJob], config, options: BatchOptions = BatchOptions(), worker: str = "main",
               log: Callable[[str], None] = print, on_row: Callable[[ScanResult], None] | None = None,
-              should_stop: Callable[[], bool] | None = None) -> list[ScanResult]:
+              should_stop: Callable[[], bool] | None = None, device_name: str | None = None) -> list[ScanResult]:
     """run_scan over `jobs` in order, each scan loading (frames decoded, camera rays computed: scans.prefetch) in a
     thread while the scan before it trains, and its files written in a thread while the next one trains
     (reconstruct's write_in_background; a scan whose files fail is marked failed when they do). Why: a `fast` scan
@@ -164,7 +164,8 @@ def run_scans(jobs: Iterable[ScanJob], config, options: BatchOptions = BatchOpti
     queue, slwarp.batch.launch, holds at most two). on_row: called with each row as soon as it is final (its files
     written, or failed), in order, from a thread of this call's own. should_stop: asked before each scan starts;
     True ends the run there (a job drawn ahead is left). Every row is final, and reported, when this returns or
-    raises (a stop during training: TrainingInterrupted)."""
+    raises (a stop during training: TrainingInterrupted). device_name: how the rows and log lines name the device
+    (default: the config's; a worker pinned to one GPU names it as its launcher numbered it)."""
     import queue
     import threading
 
@@ -204,7 +205,8 @@ def run_scans(jobs: Iterable[ScanJob], config, options: BatchOptions = BatchOpti
                 ahead = load(following[0]) if following[0] is not None else None
 
             writing: list = []
-            row = run_scan(job, config, options, worker, log, loaded=current, on_loaded=load_next, writing=writing)
+            row = run_scan(job, config, options, worker, log, loaded=current, on_loaded=load_next, writing=writing,
+                           device_name=device_name)
             rows.append(row)
             timeline.mark(f"scan {len(rows)}")
             finals.put(writing[0] if writing else (row, None))
@@ -227,21 +229,22 @@ def _settle_written(row: ScanResult, wait: Callable[[], None]) -> None:
 
 def run_scan(job: ScanJob, config, options: BatchOptions = BatchOptions(), worker: str = "main",
              log: Callable[[str], None] = print, loaded=None, on_loaded: Callable[[], None] | None = None,
-             writing: list | None = None) -> ScanResult:
+             writing: list | None = None, device_name: str | None = None) -> ScanResult:
     """Reconstruct one scan into job.out_dir with `config` (whose runtime.device it runs on) and return its
     summary line; any error of the scan (loading, training, writing) is caught and reported in the line; a stop
     asked for (KeyboardInterrupt, SystemExit, TrainingInterrupted: Ctrl-C or SIGTERM during training, after its
     checkpoint) passes, so that the batch stops instead of going on with the next scan. loaded: a ScanPrefetch of
     job.source (else it is loaded here); on_loaded: called once the scan is in memory (run_scans loads the next);
     writing: a list to which (row, wait) is appended when the files are being written in the background (else they
-    are written before this returns)."""
+    are written before this returns). device_name: how the row and the log lines name the device (default: the
+    config's)."""
     from ..neural.reconstruct import reconstruct
     from ..neural.training import TrainingInterrupted
     from ..scans.scan import load_scan
 
     import numpy as np
 
-    device = config.runtime.device
+    device = device_name or config.runtime.device
     row = ScanResult(job.name, job.source, job.out_dir, "failed", worker=worker, device=device)
     say = log if options.log else (lambda _msg: None)
     t0 = time.perf_counter()

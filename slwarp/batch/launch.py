@@ -17,7 +17,8 @@ from .jobs import (BatchOptions, ScanJob, ScanResult, error_line, outputs_comple
                    run_scans)
 from .summary import BatchSummary
 
-__all__ = ["COLLECTIVE_TIMEOUT", "run_batch", "WorkerPool", "visible_device_count", "launched_by_torchrun", "worker_devices", "worker_cores"]
+__all__ = ["COLLECTIVE_TIMEOUT", "run_batch", "WorkerPool", "visible_device_count", "visible_device_ids",
+           "launched_by_torchrun", "pin_torchrun_rank", "worker_devices", "worker_cores"]
 
 # Ranks that finish their share wait at the gather for the slowest one: hours on a large batch (gloo's
 # default of 30 minutes would abort a healthy run). A rank that dies is torchrun's to notice, not this timeout's.
@@ -30,12 +31,19 @@ def launched_by_torchrun() -> bool:
     return "WORLD_SIZE" in os.environ and "RANK" in os.environ
 
 
+# the device this process was pinned to (`_pin`): "cuda:N" as numbered among the GPUs its launcher saw, while
+# this process itself sees only that GPU, as cuda:0
+_PINNED: str | None = None
+
+
 def worker_devices(device: str) -> list[str]:
     """The devices a batch's workers share out, for a config's resolved device: every visible CUDA device for
     'cuda' (no index), only that one for 'cuda:N', the CPU for 'cpu'. Worker k runs on devices[k % len]."""
     import torch
 
     dev = torch.device(device)
+    if _PINNED is not None and dev.type == "cuda":
+        return ["cuda:0"]
     if dev.type == "cuda" and dev.index is None:
         return [f"cuda:{i}" for i in range(torch.cuda.device_count())]
     return [str(dev)]
@@ -117,7 +125,8 @@ def run_batch(scans: Sequence[ScanEntry], config, out: str | os.PathLike, option
         if per_device is not None or pool is not None:
             devices = worker_devices(config.runtime.device)
             if pool is None and jobs:
-                pool = WorkerPool(min(per_device * len(devices), len(jobs)), _Fixed(config), options, per_device)
+                pool = WorkerPool(min(per_device * len(devices), len(jobs)), _Fixed(config), options, per_device,
+                                  device=config.runtime.device)
             rows = pool.run(jobs) if jobs else []
             workers, mode = min(pool.active if pool else 0, len(jobs)), "per-device"
         else:
@@ -161,9 +170,9 @@ def _run_torchrun(scans, config, out: Path, options: BatchOptions, single: bool,
         cfg = config.with_options(device=device)
         mine = shard([j.cost for j in jobs], world)[rank]
         rows = [r.to_dict() for r in run_scans([jobs[i] for i in mine], cfg, options, worker=f"rank {rank}",
-                                               log=log)]
+                                               log=log, device_name=device_label(device))]
         gathered = [None] * world if rank == 0 else None
-        dist.gather_object((device, rows), gathered, dst=0)
+        dist.gather_object((device_label(device), rows), gathered, dst=0)
         failed = [0]
         try:
             if rank == 0:
@@ -208,6 +217,50 @@ def visible_device_count(device: str) -> int | None:
     return count
 
 
+def visible_device_ids(device: str) -> list[str] | None:
+    """The CUDA_VISIBLE_DEVICES entries of the GPUs `worker_devices` will give for the device asked for ('auto',
+    'cuda', 'cuda:N'), found without starting CUDA: the variable's own entries, else the driver's indices. None
+    for the CPU, or when the GPUs cannot be told (see visible_device_count)."""
+    if device == "cpu":
+        return None
+    count = visible_device_count("cuda")
+    if count is None:
+        return None
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    ids = [e.strip() for e in visible.split(",")][:count] if visible is not None else [str(i) for i in range(count)]
+    if device.startswith("cuda:"):
+        index = int(device.split(":", 1)[1])
+        return [ids[index]] if index < len(ids) else None
+    return ids
+
+
+def _pin(entry: str, label: str) -> None:
+    """Make this process see one GPU only (CUDA_VISIBLE_DEVICES=entry), before anything starts CUDA here.
+    Why: every process that starts CUDA with all of a host's GPUs visible initialises the driver for each of them;
+    with four H200s the command's config step took 1.07 s against 0.27 s with one visible, and five processes doing
+    it at once (a pool's workers and the command) were the slowest part of a batch's start."""
+    global _PINNED
+    os.environ["CUDA_VISIBLE_DEVICES"] = entry
+    _PINNED = label
+
+
+def pin_torchrun_rank(device: str) -> None:
+    """Under torchrun, pin this rank to the GPU its LOCAL_RANK picks (`_pin`) when the device asked for is 'auto'
+    or 'cuda' and several GPUs are visible; nothing otherwise. Call it before torch starts CUDA."""
+    if not launched_by_torchrun() or device not in ("auto", "cuda"):
+        return
+    ids = visible_device_ids(device)
+    if not ids or len(ids) < 2:
+        return
+    local = int(os.environ.get("LOCAL_RANK", os.environ.get("RANK", "0")))
+    _pin(ids[local % len(ids)], f"cuda:{local % len(ids)}")
+
+
+def device_label(device: str) -> str:
+    """How a batch's rows name `device`: the GPU as its launcher numbered it when this process is pinned."""
+    return _PINNED if _PINNED is not None and device.startswith("cuda") else device
+
+
 class WorkerPool:
     """Worker processes (spawned) that reconstruct scans pulled from a queue, largest first: `count` of them,
     worker w on devices[w % len(devices)] of `worker_devices(config.runtime.device)`, bound to its share of the
@@ -217,17 +270,23 @@ class WorkerPool:
     the scans and returns their rows; a worker that dies (killed, out of host memory) fails the scans it held,
     the others go on. `close()` (also on leaving a `with`) stops workers that got no scans."""
 
-    def __init__(self, count: int, make_config: Callable, options: BatchOptions, per_device: int | None = None):
+    def __init__(self, count: int, make_config: Callable, options: BatchOptions, per_device: int | None = None,
+                 device: str | None = None):
         """count: workers to start; per_device: at most this many per device of the config (a worker beyond it,
-        when the count read without torch was more than torch sees, ends at once)."""
+        when the count read without torch was more than torch sees, ends at once); device: the device asked for
+        ('auto', 'cuda', 'cuda:N'; None: the workers find it from their config), whose GPUs, when they can be told
+        without CUDA (`visible_device_ids`), are dealt out before the workers start: each worker sees only its own
+        (`_pin`)."""
         import multiprocessing as mp
 
         ctx = mp.get_context("spawn")  # CUDA cannot be used in forked children
         self.count = count
         self.active = 0  # the workers that took part (known after run)
         self._todo, self._events = ctx.Queue(), ctx.Queue()
+        slots = _worker_slots(device, count, per_device)
         self._procs = [ctx.Process(target=_queue_worker, name=f"slwarp-worker-{w}",
-                                   args=(w, count, per_device, make_config, options, self._todo, self._events))
+                                   args=(w, count, per_device, make_config, options, self._todo, self._events,
+                                         slots[w]))
                        for w in range(count)]
         self._closed = False
         for p in self._procs:
@@ -335,20 +394,40 @@ class _Fixed:
         return self.config
 
 
+def _worker_slots(device: str | None, count: int, per_device: int | None) -> list:
+    """Each of `count` pool workers' GPU, dealt out before they start: (CUDA_VISIBLE_DEVICES entry, the GPU's name as
+    this process numbers it, the pool's active workers) for worker w on GPU w % GPUs, "idle" for a worker beyond
+    per_device x GPUs; None for
+    every worker when the GPUs cannot be told without CUDA (the workers then share out what torch sees)."""
+    ids = visible_device_ids(device) if device is not None else None
+    if not ids:
+        return [None] * count
+    first = int(device.split(":", 1)[1]) if device.startswith("cuda:") else 0
+    active = count if per_device is None else min(count, per_device * len(ids))
+    return [(ids[w % len(ids)], f"cuda:{first + w % len(ids)}", active) if w < active else "idle"
+            for w in range(count)]
+
+
 def _queue_worker(w: int, workers: int, per_device: int | None, make_config: Callable, options: BatchOptions, todo,
-                  events) -> None:
+                  events, slot=None) -> None:
     """Worker w of the `workers` processes of a WorkerPool: scans from `todo` ((index, ScanJob), None to stop),
     loaded one ahead and written in the background as `run_scans` does; each scan's taking and final row reported
-    to `events`. A worker beyond per_device x the devices torch sees takes nothing."""
+    to `events`. slot: its GPU (`_worker_slots`): seen alone, "idle" to take nothing, None to take devices[w %
+    len(devices)] of those torch sees. A worker beyond per_device x the devices takes nothing."""
     timeline.mark("worker started")
+    if isinstance(slot, tuple):
+        _pin(slot[0], slot[1])  # before make_config, which may start CUDA (the device 'auto')
     try:
         config = make_config()
         devices = worker_devices(config.runtime.device)
-        active = workers if per_device is None else min(workers, per_device * len(devices))
+        if slot is None:
+            active = workers if per_device is None else min(workers, per_device * len(devices))
+        else:  # the parent dealt the GPUs: this worker is active with its own one, or idle
+            active = slot[2] if isinstance(slot, tuple) else 0
         if w < active:
-            device = devices[w % len(devices)]
+            device = devices[0] if isinstance(slot, tuple) else devices[w % len(devices)]
             _enter_worker(device, w, active)
-            events.put(("device", w, device))
+            events.put(("device", w, device_label(device)))
             cfg = config.with_options(device=device)
             _warm_up(device)
 
@@ -361,7 +440,7 @@ def _queue_worker(w: int, workers: int, per_device: int | None, make_config: Cal
 
             index: dict[str, int] = {}
             timeline.mark("worker ready")
-            run_scans(taken(), cfg, options, worker=f"worker {w}",
+            run_scans(taken(), cfg, options, worker=f"worker {w}", device_name=device_label(device),
                       on_row=lambda row: events.put(("done", w, (index[row.out_dir], row.to_dict()))))
             timeline.mark("worker done")
     except KeyboardInterrupt:

@@ -15,6 +15,9 @@ from .scans import _warn_problems
 def cmd_reconstruct(args) -> int:
     """One scan folder: reconstructed here into --out. Several scans (or a folder of them, or a glob), under
     torchrun, or with --per-device: a batch (_reconstruct_batch)."""
+    from ..batch.launch import pin_torchrun_rank
+
+    pin_torchrun_rank(_requested_device(args))  # a torchrun rank sees only its own GPU, before CUDA starts here
     pool = _early_pool(args)  # --per-device: the workers start before this process imports torch
     try:
         return _reconstruct(args, pool)
@@ -43,7 +46,7 @@ def _early_pool(args):
         return None
     timeline.mark("pool")
     pool = WorkerPool(args.per_device * count, _WorkerConfig(args), _batch_options(args, progress=False),
-                      per_device=args.per_device)
+                      per_device=args.per_device, device=_requested_device(args))
     timeline.mark("pool started")
     return pool
 
