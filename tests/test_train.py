@@ -88,7 +88,8 @@ def test_resume_matches_uninterrupted_run(small_scan, tmp_path):
 
 def test_final_checkpoint_is_written_once_in_the_background_and_complete(small_scan, tmp_path, monkeypatch):
     """The last checkpoint follows the loop (not also inside it), snapshotted to host memory and written in a thread
-    when asked (reconstruct does); wait_checkpoint returns its path once it is on disk, and it resumes to the end."""
+    when asked (reconstruct does), as every checkpoint inside the loop is; wait_checkpoint returns its path once it is
+    on disk, and it resumes to the end."""
     import threading
 
     from slwarp.neural.training import trainer as trainer_module
@@ -105,7 +106,7 @@ def test_final_checkpoint_is_written_once_in_the_background_and_complete(small_s
     tr.checkpoint_in_background = True
     tr.train()
     assert tr.wait_checkpoint() == tmp_path / "checkpoint.pt" and tr.wait_checkpoint() is None
-    assert writes == [(15, "MainThread"), (30, "slwarp-checkpoint")]
+    assert writes == [(15, "slwarp-checkpoint"), (30, "slwarp-checkpoint")]
     ck = read_checkpoint(tmp_path / "checkpoint.pt")
     assert ck["iteration"] == 30 and all(not t.is_cuda for t in ck["field"].values())
     again = Trainer(scan, cfg, out_dir=tmp_path, resume=True, progress=False)

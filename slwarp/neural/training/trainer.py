@@ -450,7 +450,9 @@ class Trainer:
                 if (self.out_dir is not None and self.iteration % self.cfg.runtime.checkpoint_every == 0
                         and self.iteration < total):  # the last one follows the loop
                     self.elapsed = time.perf_counter() - t_start
-                    self.save_checkpoint()
+                    # snapshot now, file in a thread (the next save, an interruption's included, waits for it): a
+                    # written checkpoint cost `accurate` 0.13 s of training each, 4 of them per run on an H100
+                    self.save_checkpoint(background=True)
         finally:
             stop.__exit__()
             bar.close()
