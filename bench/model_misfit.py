@@ -9,6 +9,7 @@ scan where the refinement helps and below those where it hurts.
 
     python -m bench.model_misfit                                   # 8 scenes x 4 rigs linear, 3 cameras on default
     python -m bench.model_misfit --rigs default --scenes bunny --cameras linear,gamma --no-real   # quick
+    python -m bench.model_misfit --frames gray7 --cameras linear --rigs default,vertical --stem model-misfit-cpu-gray7
 
 The linear-camera scans are the accuracy sweep's own (bench/accuracy_sweep.py: random6 + 7 Gray code bits, seed 0);
 the other camera models (slwarp.sim.simulate.CAMERA_MODELS) are the same scenes through that camera. CPU, about
@@ -32,18 +33,21 @@ SCENES = ("spheres", "torus", "boxes", "bunny", "vase", "steps", "checker", "rod
 RIGS = ("default", "vertical", "oblique", "rolled")
 
 
-def scan_misfit(rig: str, scene: str, camera: str) -> float:
-    """model_misfit of the scan's 6 random-pattern frames at its true depth (inside its mask)."""
-    from bench.accuracy_sweep import _scan
+def scan_misfit(rig: str, scene: str, camera: str, frames: str = "random6") -> float:
+    """model_misfit of the scan's 6 random-pattern frames (frames "gray7": its 7 most significant Gray code images
+    along the depth axis, no inverses, the real captures' case) at its true depth (inside its mask)."""
+    from bench.accuracy_sweep import _scan, neural_frames
     from slwarp.neural.pattern_model import model_misfit
 
     if camera == "linear":
-        scan, _ = _scan(rig, scene, 0)
+        scan, axis = _scan(rig, scene, 0)
     else:
         from slwarp.sim.simulate import SimOptions, simulate_scene
 
-        scan = simulate_scene(scene, "random6", rig, SimOptions(seed=0, **_camera_options(camera)))
-    rand = scan.select("rand*")
+        if frames != "random6":
+            raise SystemExit("--frames gray7 is measured with the linear camera only")
+        scan, axis = simulate_scene(scene, "random6", rig, SimOptions(seed=0, **_camera_options(camera))), None
+    rand = scan.select(neural_frames({"frames": frames}, axis))
     gt = np.where(rand.mask, rand.gt_depth, np.nan).astype(np.float32)
     return model_misfit(gt, rand.camera, rand.projector, rand.images, rand.patterns)
 
@@ -71,7 +75,8 @@ def real_misfit(data: Path) -> float:
 
 def render(doc: dict) -> str:
     limit = doc["limit"]
-    lines = [f"# The pattern model's misfit at the true depth (CPU, {doc['date']})", "",
+    what = "the 7 Gray code images" if doc.get("frames") == "gray7" else "the 6 random patterns"
+    lines = [f"# The pattern model's misfit at the true depth, {what} (CPU, {doc['date']})", "",
              f"`{doc['command']}`. `pattern_model.model_misfit`: the median over the lit pixels of mean_n |I_n - (a + b "
              "Q_n)| / b, the per-pixel cost the refinement minimises, at the scan's true depth (the real capture: at "
              f"its full 40-image decode). The defaults refine only at or below {limit} (`refine_max_misfit`).", ""]
@@ -109,7 +114,10 @@ def main(argv=None) -> int:
     ap.add_argument("--camera-rigs", default="default", help="rigs of the other camera models")
     ap.add_argument("--no-real", action="store_true", help="leave out the real capture")
     ap.add_argument("--data", default=str(data_dir() / "procam_chessboard"))  # $SLWARP_DATA (docs/real-captures.md)
+    ap.add_argument("--frames", choices=("random6", "gray7"), default="random6",
+                    help="the frames whose misfit is measured: the 6 random patterns, or the 7 Gray code images")
     ap.add_argument("--out", default=str(REPO / "bench" / "results"))
+    ap.add_argument("--stem", default="model-misfit-cpu")
     args = ap.parse_args(argv)
     rigs, scenes = args.rigs.split(","), args.scenes.split(",")
     cameras, camera_rigs = args.cameras.split(","), args.camera_rigs.split(",")
@@ -117,12 +125,12 @@ def main(argv=None) -> int:
         if c != "linear":
             _camera_options(c)
     doc = {"date": DATE, "command": "python -m bench.model_misfit " + " ".join(sys.argv[1:] if argv is None else argv),
-           "limit": REFINE_MAX_MISFIT, "rigs": rigs, "scenes": scenes, "camera_rigs": camera_rigs, "scans": {}}
+           "limit": REFINE_MAX_MISFIT, "frames": args.frames, "rigs": rigs, "scenes": scenes, "camera_rigs": camera_rigs, "scans": {}}
     for camera in cameras:
         for rig in (rigs if camera == "linear" else camera_rigs):
             for scene in scenes:
                 t = time.perf_counter()
-                m = scan_misfit(rig, scene, camera)
+                m = scan_misfit(rig, scene, camera, args.frames)
                 doc["scans"].setdefault(camera, {}).setdefault(rig, {})[scene] = m
                 print(f"{camera} {rig} {scene}: {m:.4f} ({time.perf_counter() - t:.0f} s)", flush=True)
     if not args.no_real:
@@ -130,7 +138,7 @@ def main(argv=None) -> int:
             raise SystemExit(f"{args.data}: no real capture there (--data FOLDER, or --no-real)")
         doc["real"] = real_misfit(Path(args.data))
         print(f"real capture: {doc['real']:.4f}", flush=True)
-    write_study(Path(args.out) / "model-misfit-cpu", doc, render)
+    write_study(Path(args.out) / args.stem, doc, render)
     return 0
 
 
