@@ -397,8 +397,8 @@ class _Fixed:
 def _worker_slots(device: str | None, count: int, per_device: int | None) -> list:
     """Each of `count` pool workers' GPU, dealt out before they start: (CUDA_VISIBLE_DEVICES entry, the GPU's name as
     this process numbers it, the pool's active workers) for worker w on GPU w % GPUs, "idle" for a worker beyond
-    per_device x GPUs; None for
-    every worker when the GPUs cannot be told without CUDA (the workers then share out what torch sees)."""
+    per_device x GPUs; None for every worker when the GPUs cannot be told without CUDA (the workers then share out
+    what torch sees)."""
     ids = visible_device_ids(device) if device is not None else None
     if not ids:
         return [None] * count
