@@ -436,3 +436,35 @@ def test_fill_uniform_codes_corrects_by_the_refinement_offset_and_ignores_repair
     assert on.sum() > 50
     assert np.nanmedian(np.abs(out[on] - s.gt_depth[on])) < 0.05
     assert np.mean(np.abs(out[on] - s.gt_depth[on]) < 0.2) > 0.95
+
+
+def test_with_halo_spreads_a_share_of_the_light_and_keeps_the_mean():
+    """with_halo: (1 - share) x the pattern + share x its wide blur: an edge keeps its step of 1 - share, the dark
+    side rises towards the bright one over about sigma, the mean light stays; share 0 is the pattern itself."""
+    from slwarp.neural.pattern_model import with_halo
+
+    p = np.zeros((2, 120, 200), np.float32)
+    p[:, :, 100:] = 1.0
+    h = with_halo(p, 0.1, 20.0)
+    row = h[0, 60]
+    assert abs((row[100] - row[99]) - 0.9) < 0.02  # the sharp step that is left
+    assert 0.04 < row[99] < 0.06 and row[0] < 0.01 and 0.99 < row[-1] <= 1.0  # the halo near the edge, not far away
+    assert np.all(np.diff(row) >= -1e-6) and abs(h.mean() - p.mean()) < 1e-3
+    assert np.array_equal(with_halo(p, 0.0, 20.0), p)
+
+
+def test_trainer_sees_the_patterns_through_the_configured_halo():
+    """sampling.pattern_halo: the trainer's scan (search, renderer, extraction) holds the patterns with the halo;
+    without it, the scan itself."""
+    from slwarp.neural.config import preset
+    from slwarp.neural.pattern_model import with_halo
+    from slwarp.neural.training.trainer import seen_through_lens
+    from slwarp.sim.simulate import SimOptions, simulate_scene
+
+    scan = simulate_scene("spheres", "gray4", rig="small", options=SimOptions(seed=0), device="cpu")
+    cfg = preset("tiny", device="cpu")
+    assert seen_through_lens(scan, cfg) is scan
+    seen = seen_through_lens(scan, cfg.with_options(pattern_halo=0.1, pattern_halo_sigma=10.0))
+    np.testing.assert_allclose(seen.patterns, with_halo(scan.patterns, 0.1, 10.0))
+    assert np.array_equal(seen.images, scan.images) and seen.names == scan.names
+    assert not np.array_equal(seen.patterns, scan.patterns)

@@ -285,3 +285,23 @@ def test_rods_scene_has_thin_rods_in_front():
     on_rod = scan.gt_depth < 685.0
     # the rods cover a thin share of the image: about (number x length x 2.5 mm) / footprint^2 pixels
     assert 0.005 < on_rod.mean() < 0.05
+
+
+def test_lens_halo_lifts_dark_stripes_near_bright_ones_and_keeps_the_light(device):
+    """SimOptions.halo: the projected pattern is (1 - halo) x itself + halo x its blur over halo_sigma projector px
+    (scans.scanner.with_halo, the model the neural method shares): on a flat plate a dark stripe's pixels rise near
+    a bright stripe, the edges lose their full step, and the mean light is kept."""
+    cam, proj = make_rig("small")
+    pats = named_set("gray3", proj.width, proj.height)
+    objs = [plane(700.0, 0.7)]
+    sharp = simulate(objs, cam, proj, pats, FLAT, device=device)
+    halo = simulate(objs, cam, proj, pats, SimOptions(**{**FLAT.__dict__, "halo": 0.2, "halo_sigma": 20.0}),
+                    device=device)
+    sel = sharp.mask & fully_lit(cam, proj, 700.0, margin=30.0)
+    for i in range(len(sharp)):
+        a, b = sharp.images[i][sel], halo.images[i][sel]
+        dark, bright = a <= a.min() + 1e-4, a >= a.max() - 1e-4  # fully dark and fully lit pixels without halo
+        assert b[dark].max() > a[dark].max() + 0.03 and b[bright].min() < a[bright].min() - 0.03  # near the edges
+        assert abs(b.mean() - a.mean()) < 0.02 * a.mean()
+    with pytest.raises(ValueError, match="halo"):
+        SimOptions(halo=1.0)

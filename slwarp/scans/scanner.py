@@ -483,3 +483,22 @@ def look_at_rotation(position: np.ndarray, target: np.ndarray, up=(0.0, -1.0, 0.
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     return np.stack([x, y, z])  # rows: device axes expressed in world coordinates
+
+
+def with_halo(patterns: np.ndarray, share: float, sigma: float) -> np.ndarray:
+    """patterns [N, Hp, Wp] in [0, 1] as a lens with a halo shows them: (1 - share) x the pattern + share x the
+    pattern Gaussian-blurred by `sigma` projector px (edges replicated); share <= 0 returns them unchanged. The
+    defocus (the simulator's, the pattern model's fitted blur) applies on top. Shared by the simulator
+    (SimOptions.halo) and the neural method's pattern model (sampling.pattern_halo).
+
+    Why: on the real capture the edge of a Gray code stripe is a Gaussian of about 0.7 projector px plus a halo of
+    about 10% of the light spread over about 40 px (`python -m bench.edge_profile`): a dark stripe next to a wide
+    bright one is brighter than next to a narrow one, which a Gaussian alone cannot give."""
+    import cv2
+
+    pats = np.asarray(patterns, np.float32)
+    if share <= 0:
+        return pats
+    k = 2 * int(np.ceil(3.0 * sigma)) + 1
+    halo = np.stack([cv2.GaussianBlur(p, (k, k), sigma, borderType=cv2.BORDER_REPLICATE) for p in pats])
+    return ((1.0 - share) * pats + share * halo).astype(np.float32)

@@ -4,9 +4,9 @@ Image formation per camera pixel (ray through the pixel centre):
     first hit x (GT depth = x_z, mm), smooth normal n, albedo rho (optionally textured);
     lit = facing the projector, not shadowed, inside the projector image; GT mask = hit and lit;
     radiance = gain * rho * cos(n, to projector) * (ref_dist / |x - c_p|)^2 * P_blur(pi(x)) + ambient * rho
-    where P_blur is the pattern blurred by a Gaussian of sigma = defocus_sigma
-    + defocus_slope * |z_p - focus_dist| / focus_dist projector px, sampled bilinearly at the projection
-    pi(x) (projector distortion applied);
+    where P_blur is the pattern (with the lens halo `halo`, scans.scanner.with_halo) blurred by a Gaussian of
+    sigma = defocus_sigma + defocus_slope * |z_p - focus_dist| / focus_dist projector px, sampled bilinearly at the
+    projection pi(x) (projector distortion applied);
     optics and pixels (off by default): with `supersample` k > 1 (odd) each camera pixel is k x k rays
     whose radiances are averaged (pixel integration: albedo steps, pattern edges and depth edges inside a
     pixel mix, as on a real sensor); `camera_blur` > 0 convolves the radiance with a Gaussian lens PSF of
@@ -28,7 +28,7 @@ from ..devices import warp_device
 from ..scans.patterns import PatternSet, named_set
 from .rigs import DEPTH_RANGE_MM, make_rig
 from ..scans.scan import Scan
-from ..scans.scanner import Camera, Projector
+from ..scans.scanner import Camera, Projector, with_halo
 from .scenes import SceneObject, build_scene
 
 __all__ = ["SimOptions", "simulate", "simulate_scene", "RenderedGeometry", "CAMERA_MODELS", "camera_model"]
@@ -53,6 +53,10 @@ class SimOptions:
     defocus: bool = True
     defocus_sigma: float = 0.6  # projector defocus at the focus plane (projector px)
     defocus_slope: float = 2.0  # extra sigma per unit of relative distance from the focus plane
+    # a lens halo around the projected patterns (scans.scanner.with_halo): this share of the light spread by a
+    # Gaussian of halo_sigma projector px; the real capture's edges show about 0.1 at 40 px (bench.edge_profile)
+    halo: float = 0.0
+    halo_sigma: float = 40.0
     focus_dist: float = 750.0  # projector focus distance (mm, projector z)
     shading: bool = True  # cosine and inverse-square fall-off toward the projector
     ambient: float = 0.03  # ambient light (times albedo)
@@ -73,6 +77,8 @@ class SimOptions:
                              f"centre), got {self.supersample}")
         if not self.camera_blur >= 0:
             raise ValueError(f"SimOptions.camera_blur must be >= 0 camera px, got {self.camera_blur}")
+        if not 0 <= self.halo < 1 or not self.halo_sigma > 0:
+            raise ValueError(f"SimOptions: halo must be in [0, 1) and halo_sigma > 0, got {self.halo}, {self.halo_sigma}")
         if self.bits not in (0, 8, 16):
             raise ValueError(f"SimOptions.bits must be 0, 8 or 16, got {self.bits}")
 
@@ -87,6 +93,8 @@ CAMERA_MODELS = {
     "gamma": {"supersample": 3, "camera_blur": 0.5, "gamma": 2.2},
     # the same optics with the sRGB curve (linear toe + power 1/2.4), not a power law
     "srgb": {"supersample": 3, "camera_blur": 0.5, "response": "srgb"},
+    # the same optics with the real capture's lens halo: 10% of the light spread over 40 projector px
+    "halo": {"supersample": 3, "camera_blur": 0.5, "halo": 0.1, "halo_sigma": 40.0},
 }
 
 
@@ -201,7 +209,7 @@ def sample_projected_patterns(geom: RenderedGeometry, patterns: np.ndarray, opti
     else:
         sigmas = np.zeros(1, np.float32)
         sigma0, slope = 0.0, 0.0
-    levels = _blur_levels(patterns, sigmas)
+    levels = _blur_levels(with_halo(patterns, options.halo, options.halo_sigma), sigmas)
     N, P = patterns.shape[0], geom.depth.shape[0]
     with wp.ScopedDevice(device):
         out = wp.empty((N, P), dtype=float)

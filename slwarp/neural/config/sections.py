@@ -74,6 +74,12 @@ class SamplingConfig:
     pattern_blur: float | Literal["auto"] = option("auto", "Gaussian blur of the patterns as rendered, projector px, or "
                                                    "auto (fitted to the images at the depth-search map)", min=0.0)
 
+    # a lens's halo: on the real capture about 10% of the light spread over about 40 projector px around every edge
+    # (bench/results/edge-profile-cpu.md); the simulator's optics have none
+    pattern_halo: float = option(0.0, "share of the projected light the model spreads into a wide halo around the "
+                                 "patterns (pattern_model.with_halo; 0: none)", min=0.0, max=0.5)
+    pattern_halo_sigma: float = option(40.0, "the halo's Gaussian sigma, projector px", above=0.0)
+
 
 @dataclass
 class ScheduleConfig:

@@ -23,7 +23,8 @@ from .blur import (BLUR_BINS, BLUR_FIT_PIXELS, BLUR_LADDER, BLUR_LADDER_STEP, es
                    fit_blur_by_projector_depth)
 from .image import (CONTRAST_THRESHOLD, LS_RIDGE, MIN_MODULATION, OFF_IMAGE_PX, blur_patterns,
                     least_squares_offset_modulation, least_squares_residual, lit_with_contrast, offset_and_modulation,
-                    predicted_intensities, projector_coords, projector_coords_at, sample_patterns, sample_patterns_at)
+                    predicted_intensities, projector_coords, projector_coords_at, sample_patterns, sample_patterns_at,
+                    with_halo)
 from .refine import (REFINE_RADIUS, REFINE_STEP_MM, model_misfit, refine_depth, refine_where_model_fits,
                      refinement_generalises)
 from .residual import photometric_confidence, photometric_filter, photometric_residual
@@ -36,6 +37,7 @@ __all__ = [
     "offset_and_modulation",
     "lit_with_contrast",
     "blur_patterns",
+    "with_halo",
     "projector_coords",
     "projector_coords_at",
     "sample_patterns",

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ...scans.scanner import camera_rays
+from ...scans.scanner import camera_rays, with_halo  # with_halo: the lens model the simulator shares
 from ..config import CONTRAST_THRESHOLD  # the config holds the default; re-exported for the renderer
 
 __all__ = [
@@ -18,6 +18,7 @@ __all__ = [
     "offset_and_modulation",
     "lit_with_contrast",
     "blur_patterns",
+    "with_halo",
     "projector_coords",
     "projector_coords_at",
     "sample_patterns",

@@ -111,6 +111,17 @@ def _on_host(state):
     return state
 
 
+def seen_through_lens(scan, config):
+    """The scan with its patterns as the config's lens shows them (sampling.pattern_halo: pattern_model.with_halo);
+    the scan itself without a halo."""
+    share = config.sampling.pattern_halo
+    if share <= 0:
+        return scan
+    from ..pattern_model import with_halo
+
+    return dataclasses.replace(scan, patterns=with_halo(scan.patterns, share, config.sampling.pattern_halo_sigma))
+
+
 class _SetupClock:
     """Seconds between successive marks of the trainer's set-up (Trainer.setup_phases, in timings.json): host time,
     which is where a fresh process pays its first calls (Warp module loads, CUDA start, lazy imports)."""
@@ -140,8 +151,9 @@ class Trainer:
     def __init__(self, scan, config: TrainConfig, out_dir: str | os.PathLike | None = None, resume: bool = False,
                  sdf: torch.nn.Module | None = None, depth_range=None, progress: bool = True, init_depth=None,
                  progress_interval_s: float | None = None, overwrite: bool = False):
-        self.scan = scan
         self.cfg = config.validate()
+        # every part of the run (search, blur fit, renderer, refinement) sees the patterns through the same lens
+        self.scan = scan = seen_through_lens(scan, config)
         self.device = torch_device(config.runtime.device)
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self.progress = progress
@@ -247,6 +259,10 @@ class Trainer:
         [k, H, W] and patterns [k, Hp, Wp] (inserted right after the frames in use, so they count now)."""
         if images is not None:
             _ = self.identity  # the run's identity stays that of the scan it started with
+            if self.cfg.sampling.pattern_halo > 0:  # the added patterns through the run's lens, as the scan's are
+                from ..pattern_model import with_halo
+
+                patterns = with_halo(patterns, self.cfg.sampling.pattern_halo, self.cfg.sampling.pattern_halo_sigma)
             self.scan, count = _with_frames(self.scan, self.n_frames, images, patterns)
         self.n_frames = min(self.n_frames + count, len(self.scan))
         self.renderer.set_frames(self.scan.images[: self.n_frames], self.scan.patterns[: self.n_frames])
