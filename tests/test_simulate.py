@@ -142,6 +142,8 @@ def test_cli_simulate_bad_input(tmp_path, capsys):
     assert "mesh not found" in capsys.readouterr().err
     assert cli_main(["simulate", "--scene", "bunny", "--patterns", "zebra", "--out", str(tmp_path / "x")]) == 2
     assert "unknown pattern set" in capsys.readouterr().err
+    assert cli_main(["simulate", "--scene", "bunny", "--halo", "2", "--out", str(tmp_path / "x")]) == 2
+    assert "halo must be in [0, 1)" in capsys.readouterr().err and not (tmp_path / "x").exists()
 
 
 # --- textures, pixel integration, lens blur, camera response ---------------------------------------

@@ -68,10 +68,14 @@ def cmd_simulate(args) -> int:
             if not Path(m).is_file():
                 raise UserError(f"mesh not found: {m}")
         objects, depth_range = load_mesh_objects(args.mesh), None
-    opts = SimOptions(
-        noise=not args.no_noise, defocus=not args.no_defocus, gamma=args.gamma, bits=args.bits,
-        ambient=args.ambient, shading=not args.no_shading, texture=not args.no_texture, seed=args.seed,
-    )
+    try:
+        opts = SimOptions(
+            noise=not args.no_noise, defocus=not args.no_defocus, gamma=args.gamma, bits=args.bits,
+            ambient=args.ambient, shading=not args.no_shading, texture=not args.no_texture, seed=args.seed,
+            halo=args.halo, halo_sigma=args.halo_sigma,
+        )
+    except ValueError as e:  # an option out of its range (--gamma, --halo, ...)
+        raise UserError(str(e)) from None
     t0 = time.perf_counter()
     scan = simulate(objects, camera, projector, pset, opts, depth_range=depth_range, device=args.device,
                     meta={"scene": args.scene or "meshes", "rig": args.rig, "patterns": args.patterns})
@@ -107,6 +111,9 @@ def _add_simulate(p):
     p.add_argument("--no-texture", action="store_true", help="switch albedo textures off")
     p.add_argument("--gamma", type=float, default=1.0, help="camera gamma (default: 1, linear)")
     p.add_argument("--ambient", type=float, default=0.03, help="ambient light, full-scale units (default: 0.03)")
+    p.add_argument("--halo", type=float, default=0.0, help="share of the projected light a lens halo spreads around the "
+                   "patterns (the real capture's: about 0.1; default: 0, none)")
+    p.add_argument("--halo-sigma", type=float, default=40.0, help="the halo's Gaussian sigma, projector px (default: 40)")
     p.add_argument("--bits", type=int, default=8, choices=[0, 8, 16], help="image quantisation (0 = none; default: 8)")
     p.add_argument("--device", default=None, help="cpu or cuda:N (default: CUDA when present)")
     p.add_argument("--list", action="store_true", help="list scenes, rigs and pattern sets")
