@@ -47,6 +47,7 @@ import numpy as np
 import torch
 
 from ...devices import torch_device
+from ...scans.scanner import with_halo
 from ..config import TrainConfig
 from ..fields import Volume
 from ..start import (checked_depth_range, fit_blur, frames_at_start, narrowed_range, search_start, searches,
@@ -111,15 +112,16 @@ def _on_host(state):
     return state
 
 
-def seen_through_lens(scan, config):
-    """The scan with its patterns as the config's lens shows them (sampling.pattern_halo: pattern_model.with_halo);
-    the scan itself without a halo."""
-    share = config.sampling.pattern_halo
-    if share <= 0:
-        return scan
-    from ..pattern_model import with_halo
+def through_lens(patterns, config) -> np.ndarray:
+    """Patterns [N, Hp, Wp] as the config's lens shows them (sampling.pattern_halo: scans.scanner.with_halo)."""
+    return with_halo(patterns, config.sampling.pattern_halo, config.sampling.pattern_halo_sigma)
 
-    return dataclasses.replace(scan, patterns=with_halo(scan.patterns, share, config.sampling.pattern_halo_sigma))
+
+def seen_through_lens(scan, config):
+    """The scan with its patterns through the config's lens (`through_lens`); the scan itself without a halo."""
+    if config.sampling.pattern_halo <= 0:
+        return scan
+    return dataclasses.replace(scan, patterns=through_lens(scan.patterns, config))
 
 
 class _SetupClock:
@@ -259,11 +261,8 @@ class Trainer:
         [k, H, W] and patterns [k, Hp, Wp] (inserted right after the frames in use, so they count now)."""
         if images is not None:
             _ = self.identity  # the run's identity stays that of the scan it started with
-            if self.cfg.sampling.pattern_halo > 0:  # the added patterns through the run's lens, as the scan's are
-                from ..pattern_model import with_halo
-
-                patterns = with_halo(patterns, self.cfg.sampling.pattern_halo, self.cfg.sampling.pattern_halo_sigma)
-            self.scan, count = _with_frames(self.scan, self.n_frames, images, patterns)
+            # the added patterns through the run's lens, as the scan's are
+            self.scan, count = _with_frames(self.scan, self.n_frames, images, through_lens(patterns, self.cfg))
         self.n_frames = min(self.n_frames + count, len(self.scan))
         self.renderer.set_frames(self.scan.images[: self.n_frames], self.scan.patterns[: self.n_frames])
 
