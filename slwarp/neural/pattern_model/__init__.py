@@ -14,6 +14,7 @@ This package holds that model for the host side (numpy, OpenCV) and the pattern 
 - `residual`: the photometric residual of a depth map (on the host or on a device), its filter and the photometric
   confidence;
 - `blur`: the fit of the blur, one sigma (the training's start) or one per projector depth;
+- `halo`: the lens halo's share fitted to a scan (`fit_halo`);
 - `refine`: the photometric refinement of a depth map (`refine_depth`), the model's misfit and the held-out check.
 The refinement and its blur fit per projector depth run in torch on any device (numpy in and out). The fused
 renderer evaluates the same model per sample in Warp (slwarp.kernels.render) and its twin in torch
@@ -25,6 +26,7 @@ from .image import (CONTRAST_THRESHOLD, LS_RIDGE, MIN_MODULATION, OFF_IMAGE_PX, 
                     least_squares_offset_modulation, least_squares_residual, lit_with_contrast, offset_and_modulation,
                     predicted_intensities, projector_coords, projector_coords_at, sample_patterns, sample_patterns_at,
                     with_halo)
+from .halo import HALO_SHARES, HALO_SIGMA, fit_halo
 from .refine import (REFINE_RADIUS, REFINE_STEP_MM, model_misfit, refine_depth, refine_where_model_fits,
                      refinement_generalises)
 from .residual import photometric_confidence, photometric_filter, photometric_residual
@@ -38,6 +40,9 @@ __all__ = [
     "lit_with_contrast",
     "blur_patterns",
     "with_halo",
+    "fit_halo",
+    "HALO_SHARES",
+    "HALO_SIGMA",
     "projector_coords",
     "projector_coords_at",
     "sample_patterns",

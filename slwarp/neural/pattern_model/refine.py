@@ -55,8 +55,9 @@ class _FittedModel(typing.NamedTuple):
     projector: object
 
 
-def _fit_model(depth, camera, projector, images, patterns, device) -> _FittedModel | None:
-    """The model fitted at depth (its blur per projector depth); None with fewer than 100 lit pixels with depth."""
+def _fit_model(depth, camera, projector, images, patterns, device, ladder: _BlurLadder | None = None) -> _FittedModel | None:
+    """The model fitted at depth (its blur per projector depth); None with fewer than 100 lit pixels with depth.
+    ladder: the patterns' blur ladder when the caller has it (patterns then unused)."""
     dev = _device(device)
     d = torch.as_tensor(np.asarray(depth, np.float32), device=dev)
     has = torch.isfinite(d)
@@ -66,7 +67,7 @@ def _fit_model(depth, camera, projector, images, patterns, device) -> _FittedMod
     if int(ok.sum()) < 100:
         return None
     rays = _rays_in_projector(camera, projector, dev)
-    ladder = _BlurLadder(patterns, dev)
+    ladder = _BlurLadder(patterns, dev) if ladder is None else ladder
     centres, sigmas = _fit_blur(d, ok, rays, projector, img, b, ladder, BLUR_BINS)
     return _FittedModel(d, has, img, b, rays, ladder, centres, sigmas, projector)
 
