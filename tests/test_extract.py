@@ -195,6 +195,30 @@ def test_extract_depth_refine_check_reports_and_follows_its_decision(tiny_rods_f
     trainer.cfg = cfg
 
 
+def test_extract_depth_skips_the_refinement_through_a_lens_halo_unless_asked(tiny_rods_field):
+    """refine_through_halo false: where the trainer's patterns carry a lens halo (halo_share > 0, a real lens) the
+    refinement is skipped and says why; without a halo, or with refine_through_halo, it refines as before."""
+    import slwarp.neural.extraction as rc
+
+    _, cfg, trainer = tiny_rods_field
+    lit = trainer.renderer.valid_map.cpu().numpy()
+    trainer.cfg = cfg.with_options(refine_range=0.0)
+    plain = rc.extract_depth(trainer, lit)[0]
+    trainer.cfg = cfg.with_options(refine_range=1.0)
+    refined = rc.extract_depth(trainer, lit)[0]
+    try:
+        for share, through, want, skipped in ((0.0, False, refined, None), (0.1, False, plain, "lens halo"),
+                                              (0.1, True, refined, None)):
+            trainer.halo_share = share
+            trainer.cfg = cfg.with_options(refine_range=1.0, refine_through_halo=through)
+            depth, _, _, t, _ = rc.extract_depth(trainer, lit)
+            np.testing.assert_array_equal(depth, want)
+            assert t.get("refine_skipped") == skipped and t["refined"] == (skipped is None)
+    finally:
+        trainer.halo_share = 0.0
+        trainer.cfg = cfg
+
+
 def test_extract_depth_fate_says_what_became_of_each_pixel(tiny_rods_field):
     """Extraction.fate: a pixel has depth exactly when its fate is measured, repaired or filled; no contrast outside
     the lit-with-contrast map (unless filled); each filter's fate at no more pixels than it dropped (the repair may

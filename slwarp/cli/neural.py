@@ -124,6 +124,14 @@ def _reconstruct(args, pool) -> int:
           f"depth {t['depth_s']:.1f} s; confidence {t['confidence_s']:.1f} s; valid depth on {valid.mean():.1%} of pixels")
     print("pixels: " + ", ".join(f"{k.replace('_', ' ')} {v / valid.size:.1%}" for k, v in t["pixels"].items() if v)
           + " (pixel_fate.png)")
+    fit = t.get("pattern_halo_fit")
+    if fit:
+        print(f"lens halo: {t['pattern_halo']:.3f} of the light over {fit['sigma_px']:g} projector px (pattern model's "
+              f"misfit {fit['misfits'][0]:.4f} without, {min(fit['misfits']):.4f} at best; --pattern-halo 0 leaves it out)")
+    if t.get("refine_skipped") == "lens halo":
+        print("photometric refinement skipped: the pattern model needed a lens halo, as real lenses have; it only "
+              "approximates such optics, and refining would fit its errors (--refine-through-halo refines regardless; "
+              "with --refine-check as well it is kept only if held-out frames agree)")
     if t.get("refine_misfit") is not None and not t["refined"] and t.get("refine_check") is None:
         print("photometric refinement skipped: the pattern model's misfit at the field's depth is "
               f"{t['refine_misfit']:.4f}, above --refine-max-misfit {cfg.extraction.refine_max_misfit} (optics the model lacks, e.g. a real "

@@ -26,6 +26,9 @@ def _preset(name: str, summary: str, **options) -> None:
 _DEFAULT_EXTRACTION = dict(stages=(*DEFAULT_STAGES, "search_repair", "refine", "uniform_fill", "repair_grow", "denoise"),
                            refine_range=3.0, refine_max_misfit=REFINE_MAX_MISFIT, repair_min_component=100,
                            search_doubt=True)
+# the lens: a halo fitted to each scan, and where it has one (a real lens) no photometric refinement, which there
+# fitted the model's errors (real captures 0-4: docs/accuracy.md, section 22)
+_LENS = dict(pattern_halo="auto", refine_through_halo=False)
 # the GPU presets' denoising window
 _GPU_DENOISE = dict(denoise_radius=4, denoise_footprints=8.0)
 # what the hash-grid presets share
@@ -39,7 +42,7 @@ _preset("tuned", "paper with lr 5e-4, cosine decay, no surface-colour loss, an S
         "fill, the edge readmission and the edge-aware denoising: the most accurate measured on the virtual scanner (GPU "
         "default)",
         matmul="tf32", lr=5e-4, lr_decay="cosine", lambda_sc=0.0, surface_weight=1.0, surface_after=1.0,
-        edge_readmit=True, **_DEFAULT_EXTRACTION, **_GPU_DENOISE)
+        edge_readmit=True, **_DEFAULT_EXTRACTION, **_LENS, **_GPU_DENOISE)
 _preset("cpu", "tuned with a 4x64 field, 384 rays, 1500 iterations: minutes on two CPU cores (small rig)",
         iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, lr=5e-4, lr_decay="cosine",
         lambda_sc=0.0, hidden=64, layers=4, skip=2, n_freqs=6, search_step_mm=2.0, mc_resolution=192,
@@ -54,19 +57,19 @@ _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 800 iteration
         grid_gradient="finite_difference_4",
         grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, surface_weight=1.0,
         surface_after=1.0, surface_in_front=True, free_space=0.5, variance_lr_factor=4.0, **_DEFAULT_EXTRACTION,
-        **_GPU_DENOISE, **_HASHGRID)
+        **_LENS, **_GPU_DENOISE, **_HASHGRID)
 _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations of the paper's batch, levels "
         "coarse to fine, NeuS's variance at 4x the rate, with tuned's surface term and extraction and a free-space "
         "term: several times faster than tuned, as accurate on the default rig (GPU)",
         matmul="tf32", compile=False, iters=2000, grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2,
         grid_level_every=100, variance_lr_factor=4.0, surface_weight=1.0, surface_after=1.0, free_space=1.0,
-        **_DEFAULT_EXTRACTION, **_GPU_DENOISE, **_HASHGRID)
+        **_DEFAULT_EXTRACTION, **_LENS, **_GPU_DENOISE, **_HASHGRID)
 _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4-tap gradient), photometric depth "
         "refinement (+-3 mm, where the pattern model fits the images), the search repair in groups (grown), the "
         "uniform-code fill and the edge-aware denoising (5x5 windows): better MAE in less time than cpu (small rig)",
         grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2,
         search_step_mm=2.0, mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
-        denoise_radius=2, denoise_footprints=4.0, **_DEFAULT_EXTRACTION, **_HASHGRID)
+        denoise_radius=2, denoise_footprints=4.0, **_DEFAULT_EXTRACTION, **_LENS, **_HASHGRID)
 
 # the preset a run gets when it names none, per device type
 DEFAULT_PRESET = {"cuda": "tuned", "cpu": "cpu-hashgrid"}

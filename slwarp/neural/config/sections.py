@@ -74,10 +74,13 @@ class SamplingConfig:
     pattern_blur: float | Literal["auto"] = option("auto", "Gaussian blur of the patterns as rendered, projector px, or "
                                                    "auto (fitted to the images at the depth-search map)", min=0.0)
 
-    # a lens's halo: on the real capture about 10% of the light spread over about 40 projector px around every edge
-    # (bench/results/edge-profile-cpu.md); the simulator's optics have none
-    pattern_halo: float = option(0.0, "share of the projected light the model spreads into a wide halo around the "
-                                 "patterns (pattern_model.with_halo; 0: none)", min=0.0, max=0.5)
+    # a lens's halo: on the real captures about 10% of the light spread over about 40 projector px around every edge
+    # (bench/results/edge-profile-cpu.md); the simulator's cameras have none. "auto" fits the share to the images
+    # at the depth-search map (pattern_model.fit_halo: 0 unless a halo explains them better)
+    pattern_halo: float | Literal["auto"] = option(0.0, "share of the projected light the model spreads into a wide "
+                                                   "halo around the patterns (pattern_model.with_halo; 0: none), or "
+                                                   "auto (fitted to the images at the depth-search map)",
+                                                   min=0.0, max=0.5)
     pattern_halo_sigma: float = option(40.0, "the halo's Gaussian sigma, projector px", above=0.0)
 
 
@@ -222,6 +225,10 @@ class ExtractionConfig:
                                 "on average. For real captures: there it undid a refinement that doubled the plate's "
                                 "RMS; on simulated full-resolution scans it also undid helpful ones (4 of 8), so off "
                                 "by default", resumable=True)
+    refine_through_halo: bool = option(True, "refine also where the pattern model has a lens halo (pattern_halo above "
+                                       "0, fitted or given: a real lens, whose optics the model only approximates; on "
+                                       "real captures 0-4 the held-out check refused every such refinement)",
+                                       resumable=True)
     refine_max_misfit: float = option(0.0, "refine only where the pattern model fits: skip the refinement when the "
                                       "median relative misfit of the lit pixels at the depth before refinement is above "
                                       "this (simulated scans 0.015-0.022, the real capture 0.026; 0: always refine)",

@@ -223,21 +223,28 @@ class Refine(Stage):
     """The photometric refinement: each pixel's depth moved by the offset within +- refine_range mm that best
     explains its window's images (pattern_model.refine_depth), skipped when refine_max_misfit > 0 and the pattern
     model's misfit at the depth is above it (the gate, compared once in pattern_model.refine_where_model_fits), and
-    with refine_check kept only if it explains held-out frames better (pattern_model.refinement_generalises).
-    info: refine_misfit, refined, refine_check."""
+    skipped without refine_through_halo when the patterns carry a lens halo (inputs.lens_halo > 0), and with
+    refine_check kept only if it explains held-out frames better (pattern_model.refinement_generalises).
+    info: refine_misfit, refined, refine_check, refine_skipped ("lens halo" or None)."""
 
     name = "refine"
     refine_range: float
     refine_max_misfit: float
     refine_check: bool
+    refine_through_halo: bool
 
     def __call__(self, state: State) -> State:
         i = state.inputs
+        if i.lens_halo > 0 and not self.refine_through_halo:
+            # a lens with a halo is a real one, whose optics the model only approximates: there the refinement
+            # fitted the model's errors (real captures 0-4: the held-out check refused it on every one)
+            return state.replace(info={"refine_misfit": None, "refined": False, "refine_check": None,
+                                       "refine_skipped": "lens halo"})
         # the images as the model holds them (on a GPU the renderer's tensors: no upload per use), the patterns
         # unblurred (the refinement fits its own blur)
         model = (i.camera, i.projector, i.images, i.raw_patterns, self.refine_range)
         refined, misfit = refine_where_model_fits(state.depth, *model, self.refine_max_misfit, device=i.device)
-        info = {"refine_misfit": misfit, "refined": False, "refine_check": None}
+        info = {"refine_misfit": misfit, "refined": False, "refine_check": None, "refine_skipped": None}
         if refined is None:  # the model misses part of the optics there: refining would fit those errors
             return state.replace(info=info)
         if self.refine_check:

@@ -28,7 +28,8 @@ class ModelInputs:
     (default: from the images' modulation at CONTRAST_THRESHOLD); region [H, W] bool: where the uniform-code fill may
     add pixels (None: anywhere); raw_patterns [N, Hp, Wp]: the patterns unblurred (the refinement fits its own
     blur); device: where the searches and the refinement run; step_mm: the depth searches' hypothesis spacing;
-    host_images [N, H, W]: the images as numpy (default: `images` brought to the host)."""
+    host_images [N, H, W]: the images as numpy (default: `images` brought to the host); lens_halo: the share of the
+    lens halo in the patterns (the trainer's, fitted or given; 0: none)."""
 
     camera: object
     projector: object
@@ -42,6 +43,7 @@ class ModelInputs:
     device: object = "cpu"
     step_mm: float = 1.0
     host_images: np.ndarray | None = None
+    lens_halo: float = 0.0
 
     def __post_init__(self):
         # frozen: the derived defaults are set once, here
@@ -69,7 +71,7 @@ class ModelInputs:
         return cls(trainer.scan.camera, trainer.scan.projector, images, patterns, trainer.depth_range, valid=valid,
                    lit=trainer.renderer.valid_map.cpu().numpy(), region=region, raw_patterns=trainer.scan.patterns[:n],
                    device=trainer.device, step_mm=trainer.cfg.init.search_step_mm,
-                   host_images=trainer.scan.images[:n])
+                   host_images=trainer.scan.images[:n], lens_halo=float(getattr(trainer, "halo_share", 0.0)))
 
 
 # what became of each camera pixel at extraction (the values of Extraction.fate): with a depth, "measured" (the

@@ -140,7 +140,8 @@ def _check_plain(value, where: str) -> None:
 
 def make_state(*, iteration: int, config: dict, field: torch.nn.Module, variance: torch.nn.Module, optimizer,
                generator_state: torch.Tensor, n_frames: int, volume: dict, depth_range, history: dict,
-               elapsed: float, init_depth: torch.Tensor | None, pattern_blur: float, identity: dict) -> dict:
+               elapsed: float, init_depth: torch.Tensor | None, pattern_blur: float, identity: dict,
+               pattern_halo: float = 0.0) -> dict:
     """A checkpoint's contents: the config as `TrainConfig.to_dict()`, the volume and history as dicts, the
     generator's state after the steps taken (a uint8 tensor). TypeError when anything is not a tensor or plain
     data (a bug: such a checkpoint could not be read back)."""
@@ -159,6 +160,7 @@ def make_state(*, iteration: int, config: dict, field: torch.nn.Module, variance
         "elapsed": float(elapsed),
         "init_depth": init_depth,
         "pattern_blur": float(pattern_blur),
+        "pattern_halo": float(pattern_halo),  # the lens halo's share the run trains with (fitted or given)
         "identity": identity,
     }
     _check_plain(state, "state")

@@ -50,6 +50,7 @@ from ...devices import torch_device
 from ...scans.scanner import with_halo
 from ..config import TrainConfig
 from ..fields import Volume
+from ..pattern_model import fit_halo
 from ..start import (checked_depth_range, fit_blur, frames_at_start, narrowed_range, search_start, searches,
                      set_process_flags, start_field, start_renderer, surface_depth, surface_terms_on, working_volume)
 from . import schedule
@@ -112,16 +113,17 @@ def _on_host(state):
     return state
 
 
-def through_lens(patterns, config) -> np.ndarray:
-    """Patterns [N, Hp, Wp] as the config's lens shows them (sampling.pattern_halo: scans.scanner.with_halo)."""
-    return with_halo(patterns, config.sampling.pattern_halo, config.sampling.pattern_halo_sigma)
+def through_lens(patterns, share: float, sigma: float) -> np.ndarray:
+    """Patterns [N, Hp, Wp] as a lens with a halo of `share` over `sigma` projector px shows them
+    (scans.scanner.with_halo; share 0: unchanged)."""
+    return with_halo(patterns, share, sigma)
 
 
-def seen_through_lens(scan, config):
-    """The scan with its patterns through the config's lens (`through_lens`); the scan itself without a halo."""
-    if config.sampling.pattern_halo <= 0:
+def seen_through_lens(scan, share: float, sigma: float):
+    """The scan with its patterns through the lens (`through_lens`); the scan itself without a halo."""
+    if share <= 0:
         return scan
-    return dataclasses.replace(scan, patterns=through_lens(scan.patterns, config))
+    return dataclasses.replace(scan, patterns=through_lens(scan.patterns, share, sigma))
 
 
 class _SetupClock:
@@ -154,8 +156,11 @@ class Trainer:
                  sdf: torch.nn.Module | None = None, depth_range=None, progress: bool = True, init_depth=None,
                  progress_interval_s: float | None = None, overwrite: bool = False):
         self.cfg = config.validate()
-        # every part of the run (search, blur fit, renderer, refinement) sees the patterns through the same lens
-        self.scan = scan = seen_through_lens(scan, config)
+        # every part of the run (blur fit, renderer, refinement, added frames) sees the patterns through one lens: a
+        # given halo from the start (the search included), a fitted one ("auto") from the fit after the search on
+        halo = config.sampling.pattern_halo
+        self.halo_share, self.halo_fit = (0.0 if halo == "auto" else float(halo)), None
+        self.scan = scan = seen_through_lens(scan, self.halo_share, config.sampling.pattern_halo_sigma)
         self.device = torch_device(config.runtime.device)
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self.progress = progress
@@ -183,6 +188,9 @@ class Trainer:
                 self.search_info["depth_range"] = list(self.depth_range)
                 self.volume = Volume.from_frustum(scan.camera, lit, self.depth_range)
         clock.mark("depth search")
+        if halo == "auto":
+            self.scan = scan = self._fit_lens(scan, checkpoint, init_depth)
+            clock.mark("halo fit")
         self.field = sdf if sdf is not None else start_field(config, self.volume, self.depth_range, scan.camera)
         clock.mark("field")
         self.renderer = start_renderer(self.field, scan, config, self.n_frames, self.volume, self.depth_range,
@@ -235,6 +243,19 @@ class Trainer:
                                    "--overwrite starts again and replaces it (Python: resume=True / overwrite=True)")
         return None, ck_path
 
+    def _fit_lens(self, scan, checkpoint: dict | None, init_depth):
+        """The scan through the lens halo fitted at the starting map (pattern_model.fit_halo; a resumed run takes its
+        checkpoint's share); sets halo_share and halo_fit. Without a map: no halo."""
+        sigma = self.cfg.sampling.pattern_halo_sigma
+        if checkpoint is not None:
+            self.halo_share = float(checkpoint.get("pattern_halo", 0.0))
+        elif init_depth is not None:
+            cam = scan.camera
+            self.halo_share, self.halo_fit = fit_halo(
+                np.asarray(init_depth, np.float32).reshape(cam.height, cam.width), cam, scan.projector,
+                self._search_images(), scan.patterns[: self.n_frames], sigma=sigma, device=self.device)
+        return seen_through_lens(scan, self.halo_share, sigma)
+
     def _search_images(self):
         """The frames in use as the depth search reads them: on a GPU a device tensor [N, H, W], else numpy."""
         images = self.scan.images[: self.n_frames]
@@ -262,7 +283,8 @@ class Trainer:
         if images is not None:
             _ = self.identity  # the run's identity stays that of the scan it started with
             # the added patterns through the run's lens, as the scan's are
-            self.scan, count = _with_frames(self.scan, self.n_frames, images, through_lens(patterns, self.cfg))
+            self.scan, count = _with_frames(self.scan, self.n_frames, images, through_lens(
+                patterns, self.halo_share, self.cfg.sampling.pattern_halo_sigma))
         self.n_frames = min(self.n_frames + count, len(self.scan))
         self.renderer.set_frames(self.scan.images[: self.n_frames], self.scan.patterns[: self.n_frames])
 
@@ -313,7 +335,8 @@ class Trainer:
                           generator_state=self._steps.generator_state(self.generator), n_frames=self.n_frames,
                           volume=dataclasses.asdict(self.volume), depth_range=self.depth_range,
                           history=dataclasses.asdict(self.history), elapsed=self.elapsed, init_depth=self.init_depth,
-                          pattern_blur=self.renderer.pattern_blur, identity=self.identity)
+                          pattern_blur=self.renderer.pattern_blur, pattern_halo=self.halo_share,
+                          identity=self.identity)
 
     def save_checkpoint(self, path=None, background: bool = False) -> Path | None:
         """Atomically write the checkpoint (out_dir/checkpoint.pt unless `path`); None without either. background:
