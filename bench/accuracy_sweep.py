@@ -62,19 +62,20 @@ def _init_worker(devices, threads: int, keep: str | None = None) -> None:
         torch.cuda.set_device(torch.device(_DEVICE))
 
 
-def _scan(rig: str, scene: str, seed: int, designs: str | None = None):
+def _scan(rig: str, scene: str, seed: int, designs: str | None = None, camera: str = "linear"):
     """(scan, depth axis): random6 + gray7 along the depth axis, and with `designs` (a folder of
-    <rig>/design<K>/patterns.yaml, bench.designed_patterns) every design of the rig after them."""
+    <rig>/design<K>/patterns.yaml, bench.designed_patterns) every design of the rig after them; seen through the
+    named camera model (slwarp.sim.simulate.CAMERA_MODELS)."""
     from slwarp.decode import choose_plane_axis
     from slwarp.sim.rigs import make_rig
-    from slwarp.sim.simulate import SimOptions, simulate_scene
+    from slwarp.sim.simulate import camera_model, simulate_scene
 
     _, projector = make_rig(rig)
     axis = choose_plane_axis(projector)
     gray = "gray7" if axis == "col" else "gray7_row"
     spec = f"random6+{gray}" + "".join(f"+{p}" for p in rig_designs(designs, rig))
     sim_device = _DEVICE if _DEVICE and _DEVICE.startswith("cuda") else None
-    return simulate_scene(scene, spec, rig, SimOptions(seed=seed), device=sim_device), axis
+    return simulate_scene(scene, spec, rig, camera_model(camera, seed=seed), device=sim_device), axis
 
 
 def rig_designs(designs: str | None, rig: str) -> list[str]:
@@ -107,8 +108,10 @@ def lost_pixels(mask: np.ndarray, valid: np.ndarray, timings: dict) -> dict:
 
 def refine_facts(timings: dict) -> dict:
     """What an extraction decided, for study: the model's misfit, whether it refined, the held-out check's decision
-    and per-fold residuals when it ran, the pixels the repair's growth changed and the edge pixels given back."""
-    return {k: timings[k] for k in ("refine_misfit", "refined", "refine_check", "repair_grown", "edge_readmitted")
+    and per-fold residuals when it ran, the pixels the repair's growth changed, the edge pixels given back and the
+    lens halo's share the pattern model used (fitted or given)."""
+    return {k: timings[k] for k in ("refine_misfit", "refined", "refine_check", "repair_grown", "edge_readmitted",
+                                    "pattern_halo")
             if timings.get(k) is not None}
 
 
@@ -139,7 +142,7 @@ def run_job(job: dict) -> dict:
     (and the error maps in the --keep folder when one is given)."""
     t0 = time.perf_counter()
     try:
-        scan, axis = _scan(job["rig"], job["scene"], job["seed"], job.get("designs"))
+        scan, axis = _scan(job["rig"], job["scene"], job["seed"], job.get("designs"), job.get("camera", "linear"))
         out = {"job": job, "device": _DEVICE, "axis": axis, "methods": {}}
         if job["kind"] == "classical":
             from slwarp.decode import reconstruct_depth
@@ -212,8 +215,18 @@ def method_label(job: dict) -> str:
 def job_key(job: dict) -> str:
     name = job["label"] if job["kind"] == "neural" else "classical"
     frames = f"__{job['frames']}" if job.get("frames") else ""
-    return (f"{name}{frames}__{job['rig']}__{job['scene']}__s{job['seed']}").replace("/", "_").replace(":", "_") \
+    camera = f"__{job['camera']}" if job.get("camera", "linear") != "linear" else ""
+    return (f"{name}{frames}{camera}__{job['rig']}__{job['scene']}__s{job['seed']}").replace("/", "_").replace(":", "_") \
         .replace("=", "-")
+
+
+def _camera_prose(camera: str) -> str:
+    """The camera model in the header's prose (nothing for the linear scanner of the earlier tables)."""
+    if camera == "linear":
+        return ""
+    from slwarp.sim.simulate import CAMERA_MODELS
+
+    return f" through the `{camera}` camera model ({', '.join(f'{k} {v}' for k, v in CAMERA_MODELS[camera].items())})"
 
 
 def _without_note(argv: list[str]) -> list[str]:
@@ -289,7 +302,9 @@ def _frames_prose(frames: str | None) -> str:
     prose = {"random6": "the 6 random patterns",
              "gray7": "the 7 most significant Gray code images (no inverses), as on the real captures"}
     names = [prose.get(f, f"the rig's designed set of {f[6:]} patterns (bench.designed_patterns)") for f in sets]
-    return names[0] if len(names) == 1 else "each of: " + "; ".join(names) + " (one design per rig, from no scene)"
+    designed = any(f.startswith("design") for f in sets)
+    return names[0] if len(names) == 1 else "each of: " + "; ".join(names) + \
+        (" (one design per rig, from no scene)" if designed else "")
 
 
 def markdown(doc: dict) -> str:
@@ -302,7 +317,7 @@ def markdown(doc: dict) -> str:
           (f"`{doc['command']}`: the tables of the finished runs in its --state. " if doc.get("report") else
            f"`{doc['command']}`; {doc['workers']} runs at a time on {max(doc['gpus'], 1)} device(s); {doc['wall_s'] / 60:.1f} min. ")
           + (f"{doc['note']} " if doc.get("note") else "") + "Scans: `random6+gray7` (rows on the vertical rig), "
-          f"SimOptions(seed={doc['seed']}); ours trains on " + _frames_prose(doc.get("neural_frames")) + "; GC(k) interp decodes k Gray code "
+          f"SimOptions(seed={doc['seed']})" + _camera_prose(doc.get("camera", "linear")) + "; ours trains on " + _frames_prose(doc.get("neural_frames")) + "; GC(k) interp decodes k Gray code "
           "images without inverses. Metrics over the GT mask, means over the scenes "
           f"({', '.join(scenes)}).", ""]
     if doc["overrides"]:
@@ -373,6 +388,8 @@ def main(argv=None) -> int:
     ap.add_argument("--small", action="store_true", help="each geometry's small-resolution rig")
     ap.add_argument("--scenes", default=None, help="comma-separated scenes (default: every built-in scene)")
     ap.add_argument("--seed", type=int, default=0, help="simulator noise seed")
+    ap.add_argument("--camera", default="linear", help="the simulator's camera model (slwarp.sim.simulate.CAMERA_MODELS:"
+                    " linear, optics, gamma, srgb, halo; default linear, the scanner of the tables so far)")
     ap.add_argument("--designs", default=None, help="a folder of designed pattern sets, <rig>/design<K>/patterns.yaml "
                     "(bench.designed_patterns): the scans carry them too, and --neural-frames may name design<K>")
     ap.add_argument("--neural-frames", default="random6",
@@ -424,6 +441,11 @@ def main(argv=None) -> int:
         if fs not in ("random6", "gray7") and not (fs.startswith("design") and fs[6:].isdigit() and args.designs):
             ap.error(f"--neural-frames {fs!r}: random6, gray7 or design<K> (design<K> needs --designs)")
     several = len(frame_sets) > 1
+    from slwarp.sim.simulate import CAMERA_MODELS
+
+    if args.camera not in CAMERA_MODELS:
+        ap.error(f"--camera {args.camera!r}: one of {', '.join(CAMERA_MODELS)}")
+    camera = {"camera": args.camera} if args.camera != "linear" else {}
     designs = {"designs": str(Path(args.designs).resolve())} if args.designs else {}
     jobs = []
     for r in rigs:
@@ -435,8 +457,8 @@ def main(argv=None) -> int:
                                  "overrides": {**overrides, **parse_overrides(",".join(variant))}, "rig": r, "scene": s,
                                  "seed": args.seed, **({"also_extract": also} if also else {}),
                                  **({"frames": fs} if fs != "random6" or several else {}),
-                                 **({"tag": f"{label} on {fs}"} if several else {}), **designs})
-            jobs.append({"kind": "classical", "rig": r, "scene": s, "seed": args.seed, **designs})
+                                 **({"tag": f"{label} on {fs}"} if several else {}), **designs, **camera})
+            jobs.append({"kind": "classical", "rig": r, "scene": s, "seed": args.seed, **designs, **camera})
     results, todo = [], []
     for j in jobs:
         f = state / (job_key(j) + ".json")
@@ -488,7 +510,7 @@ def main(argv=None) -> int:
            "gpus": n_gpu, "workers": len(devices), "command": command, "seed": args.seed, "rigs": rigs,
            "scenes": scenes, "labels": all_labels, "overrides": overrides, "wall_s": time.perf_counter() - t0,
            "table": summarise(results, rigs, scenes, all_labels), "errors": errors, "report": args.report,
-           "note": args.note, "neural_frames": args.neural_frames}
+           "note": args.note, "neural_frames": args.neural_frames, "camera": args.camera}
     out.mkdir(parents=True, exist_ok=True)
     stem = args.stem or f"accuracy-{doc['device']}"
     (out / f"{stem}.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")

@@ -119,10 +119,12 @@ def capture_metrics(depth: np.ndarray, ref: dict, camera) -> dict:
 def refinement_facts(timings: dict) -> dict:
     """What a run's extraction decided about the photometric refinement, from its timings.json: refined (bool),
     refine_misfit (the pattern model's misfit at the depth the gate saw; None without a gate) and refine_kept (the
-    held-out check's decision; None without the check)."""
+    held-out check's decision; None without the check) and lens_halo (the halo's share the pattern model used, fitted
+    or given; None when the run does not say)."""
     check = timings.get("refine_check")
     return {"refined": timings.get("refined"), "refine_misfit": timings.get("refine_misfit"),
-            "refine_kept": check.get("keep") if isinstance(check, dict) else None}
+            "refine_kept": check.get("keep") if isinstance(check, dict) else None,
+            "lens_halo": timings.get("pattern_halo")}
 
 
 def _gpus() -> list[str]:
@@ -135,6 +137,18 @@ def _gpus() -> list[str]:
     except (OSError, subprocess.TimeoutExpired):
         return []
     return [str(i) for i, line in enumerate(out.splitlines()) if line.startswith("GPU ")]
+
+
+def _finished(job: dict) -> dict | None:
+    """The result of a run an earlier call of the same command finished in --work (its run.json; or, without one, its
+    depth.npy and timings.json, with the wall time unknown), so that an interrupted comparison goes on; else None.
+    A run is known by its capture and preset label: give a new --work when the code or the scans change."""
+    out = Path(job["out"])
+    if (out / "run.json").is_file():
+        return {**job, **json.loads((out / "run.json").read_text()), "out": out}
+    if (out / "depth.npy").is_file() and (out / "timings.json").is_file():
+        return {**job, "wall_s": None, "rc": 0}
+    return None
 
 
 def _run_one(job: dict, gpu: str | None) -> dict:
@@ -151,6 +165,8 @@ def _run_one(job: dict, gpu: str | None) -> dict:
     job = dict(job, wall_s=time.perf_counter() - t, rc=p.returncode, gpu=gpu)
     if p.returncode:
         job["tail"] = (p.stdout + p.stderr).strip()[-1500:]
+    else:  # finished: a later call with the same --work takes it as it is (`_finished`)
+        (Path(job["out"]) / "run.json").write_text(json.dumps({"wall_s": job["wall_s"], "rc": 0, "gpu": gpu}))
     return job
 
 
@@ -188,10 +204,11 @@ def run(args) -> None:
                 if not queue:
                     return
                 job = queue.pop(0)
-            res = _run_one(job, gpu)
+            res = _finished(job) or _run_one(job, gpu)
             with lock:
                 done.append(res)
-                print(f"capture_{res['capture']} {res['label']}: {res['wall_s']:.1f} s"
+                print(f"capture_{res['capture']} {res['label']}: "
+                      + (f"{res['wall_s']:.1f} s" if res["wall_s"] is not None else "done before")
                       + ("" if res["rc"] == 0 else f" FAILED rc={res['rc']}\n{res['tail']}"), flush=True)
 
     threads = [threading.Thread(target=worker, args=(g,)) for g in slots]
@@ -255,7 +272,7 @@ def markdown(doc: dict, captures: list[int], methods: list[str]) -> str:
         lines.append(f"| {m} | " + " | ".join(f"{v:.3f}" for v in vals) + f" | {np.mean(vals):.3f} |")
     lines += ["", "## Every metric", "", "| capture | method | plate RMS mm | quadric RMS mm | plate covered | "
               "agreement median mm | agreement > 2 mm | pixels with depth | command wall s | in-run depth map s | "
-              "refined (misfit) |", "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+              "refined (misfit, lens halo) |", "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for c in captures:
         for m in methods:
             r = by.get((c, m))
@@ -264,7 +281,7 @@ def markdown(doc: dict, captures: list[int], methods: list[str]) -> str:
             if r.get("error"):
                 lines.append(f"| {c} | {m} | failed: {r['error'][-120:]!r} ||||||||")
                 continue
-            wall = f"{r['wall_s']:.1f}" if "wall_s" in r else "-"
+            wall = f"{r['wall_s']:.1f}" if r.get("wall_s") is not None else "-"
             dm = f"{r['depth_map_s']:.1f}" if r.get("depth_map_s") is not None else "-"
             lines.append(f"| {c} | {m} | {r['plane_rms_mm']:.3f} | {r['quadric_rms_mm']:.3f} | {r['plate_coverage']:.1%} | "
                          f"{r['agree_median_mm']:.3f} | {r['agree_over_2mm']:.2%} | {r['pixels_with_depth']:.1%} | "
@@ -280,7 +297,8 @@ def _refinement_cell(row: dict) -> str:
         return "-"
     cell = "yes" if row["refined"] else "no"
     notes = ([f"misfit {row['refine_misfit']:.4f}"] if row.get("refine_misfit") is not None else []) + \
-        ([f"check {'kept' if row['refine_kept'] else 'refused'}"] if row.get("refine_kept") is not None else [])
+        ([f"check {'kept' if row['refine_kept'] else 'refused'}"] if row.get("refine_kept") is not None else []) + \
+        ([f"halo {row['lens_halo']:.3f}"] if row.get("lens_halo") else [])
     return cell + (f" ({', '.join(notes)})" if notes else "")
 
 

@@ -4,11 +4,13 @@ from bench import real_captures
 
 def test_refinement_facts_read_the_extraction_timings():
     assert real_captures.refinement_facts({"refined": False, "refine_misfit": 0.0264, "refine_check": None}) == \
-        {"refined": False, "refine_misfit": 0.0264, "refine_kept": None}
+        {"refined": False, "refine_misfit": 0.0264, "refine_kept": None, "lens_halo": None}
     kept = real_captures.refinement_facts({"refined": True, "refine_misfit": None,
-                                           "refine_check": {"keep": True, "before": [0.04], "after": [0.03]}})
-    assert kept == {"refined": True, "refine_misfit": None, "refine_kept": True}
-    assert real_captures.refinement_facts({}) == {"refined": None, "refine_misfit": None, "refine_kept": None}
+                                           "refine_check": {"keep": True, "before": [0.04], "after": [0.03]},
+                                           "pattern_halo": 0.11})
+    assert kept == {"refined": True, "refine_misfit": None, "refine_kept": True, "lens_halo": 0.11}
+    assert real_captures.refinement_facts({}) == {"refined": None, "refine_misfit": None, "refine_kept": None,
+                                                  "lens_halo": None}
 
 def _row(capture, method, rms, **extra):
     return {"capture": capture, "method": method, "plane_rms_mm": rms, "quadric_rms_mm": rms / 2,

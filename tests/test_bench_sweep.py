@@ -112,3 +112,12 @@ def test_gray7_runs_train_on_the_seven_gray_code_images_and_are_kept_apart(tmp_p
     doc = json.loads((tmp_path / "out" / "sweep.json").read_text())
     assert "tiny" not in doc["table"]["default"] and doc["neural_frames"] == "gray7"
     assert "7 most significant Gray code images" in (tmp_path / "out" / "sweep.md").read_text()
+
+
+def test_job_key_names_the_camera_model_when_it_is_not_the_linear_one():
+    """--camera: runs through another camera model are other runs in --state (their own key), linear ones keep the
+    keys of the tables made before the option."""
+    job = {"kind": "neural", "label": "fast", "rig": "default", "scene": "bunny", "seed": 0}
+    assert accuracy_sweep.job_key(job) == "fast__default__bunny__s0"
+    assert accuracy_sweep.job_key({**job, "camera": "linear"}) == "fast__default__bunny__s0"
+    assert accuracy_sweep.job_key({**job, "camera": "halo"}) == "fast__halo__default__bunny__s0"
