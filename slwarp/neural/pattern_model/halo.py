@@ -32,9 +32,10 @@ def fit_halo(depth: np.ndarray, camera, projector, images, patterns: np.ndarray,
              shares=HALO_SHARES, device=None) -> tuple[float, dict]:
     """(share, fit) of the halo under which the pattern model best explains images [N, H, W] at depth [H, W] (mm,
     NaN: none) with patterns [N, Hp, Wp] in [0, 1] (unblurred, no halo): the pattern model's misfit
-    (`model_misfit`, blur per projector depth fitted for each share) at every share of `shares`, the minimum
-    refined by a parabola through its neighbours, and 0 unless it lowers the misfit by HALO_MIN_GAIN of the
-    misfit without a halo. fit: {"sigma_px", "shares", "misfits", "share"}. (0, fit) when too few pixels have depth."""
+    (`model_misfit`, blur per projector depth fitted for each share) at the shares of `shares` (ascending, from 0)
+    up to the first that does not lower it, the minimum refined by a parabola through its neighbours, and 0 unless it
+    lowers the misfit by HALO_MIN_GAIN of the misfit without a halo. fit: {"sigma_px", "shares" (those evaluated),
+    "misfits", "share"}. (0, fit) when too few pixels have depth."""
     d = np.asarray(depth, np.float32)
     has = np.isfinite(d)
     step = max(1, int(np.ceil(np.sqrt(has.sum() / HALO_FIT_PIXELS))))
@@ -49,12 +50,17 @@ def fit_halo(depth: np.ndarray, camera, projector, images, patterns: np.ndarray,
     wide = blur_patterns(torch.as_tensor(pats, device=dev), sigma) if dev.type == "cuda" else with_halo(pats, 1.0, sigma)
     sharp, wide = _BlurLadder(pats, dev), _BlurLadder(wide, dev)
     shares = [float(s) for s in shares]
-    misfits = []
+    misfits: list[float] = []
+    # upwards from no halo while the misfit falls (it has one minimum over these shares): a lens without a halo
+    # costs two evaluations, the real captures' (0.06-0.1) four or five
     for s in shares:
         ladder = copy.copy(sharp)
         ladder.rungs = (1.0 - s) * sharp.rungs + s * wide.rungs
         model = _fit_model(d, camera, projector, images, None, device, ladder=ladder)
         misfits.append(float("nan") if model is None else _misfit(model))
+        if not np.isfinite(misfits[-1]) or (len(misfits) > 1 and misfits[-1] >= misfits[-2]):
+            break
+    shares = shares[: len(misfits)]
     fit = {"sigma_px": float(sigma), "shares": shares, "misfits": misfits, "share": 0.0}
     m = np.asarray(misfits, np.float64)
     if not np.isfinite(m).all() or 0.0 not in shares:
