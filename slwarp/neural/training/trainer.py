@@ -113,17 +113,12 @@ def _on_host(state):
     return state
 
 
-def through_lens(patterns, share: float, sigma: float) -> np.ndarray:
-    """Patterns [N, Hp, Wp] as a lens with a halo of `share` over `sigma` projector px shows them
-    (scans.scanner.with_halo; share 0: unchanged)."""
-    return with_halo(patterns, share, sigma)
-
-
 def seen_through_lens(scan, share: float, sigma: float):
-    """The scan with its patterns through the lens (`through_lens`); the scan itself without a halo."""
+    """The scan with its patterns as a lens with a halo of `share` over `sigma` projector px shows them
+    (scans.scanner.with_halo); the scan itself without a halo."""
     if share <= 0:
         return scan
-    return dataclasses.replace(scan, patterns=through_lens(scan.patterns, share, sigma))
+    return dataclasses.replace(scan, patterns=with_halo(scan.patterns, share, sigma))
 
 
 class _SetupClock:
@@ -283,7 +278,7 @@ class Trainer:
         if images is not None:
             _ = self.identity  # the run's identity stays that of the scan it started with
             # the added patterns through the run's lens, as the scan's are
-            self.scan, count = _with_frames(self.scan, self.n_frames, images, through_lens(
+            self.scan, count = _with_frames(self.scan, self.n_frames, images, with_halo(
                 patterns, self.halo_share, self.cfg.sampling.pattern_halo_sigma))
         self.n_frames = min(self.n_frames + count, len(self.scan))
         self.renderer.set_frames(self.scan.images[: self.n_frames], self.scan.patterns[: self.n_frames])
