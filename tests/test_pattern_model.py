@@ -455,16 +455,18 @@ def test_with_halo_spreads_a_share_of_the_light_and_keeps_the_mean():
 
 def test_trainer_sees_the_patterns_through_the_configured_halo():
     """sampling.pattern_halo: the trainer's scan (search, renderer, extraction) holds the patterns with the halo;
-    without it, the scan itself."""
-    from slwarp.neural.config import preset
+    without it, the scan itself (a fitted halo: tests/test_lens_halo.py)."""
     from slwarp.neural.pattern_model import with_halo
+    from slwarp.neural.training import Trainer
     from slwarp.neural.training.trainer import seen_through_lens
+    from slwarp.neural.config import preset
     from slwarp.sim.simulate import SimOptions, simulate_scene
 
     scan = simulate_scene("spheres", "gray4", rig="small", options=SimOptions(seed=0), device="cpu")
-    cfg = preset("tiny", device="cpu")
-    assert seen_through_lens(scan, cfg) is scan
-    seen = seen_through_lens(scan, cfg.with_options(pattern_halo=0.1, pattern_halo_sigma=10.0))
+    assert seen_through_lens(scan, 0.0, 10.0) is scan
+    seen = seen_through_lens(scan, 0.1, 10.0)
     np.testing.assert_allclose(seen.patterns, with_halo(scan.patterns, 0.1, 10.0))
     assert np.array_equal(seen.images, scan.images) and seen.names == scan.names
     assert not np.array_equal(seen.patterns, scan.patterns)
+    trainer = Trainer(scan, preset("tiny", device="cpu", pattern_halo=0.1, pattern_halo_sigma=10.0), progress=False)
+    np.testing.assert_allclose(trainer.scan.patterns, seen.patterns)
