@@ -485,9 +485,10 @@ def look_at_rotation(position: np.ndarray, target: np.ndarray, up=(0.0, -1.0, 0.
     return np.stack([x, y, z])  # rows: device axes expressed in world coordinates
 
 
-def with_halo(patterns: np.ndarray, share: float, sigma: float) -> np.ndarray:
+def with_halo(patterns: np.ndarray, share: float, sigma: float, halo: np.ndarray | None = None) -> np.ndarray:
     """patterns [N, Hp, Wp] in [0, 1] as a lens with a halo shows them: (1 - share) x the pattern + share x the
-    pattern Gaussian-blurred by `sigma` projector px (edges replicated); share <= 0 returns them unchanged. The
+    pattern Gaussian-blurred by `sigma` projector px (edges replicated; `halo`: that blur when the caller has
+    it); share <= 0 returns them unchanged. The
     defocus (the simulator's, the pattern model's fitted blur) applies on top. Shared by the simulator
     (SimOptions.halo) and the neural method's pattern model (sampling.pattern_halo).
 
@@ -499,6 +500,7 @@ def with_halo(patterns: np.ndarray, share: float, sigma: float) -> np.ndarray:
     pats = np.asarray(patterns, np.float32)
     if share <= 0:
         return pats
-    k = 2 * int(np.ceil(3.0 * sigma)) + 1
-    halo = np.stack([cv2.GaussianBlur(p, (k, k), sigma, borderType=cv2.BORDER_REPLICATE) for p in pats])
+    if halo is None:
+        k = 2 * int(np.ceil(3.0 * sigma)) + 1
+        halo = np.stack([cv2.GaussianBlur(p, (k, k), sigma, borderType=cv2.BORDER_REPLICATE) for p in pats])
     return ((1.0 - share) * pats + share * halo).astype(np.float32)

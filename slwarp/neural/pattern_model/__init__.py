@@ -26,7 +26,7 @@ from .image import (CONTRAST_THRESHOLD, LS_RIDGE, MIN_MODULATION, OFF_IMAGE_PX, 
                     least_squares_offset_modulation, least_squares_residual, lit_with_contrast, offset_and_modulation,
                     predicted_intensities, projector_coords, projector_coords_at, sample_patterns, sample_patterns_at,
                     with_halo)
-from .halo import HALO_SHARES, HALO_SIGMA, fit_halo
+from .halo import HALO_SHARES, HALO_SIGMA, fit_halo, halo_light
 from .refine import (REFINE_RADIUS, REFINE_STEP_MM, model_misfit, refine_depth, refine_where_model_fits,
                      refinement_generalises)
 from .residual import photometric_confidence, photometric_filter, photometric_residual
@@ -41,6 +41,7 @@ __all__ = [
     "blur_patterns",
     "with_halo",
     "fit_halo",
+    "halo_light",
     "HALO_SHARES",
     "HALO_SIGMA",
     "projector_coords",

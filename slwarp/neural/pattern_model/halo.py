@@ -28,14 +28,25 @@ HALO_MIN_GAIN = 0.05
 HALO_FIT_PIXELS = 50_000
 
 
+def halo_light(patterns: np.ndarray, sigma: float = HALO_SIGMA, device=None) -> torch.Tensor:
+    """[N, Hp, Wp] float32 on `device`: the patterns [N, Hp, Wp] Gaussian-blurred by `sigma` projector px, edges
+    replicated: the halo alone (with_halo's blur), on a GPU blurred there, on the host by OpenCV."""
+    dev = _device(device)
+    pats = np.asarray(patterns, np.float32)
+    if dev.type == "cuda":
+        return blur_patterns(torch.as_tensor(pats, device=dev), sigma)
+    return torch.as_tensor(with_halo(pats, 1.0, sigma))
+
+
 def fit_halo(depth: np.ndarray, camera, projector, images, patterns: np.ndarray, sigma: float = HALO_SIGMA,
-             shares=HALO_SHARES, device=None) -> tuple[float, dict]:
+             shares=HALO_SHARES, device=None, halo: torch.Tensor | None = None) -> tuple[float, dict]:
     """(share, fit) of the halo under which the pattern model best explains images [N, H, W] at depth [H, W] (mm,
     NaN: none) with patterns [N, Hp, Wp] in [0, 1] (unblurred, no halo): the pattern model's misfit
     (`model_misfit`, blur per projector depth fitted for each share) at the shares of `shares` (ascending, from 0)
     up to the first that does not lower it, the minimum refined by a parabola through its neighbours, and 0 unless it
     lowers the misfit by HALO_MIN_GAIN of the misfit without a halo. fit: {"sigma_px", "shares" (those evaluated),
-    "misfits", "share"}. (0, fit) when too few pixels have depth."""
+    "misfits", "share"}. (0, fit) when too few pixels have depth. halo: `halo_light` of the patterns when the caller
+    has it."""
     d = np.asarray(depth, np.float32)
     has = np.isfinite(d)
     step = max(1, int(np.ceil(np.sqrt(has.sum() / HALO_FIT_PIXELS))))
@@ -46,13 +57,12 @@ def fit_halo(depth: np.ndarray, camera, projector, images, patterns: np.ndarray,
     pats = np.asarray(patterns, np.float32)
     # blurring is linear: the ladder of (1 - s) P + s H is (1 - s) ladder(P) + s ladder(H), two ladders for all shares
     dev = _device(device)
-    # the halo alone (with_halo at share 1, the same replicated edges): on a GPU blurred there, on the host by OpenCV
-    wide = blur_patterns(torch.as_tensor(pats, device=dev), sigma) if dev.type == "cuda" else with_halo(pats, 1.0, sigma)
+    wide = halo_light(pats, sigma, dev) if halo is None else halo
     sharp, wide = _BlurLadder(pats, dev), _BlurLadder(wide, dev)
     shares = [float(s) for s in shares]
     misfits: list[float] = []
     # upwards from no halo while the misfit falls (it has one minimum over these shares): a lens without a halo
-    # costs two evaluations, the real captures' (0.06-0.1) four or five
+    # costs two evaluations, the real captures' (0.06-0.1) three to five
     for s in shares:
         ladder = copy.copy(sharp)
         ladder.rungs = (1.0 - s) * sharp.rungs + s * wide.rungs

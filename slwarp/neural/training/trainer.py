@@ -50,7 +50,7 @@ from ...devices import torch_device
 from ...scans.scanner import with_halo
 from ..config import TrainConfig
 from ..fields import Volume
-from ..pattern_model import fit_halo
+from ..pattern_model import fit_halo, halo_light
 from ..start import (checked_depth_range, fit_blur, frames_at_start, narrowed_range, search_start, searches,
                      set_process_flags, start_field, start_renderer, surface_depth, surface_terms_on, working_volume)
 from . import schedule
@@ -242,14 +242,21 @@ class Trainer:
         """The scan through the lens halo fitted at the starting map (pattern_model.fit_halo; a resumed run takes its
         checkpoint's share); sets halo_share and halo_fit. Without a map: no halo."""
         sigma = self.cfg.sampling.pattern_halo_sigma
+        halo = None
         if checkpoint is not None:
             self.halo_share = float(checkpoint.get("pattern_halo", 0.0))
         elif init_depth is not None:
             cam = scan.camera
+            # the halo's blur once, for the fit and for the patterns through the fitted lens
+            halo = halo_light(scan.patterns, sigma, self.device)
             self.halo_share, self.halo_fit = fit_halo(
                 np.asarray(init_depth, np.float32).reshape(cam.height, cam.width), cam, scan.projector,
-                self._search_images(), scan.patterns[: self.n_frames], sigma=sigma, device=self.device)
-        return seen_through_lens(scan, self.halo_share, sigma)
+                self._search_images(), scan.patterns[: self.n_frames], sigma=sigma, device=self.device,
+                halo=halo[: self.n_frames])
+        if self.halo_share <= 0:
+            return scan
+        return dataclasses.replace(scan, patterns=with_halo(
+            scan.patterns, self.halo_share, sigma, halo=None if halo is None else halo.cpu().numpy()))
 
     def _search_images(self):
         """The frames in use as the depth search reads them: on a GPU a device tensor [N, H, W], else numpy."""
