@@ -113,12 +113,12 @@ def _on_host(state):
     return state
 
 
-def seen_through_lens(scan, share: float, sigma: float):
+def seen_through_lens(scan, share: float, sigma: float, halo: np.ndarray | None = None):
     """The scan with its patterns as a lens with a halo of `share` over `sigma` projector px shows them
-    (scans.scanner.with_halo); the scan itself without a halo."""
+    (scans.scanner.with_halo; halo: the patterns' blur when the caller has it); the scan itself without a halo."""
     if share <= 0:
         return scan
-    return dataclasses.replace(scan, patterns=with_halo(scan.patterns, share, sigma))
+    return dataclasses.replace(scan, patterns=with_halo(scan.patterns, share, sigma, halo=halo))
 
 
 class _SetupClock:
@@ -253,10 +253,8 @@ class Trainer:
                 np.asarray(init_depth, np.float32).reshape(cam.height, cam.width), cam, scan.projector,
                 self._search_images(), scan.patterns[: self.n_frames], sigma=sigma, device=self.device,
                 halo=halo[: self.n_frames])
-        if self.halo_share <= 0:
-            return scan
-        return dataclasses.replace(scan, patterns=with_halo(
-            scan.patterns, self.halo_share, sigma, halo=None if halo is None else halo.cpu().numpy()))
+        return seen_through_lens(scan, self.halo_share, sigma,
+                                 None if halo is None or self.halo_share <= 0 else halo.cpu().numpy())
 
     def _search_images(self):
         """The frames in use as the depth search reads them: on a GPU a device tensor [N, H, W], else numpy."""
