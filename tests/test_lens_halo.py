@@ -66,3 +66,36 @@ def test_the_fits_device_blur_is_the_lens_halo():
     rng = np.random.default_rng(0)
     pats = (rng.random((2, 60, 90)) > 0.5).astype(np.float32)
     np.testing.assert_allclose(blur_patterns(torch.as_tensor(pats), 8.0).numpy(), with_halo(pats, 1.0, 8.0), atol=1e-5)
+
+
+def test_a_lens_with_a_halo_trains_with_the_lens_schedule(halo_scans, tmp_path):
+    """lens_variance_lr_factor / lens_lambda_reg replace variance_lr_factor / lambda_reg only where the scan's lens
+    has a halo (fitted or given): Adam's variance group and the Eikonal weight change, the run's identity and its
+    checkpoint's config stay those asked for, a resumed run trains the same way, and a lens without one keeps both."""
+    from slwarp.neural.config import preset
+    from slwarp.neural.training import Trainer
+
+    lens = dict(lens_variance_lr_factor=16.0, lens_lambda_reg=0.5)
+    cfg = preset("tiny", device="cpu", iters=2, init_iters=2, pattern_halo="auto", checkpoint_every=1000, **lens)
+
+    def variance_lr(trainer):
+        params = {id(p) for p in trainer.renderer.variance.parameters()}
+        return next(g["base_lr"] for g in trainer.optimizer.param_groups if params & {id(p) for p in g["params"]})
+
+    halo = Trainer(halo_scans["halo"], cfg, out_dir=tmp_path, progress=False)
+    assert halo.halo_share > 0 and halo.lens_schedule == {"variance_lr_factor": 16.0, "lambda_reg": 0.5}
+    assert halo.cfg.schedule.lambda_reg == 0.5 and variance_lr(halo) == pytest.approx(16.0 * cfg.schedule.lr)
+    assert halo.declared_cfg is cfg or halo.declared_cfg == cfg
+    assert halo.state()["config"]["schedule"]["variance_lr_factor"] == cfg.schedule.variance_lr_factor
+    halo.train()
+    halo.save_checkpoint()
+    resumed = Trainer(halo_scans["halo"], cfg.with_options(iters=3), out_dir=tmp_path, resume=True, progress=False)
+    assert resumed.lens_schedule == halo.lens_schedule and variance_lr(resumed) == variance_lr(halo)
+
+    linear = Trainer(halo_scans["linear"], cfg, progress=False)
+    assert linear.halo_share == 0 and linear.lens_schedule is None and linear.cfg is linear.declared_cfg
+    assert variance_lr(linear) == pytest.approx(cfg.schedule.variance_lr_factor * cfg.schedule.lr)
+    # a given halo counts as one; without the lens options a halo changes nothing
+    assert Trainer(halo_scans["linear"], cfg.with_options(pattern_halo=0.1), progress=False).lens_schedule is not None
+    plain = preset("tiny", device="cpu", iters=2, init_iters=2, pattern_halo=0.1)
+    assert Trainer(halo_scans["linear"], plain, progress=False).lens_schedule is None

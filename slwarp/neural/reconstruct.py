@@ -171,7 +171,8 @@ def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log
     timings = {"setup_s": t1 - t0, "train_s": t2 - t1, "depth_map_s": t3 - t0, "train_wall_s_total": trainer.elapsed,
                "iterations": trainer.iteration, "setup_phases_s": trainer.setup_phases,
                "first_steps_s": trainer.first_steps, "pattern_halo": trainer.halo_share,
-               "pattern_halo_fit": trainer.halo_fit, **ext_t, "pixels": fate_counts(fate), "total_s": time.perf_counter() - t0}
+               "pattern_halo_fit": trainer.halo_fit, "lens_schedule": trainer.lens_schedule, **ext_t,
+               "pixels": fate_counts(fate), "total_s": time.perf_counter() - t0}
     jobs = None
     if staging is not None:
         jobs = _output_jobs(staging, scan, config, trainer, depth, confidence, mesh, points, metrics, fate, timings)
@@ -228,6 +229,7 @@ def _output_jobs(out, scan, config, trainer, depth, confidence, mesh, points, me
     def config_file():
         fitted = {"pattern_blur_px": trainer.renderer.pattern_blur, "pattern_blur_fit_mse": trainer.blur_fit,
                   "pattern_halo": trainer.halo_share, "pattern_halo_fit": trainer.halo_fit,
+                  "lens_schedule": trainer.lens_schedule,
                   "depth_search": {k: v for k, v in (trainer.search_info or {}).items() if k != "pattern_blur_fit"}}
         save_config(out / "config.yaml", config, fitted)
 

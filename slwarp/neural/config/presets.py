@@ -29,6 +29,10 @@ _DEFAULT_EXTRACTION = dict(stages=(*DEFAULT_STAGES, "search_repair", "refine", "
 # the lens: a halo fitted to each scan, and where it has one (a real lens) no photometric refinement, which there
 # fitted the model's errors (real captures 0-4: docs/accuracy.md, section 22)
 _LENS = dict(pattern_halo="auto", refine_through_halo=False)
+# the GPU hash-grid presets through such a lens: NeuS's variance at 16x the rate and the Eikonal weight at 0.5, which
+# took fast / accurate from 0.431 / 0.426 to 0.377 / 0.386 mm plate RMS over real captures 0-2 (docs/accuracy.md,
+# section 23); on the simulator's lenses, which have no halo, these never apply (there they cost accuracy)
+_LENS_HASHGRID = dict(lens_variance_lr_factor=16.0, lens_lambda_reg=0.5)
 # the GPU presets' denoising window
 _GPU_DENOISE = dict(denoise_radius=4, denoise_footprints=8.0)
 # what the hash-grid presets share
@@ -57,13 +61,13 @@ _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 800 iteration
         grid_gradient="finite_difference_4",
         grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, surface_weight=1.0,
         surface_after=1.0, surface_in_front=True, free_space=0.5, variance_lr_factor=4.0, **_DEFAULT_EXTRACTION,
-        **_LENS, **_GPU_DENOISE, **_HASHGRID)
+        **_LENS, **_LENS_HASHGRID, **_GPU_DENOISE, **_HASHGRID)
 _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations of the paper's batch, levels "
         "coarse to fine, NeuS's variance at 4x the rate, with tuned's surface term and extraction and a free-space "
         "term: several times faster than tuned, as accurate on the default rig (GPU)",
         matmul="tf32", compile=False, iters=2000, grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2,
         grid_level_every=100, variance_lr_factor=4.0, surface_weight=1.0, surface_after=1.0, free_space=1.0,
-        **_DEFAULT_EXTRACTION, **_LENS, **_GPU_DENOISE, **_HASHGRID)
+        **_DEFAULT_EXTRACTION, **_LENS, **_LENS_HASHGRID, **_GPU_DENOISE, **_HASHGRID)
 _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4-tap gradient), photometric depth "
         "refinement (+-3 mm, where the pattern model fits the images), the search repair in groups (grown), the "
         "uniform-code fill and the edge-aware denoising (5x5 windows): better MAE in less time than cpu (small rig)",

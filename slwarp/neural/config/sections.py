@@ -101,6 +101,14 @@ class ScheduleConfig:
     lambda_sc: float = option(1.0, "weight of the surface-colour loss L_sc, from sc_start on", min=0.0)
     sc_start: int = option(1000, "iteration where L_sc starts", min=0)
     lambda_reg: float = option(0.1, "weight of the Eikonal loss L_reg", min=0.0)
+    # a scan whose lens has a halo (the fitted or given pattern_halo above 0: a real lens) is one the pattern model
+    # explains only approximately: there the hash-grid presets train with a sharper variance schedule and a
+    # stronger Eikonal prior (real captures 0-2: docs/accuracy.md, section 23); scans without a halo keep the above
+    lens_variance_lr_factor: float | None = option(None, "NeuS's variance rate (x lr) instead of variance_lr_factor "
+                                                   "where the scan's lens has a halo (pattern_halo fitted or given "
+                                                   "above 0; none: variance_lr_factor)", above=0.0)
+    lens_lambda_reg: float | None = option(None, "the Eikonal weight instead of lambda_reg where the scan's lens has "
+                                           "a halo (none: lambda_reg)", min=0.0)
     anneal_end: int = option(0, "NeuS cos-anneal over this many iterations (0: none)", min=0)
     incremental: bool = option(False, "start with start_frames frames and add one every add_every iterations")
     start_frames: int = option(3, "incremental: frames at the start", min=1)

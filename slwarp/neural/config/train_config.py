@@ -66,6 +66,15 @@ class TrainConfig:
             raise ConfigError("option repair_grow: true needs search_repair: true (it spreads the repair's changes)")
         return self
 
+    def through_lens(self, halo_share: float) -> "TrainConfig":
+        """The config a run trains with when its lens halo's share is `halo_share`: with a halo (share > 0)
+        lens_variance_lr_factor and lens_lambda_reg, where set, in place of variance_lr_factor and lambda_reg;
+        otherwise self."""
+        s = self.schedule
+        swap = {k: v for k, v in (("variance_lr_factor", s.lens_variance_lr_factor),
+                                  ("lambda_reg", s.lens_lambda_reg)) if v is not None}
+        return self.with_options(**swap) if halo_share > 0 and swap else self
+
     def fixed_options(self) -> dict:
         """{flat name: value} of every option a resumed run must keep: all but the `RESUMABLE` ones."""
         return {name: self.get(name) for name, opt in OPTIONS.items() if not opt.resumable}

@@ -150,7 +150,9 @@ class Trainer:
     def __init__(self, scan, config: TrainConfig, out_dir: str | os.PathLike | None = None, resume: bool = False,
                  sdf: torch.nn.Module | None = None, depth_range=None, progress: bool = True, init_depth=None,
                  progress_interval_s: float | None = None, overwrite: bool = False):
-        self.cfg = config.validate()
+        # declared_cfg: the run as asked for (its identity, its checkpoints); cfg: as it trains, which a lens with a
+        # halo may change (TrainConfig.through_lens, applied once the halo is known)
+        self.cfg = self.declared_cfg = config = config.validate()
         # every part of the run (blur fit, renderer, refinement, added frames) sees the patterns through one lens: a
         # given halo from the start (the search included), a fitted one ("auto") from the fit after the search on
         halo = config.sampling.pattern_halo
@@ -186,6 +188,7 @@ class Trainer:
         if halo == "auto":
             self.scan = scan = self._fit_lens(scan, checkpoint, init_depth)
             clock.mark("halo fit")
+        self.cfg = config = self.declared_cfg.through_lens(self.halo_share)
         self.field = sdf if sdf is not None else start_field(config, self.volume, self.depth_range, scan.camera)
         clock.mark("field")
         self.renderer = start_renderer(self.field, scan, config, self.n_frames, self.volume, self.depth_range,
@@ -314,9 +317,18 @@ class Trainer:
         """Hash-grid levels switched on at iteration `it` (None for a field without levels)."""
         return schedule.active_levels(self.cfg.field, self.field, it, self.warmup_iters)
 
+    @property
+    def lens_schedule(self) -> dict | None:
+        """{flat option: value} of what the scan's lens halo changed in the training (TrainConfig.through_lens), or
+        None where it changed nothing."""
+        if self.cfg is self.declared_cfg:
+            return None
+        names = ("variance_lr_factor", "lambda_reg")
+        return {n: self.cfg.get(n) for n in names if self.cfg.get(n) != self.declared_cfg.get(n)} or None
+
     # --- checkpoints --------------------------------------------------------------------------
     def _compute_identity(self) -> None:
-        self._identity = run_identity(self.scan, self.cfg, self._declared_range)
+        self._identity = run_identity(self.scan, self.declared_cfg, self._declared_range)
 
     @property
     def identity(self) -> dict:
@@ -330,7 +342,7 @@ class Trainer:
 
     def state(self) -> dict:
         """The checkpoint's contents (training.checkpoint.make_state): tensors and plain data only."""
-        return make_state(iteration=self.iteration, config=self.cfg.to_dict(), field=self.field,
+        return make_state(iteration=self.iteration, config=self.declared_cfg.to_dict(), field=self.field,
                           variance=self.renderer.variance, optimizer=self.optimizer,
                           generator_state=self._steps.generator_state(self.generator), n_frames=self.n_frames,
                           volume=dataclasses.asdict(self.volume), depth_range=self.depth_range,
