@@ -4,8 +4,9 @@ on disk, with caches empty (a new machine) and filled (the run before filled the
     python -m bench.command_wall --preset fast --runs 3 --cold          # CUDA: bunny, default rig; run 1 on empty caches
     python -m bench.command_wall --preset fast --bytecode warm          # Python's bytecode compiled first, as a user's
     python -m bench.command_wall --smoke                                # CPU: small rig, tiny settings (a smoke test)
+    python -m bench.command_wall --scan data/real/capture_0/scan --preset accurate   # a scan on disk (a real capture)
 
-One simulated scan (made once into the work folder). Then --runs fresh processes, one after another, each the
+One simulated scan (made once into the work folder), or the scan --scan names. Then --runs fresh processes, one after another, each the
 command a user types (`python -m slwarp reconstruct SCAN --preset P --out DIR --quiet`), timed from spawn to exit.
 The caches a machine keeps between commands (Warp's kernels, Inductor's and Triton's compiled graphs) live in
 <work>/caches: with --cold the first run finds them empty. Python's own bytecode cache: `--bytecode as-is` leaves it
@@ -149,6 +150,7 @@ def main(argv=None) -> None:
     p.add_argument("--preset", default=None, help="default: the device's default preset (tiny with --smoke)")
     p.add_argument("--scene", default="bunny")
     p.add_argument("--rig", default=None, help="default: default on CUDA, small on the CPU")
+    p.add_argument("--scan", default=None, help="a scan folder to reconstruct instead of the simulated scene")
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="options given to the command as flags")
     p.add_argument("--runs", type=int, default=3, help="fresh processes, one after another")
     p.add_argument("--cold", action="store_true", help="empty the caches before the first run")
@@ -182,8 +184,12 @@ def main(argv=None) -> None:
     if args.bytecode == "warm":
         env["PYTHONPYCACHEPREFIX"] = str(work / "pycache")
         bytecode_s = compile_bytecode(work / "pycache")
-    scan = work / f"scan-{args.scene}-{args.rig}"
-    if not (scan / "scan.yaml").is_file():
+    scan = Path(args.scan).resolve() if args.scan else work / f"scan-{args.scene}-{args.rig}"
+    if args.scan and not scan.is_dir():
+        raise SystemExit(f"--scan {args.scan}: no such scan folder")
+    if args.scan:
+        args.scene, args.rig = scan.parent.name if scan.name == "scan" else scan.name, "its own"
+    elif not (scan / "scan.yaml").is_file():
         # the simulator's kernels in a cache of their own: the command's caches stay as --cold left them (the smoke
         # test keeps the user's kernel cache for both)
         sim_env = {**env, "SLWARP_KERNEL_CACHE": str(work / "simulator-kernels")} if not args.smoke else env
@@ -209,7 +215,8 @@ def main(argv=None) -> None:
                                 text=True).stdout.strip().splitlines()[0]
     doc = {"device": device, "date": str(datetime.date.today()), "command": command, "bytecode_s": bytecode_s,
            "bench_command": "python -m bench.command_wall " + " ".join(argv if argv is not None else sys.argv[1:]),
-           "setup": {"preset": args.preset, "scene": args.scene, "rig": args.rig, "set": args.set, "cold": args.cold,
+           "setup": {"preset": args.preset, "scene": args.scene, "rig": args.rig, "scan": args.scan, "set": args.set,
+                     "cold": args.cold,
                      "bytecode": args.bytecode, "smoke": args.smoke}, "runs": runs}
     stem = args.stem or f"command-wall-{'cuda' if cuda else 'cpu'}-{args.preset}"
     write_study(Path(args.out) / stem, doc, lambda d: markdown(d) + "\n")

@@ -5,8 +5,9 @@ CUDA-graph capture), against a second reconstruction of the same scan in the sam
     python -m bench.first_scan --preset fast                     # CUDA: bunny, default rig, 3 fresh processes
     python -m bench.first_scan --preset fast --runs 2 --fresh    # the first process with empty caches
     python -m bench.first_scan --smoke                           # CPU: small rig, tiny settings (a smoke test)
+    python -m bench.first_scan --scan data/real/capture_0/scan --preset accurate --runs 1   # a scan on disk
 
-One simulated scan (made once, in a process of its own, on the device). Then --runs fresh processes, one after
+One simulated scan (made once, in a process of its own, on the device), or the scan --scan names. Then --runs fresh processes, one after
 another, each: the imports, the device's first tensor, the scan loaded, `reconstruct()` twice. The compile and
 kernel caches (Warp's kernel cache, Inductor's and Triton's) live in <work>/caches, shared by the runs as a
 station's are between commands: with --fresh the first run finds them empty, the next ones warm. `bench/train_speed.py`
@@ -138,7 +139,7 @@ def main(argv=None) -> None:
     p.add_argument("--device", default=None, help=argparse.SUPPRESS)
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--make", action="store_true", help=argparse.SUPPRESS)
-    p.add_argument("--scan", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--scan", default=None, help="a scan folder instead of the simulated scene (e.g. a real capture)")
     args = p.parse_args(argv)
     if args.child:
         return child(args)
@@ -164,8 +165,14 @@ def main(argv=None) -> None:
     env = {**os.environ, "PYTHONUNBUFFERED": "1", **compile_cache_env(caches)}
     if not args.smoke:  # the CPU's Warp kernels compile for minutes: the smoke test keeps the user's kernel cache
         env["SLWARP_KERNEL_CACHE"] = str(caches / "warp")
-    args.scan = work / f"scan-{args.scene}-{args.rig}"
-    if not (args.scan / "scan.yaml").is_file():
+    if args.scan:
+        args.scan = Path(args.scan).resolve()
+        if not args.scan.is_dir():
+            raise SystemExit(f"--scan {args.scan}: no such scan folder")
+        args.scene, args.rig = args.scan.parent.name if args.scan.name == "scan" else args.scan.name, "its own"
+    else:
+        args.scan = work / f"scan-{args.scene}-{args.rig}"
+    if args.scan.parent == work and not (args.scan / "scan.yaml").is_file():  # simulated once into the work folder
         made, _, tail = run_child(args, ["--make"], env)
         if made is None:
             raise SystemExit(f"could not simulate the scan into {args.scan}:\n{tail}")
@@ -182,8 +189,8 @@ def main(argv=None) -> None:
     name = next((r["device"] for r in runs if r.get("device")), "CUDA" if cuda else "CPU")
     doc = {"device": name, "date": str(datetime.date.today()),
            "bench_command": "python -m bench.first_scan " + " ".join(argv if argv is not None else sys.argv[1:]),
-           "setup": {"preset": args.preset, "scene": args.scene, "rig": args.rig, "set": args.set,
-                     "fresh": args.fresh, "smoke": args.smoke}, "runs": runs}
+           "setup": {"preset": args.preset, "scene": args.scene, "rig": args.rig, "scan": str(args.scan),
+                     "set": args.set, "fresh": args.fresh, "smoke": args.smoke}, "runs": runs}
     stem = args.stem or f"first-scan-{'cuda' if cuda else 'cpu'}-{args.preset}"
     write_study(Path(args.out) / stem, doc, lambda d: markdown(d) + "\n")
 

@@ -2,6 +2,8 @@
 and its table with a failed run."""
 import json
 
+import pytest
+
 from bench import first_scan
 
 
@@ -16,6 +18,15 @@ def test_first_scan_smoke_on_cpu(tmp_path):
     assert first["mae"] is not None and second["mae"] is not None  # the simulated scan has ground truth
     assert (tmp_path / "work" / "scan-spheres-small" / "scan.yaml").is_file()
     assert "| 1 | empty |" in (tmp_path / "first-scan-cpu-tiny.md").read_text()
+    # --scan: a scan on disk (here the one simulated above), nothing simulated; a missing folder is refused
+    scan = tmp_path / "work" / "scan-spheres-small"
+    first_scan.main(["--smoke", "--runs", "1", "--scan", str(scan), "--work", str(tmp_path / "work2"), "--out",
+                     str(tmp_path), "--stem", "on-disk"])
+    doc = json.loads((tmp_path / "on-disk.json").read_text())
+    assert doc["setup"]["scan"] == str(scan) and "error" not in doc["runs"][0]
+    assert not (tmp_path / "work2" / "scan-spheres-small").exists()
+    with pytest.raises(SystemExit, match="no such scan folder"):
+        first_scan.main(["--smoke", "--scan", str(tmp_path / "missing"), "--work", str(tmp_path / "w3")])
 
 
 def test_first_scan_table_reports_a_failed_run():
