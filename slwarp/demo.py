@@ -6,7 +6,7 @@ decodes GC(6) and GC(7) with interpolation from the Gray code frames, and prints
 the paper's Table 1. Writes into the output folder: the scan, each method's depth map and error map, a
 side-by-side comparison figure, a point-cloud picture and results.json.
 
-With a GPU: the default rig (camera 1280x1024) and the GPU's default preset (tuned). Without: the
+With a GPU: the default rig (camera 1280x1024) and the GPU's default preset (accurate). Without: the
 small rig (camera 320x256) and the CPU's (cpu-hashgrid), a few minutes on two cores.
 """
 from __future__ import annotations
