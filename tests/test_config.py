@@ -60,7 +60,8 @@ FLAT_PRESETS = {
                          denoise_radius=2, denoise_footprints=4.0, stages=SEARCH_STAGES,
                          grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, search_step_mm=2.0,
                          mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
-                         pattern_halo="auto", refine_through_halo=False, **HASHGRID),
+                         pattern_halo="auto", refine_through_halo=False, lens_variance_lr_factor=16.0,
+                         lens_lambda_reg=0.5, **HASHGRID),
 }
 
 

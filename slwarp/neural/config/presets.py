@@ -29,10 +29,11 @@ _DEFAULT_EXTRACTION = dict(stages=(*DEFAULT_STAGES, "search_repair", "refine", "
 # the lens: a halo fitted to each scan, and where it has one (a real lens) no photometric refinement, which there
 # fitted the model's errors (real captures 0-4: docs/accuracy.md, section 22)
 _LENS = dict(pattern_halo="auto", refine_through_halo=False)
-# the GPU hash-grid presets through such a lens: NeuS's variance at 16x the rate and the Eikonal weight at 0.5, which
+# the hash-grid presets through such a lens: NeuS's variance at 16x the rate and the Eikonal weight at 0.5, which
 # took fast / accurate from 0.431 / 0.426 to 0.377 / 0.386 mm plate RMS over real captures 0-2 (docs/accuracy.md,
-# section 23; the acceptance captures 3-4: 0.600 / 0.357 and 0.557 / 0.344); the simulator's linear camera has no
-# halo, so they never apply there (where they cost accuracy: 0.099 -> 0.130 mm)
+# section 23; the acceptance captures 3-4: 0.600 / 0.357 and 0.557 / 0.344) and cpu-hashgrid from 0.416 to 0.374 (run
+# on GPUs; 3-4: 0.564 / 0.362 against 0.618 / 0.323); the simulator's linear camera has no halo, so they never apply
+# there (where they cost accuracy: 0.099 -> 0.130 mm)
 _LENS_HASHGRID = dict(lens_variance_lr_factor=16.0, lens_lambda_reg=0.5)
 # the GPU presets' denoising window
 _GPU_DENOISE = dict(denoise_radius=4, denoise_footprints=8.0)
@@ -75,7 +76,7 @@ _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4
         "uniform-code fill and the edge-aware denoising (5x5 windows): better MAE in less time than cpu (small rig)",
         grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2,
         search_step_mm=2.0, mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
-        denoise_radius=2, denoise_footprints=4.0, **_DEFAULT_EXTRACTION, **_LENS, **_HASHGRID)
+        denoise_radius=2, denoise_footprints=4.0, **_DEFAULT_EXTRACTION, **_LENS, **_LENS_HASHGRID, **_HASHGRID)
 
 # the preset a run gets when it names none, per device type
 # (GPU: the best on the real captures within 15 s in process; accurate 0.412 mm plate RMS over captures 0-4 in 8.1-8.5
