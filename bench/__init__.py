@@ -25,3 +25,12 @@ def write_study(out, doc: dict, render) -> None:
     md = render(doc)
     out.with_suffix(".md").write_text(md)
     print(md)
+
+
+def scan_on_disk(path) -> tuple[Path, str]:
+    """(the scan folder `path` resolved, its name for a table: the folder's, or its parent's for a folder named
+    `scan` as bench.real_captures prepares them); SystemExit naming --scan when there is no such folder."""
+    scan = Path(path).resolve()
+    if not scan.is_dir():
+        raise SystemExit(f"--scan {path}: no such scan folder")
+    return scan, scan.parent.name if scan.name == "scan" else scan.name

@@ -6,8 +6,8 @@ on disk, with caches empty (a new machine) and filled (the run before filled the
     python -m bench.command_wall --smoke                                # CPU: small rig, tiny settings (a smoke test)
     python -m bench.command_wall --scan data/real/capture_0/scan --preset accurate   # a scan on disk (a real capture)
 
-One simulated scan (made once into the work folder), or the scan --scan names. Then --runs fresh processes, one after another, each the
-command a user types (`python -m slwarp reconstruct SCAN --preset P --out DIR --quiet`), timed from spawn to exit.
+One simulated scan (made once into the work folder), or the scan --scan names. Then --runs fresh processes, one
+after another, each the command a user types (`python -m slwarp reconstruct SCAN --preset P --out DIR --quiet`), timed from spawn to exit.
 The caches a machine keeps between commands (Warp's kernels, Inductor's and Triton's compiled graphs) live in
 <work>/caches: with --cold the first run finds them empty. Python's own bytecode cache: `--bytecode as-is` leaves it
 as the machine has it (some hosts run with PYTHONDONTWRITEBYTECODE and compile every module from source in every
@@ -30,7 +30,7 @@ import sys
 import time
 from pathlib import Path
 
-from bench import write_study
+from bench import scan_on_disk, write_study
 from bench.batch_throughput import compile_cache_env
 
 REPO = Path(__file__).resolve().parents[1]
@@ -184,12 +184,12 @@ def main(argv=None) -> None:
     if args.bytecode == "warm":
         env["PYTHONPYCACHEPREFIX"] = str(work / "pycache")
         bytecode_s = compile_bytecode(work / "pycache")
-    scan = Path(args.scan).resolve() if args.scan else work / f"scan-{args.scene}-{args.rig}"
-    if args.scan and not scan.is_dir():
-        raise SystemExit(f"--scan {args.scan}: no such scan folder")
     if args.scan:
-        args.scene, args.rig = scan.parent.name if scan.name == "scan" else scan.name, "its own"
-    elif not (scan / "scan.yaml").is_file():
+        scan, args.scene = scan_on_disk(args.scan)
+        args.rig = "its own"
+    else:
+        scan = work / f"scan-{args.scene}-{args.rig}"
+    if not args.scan and not (scan / "scan.yaml").is_file():
         # the simulator's kernels in a cache of their own: the command's caches stay as --cold left them (the smoke
         # test keeps the user's kernel cache for both)
         sim_env = {**env, "SLWARP_KERNEL_CACHE": str(work / "simulator-kernels")} if not args.smoke else env
@@ -216,8 +216,7 @@ def main(argv=None) -> None:
     doc = {"device": device, "date": str(datetime.date.today()), "command": command, "bytecode_s": bytecode_s,
            "bench_command": "python -m bench.command_wall " + " ".join(argv if argv is not None else sys.argv[1:]),
            "setup": {"preset": args.preset, "scene": args.scene, "rig": args.rig, "scan": args.scan, "set": args.set,
-                     "cold": args.cold,
-                     "bytecode": args.bytecode, "smoke": args.smoke}, "runs": runs}
+                     "cold": args.cold, "bytecode": args.bytecode, "smoke": args.smoke}, "runs": runs}
     stem = args.stem or f"command-wall-{'cuda' if cuda else 'cpu'}-{args.preset}"
     write_study(Path(args.out) / stem, doc, lambda d: markdown(d) + "\n")
 

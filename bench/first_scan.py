@@ -7,8 +7,8 @@ CUDA-graph capture), against a second reconstruction of the same scan in the sam
     python -m bench.first_scan --smoke                           # CPU: small rig, tiny settings (a smoke test)
     python -m bench.first_scan --scan data/real/capture_0/scan --preset accurate --runs 1   # a scan on disk
 
-One simulated scan (made once, in a process of its own, on the device), or the scan --scan names. Then --runs fresh processes, one after
-another, each: the imports, the device's first tensor, the scan loaded, `reconstruct()` twice. The compile and
+One simulated scan (made once, in a process of its own, on the device), or the scan --scan names. Then --runs fresh
+processes, one after another, each: the imports, the device's first tensor, the scan loaded, `reconstruct()` twice. The compile and
 kernel caches (Warp's kernel cache, Inductor's and Triton's) live in <work>/caches, shared by the runs as a
 station's are between commands: with --fresh the first run finds them empty, the next ones warm. `bench/train_speed.py`
 times its warm-up inside a process that has already run its microbenchmark; this is the cost a user sees per command.
@@ -30,7 +30,7 @@ import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-from bench import write_study  # noqa: E402
+from bench import scan_on_disk, write_study  # noqa: E402
 from bench.batch_throughput import compile_cache_env  # noqa: E402  (where a station keeps torch.compile's caches)
 
 SMOKE_SET = ["iters=3", "init_iters=2", "mc_resolution=32", "rays=64"]
@@ -166,10 +166,7 @@ def main(argv=None) -> None:
     if not args.smoke:  # the CPU's Warp kernels compile for minutes: the smoke test keeps the user's kernel cache
         env["SLWARP_KERNEL_CACHE"] = str(caches / "warp")
     if args.scan:
-        args.scan = Path(args.scan).resolve()
-        if not args.scan.is_dir():
-            raise SystemExit(f"--scan {args.scan}: no such scan folder")
-        args.scene, args.rig = args.scan.parent.name if args.scan.name == "scan" else args.scan.name, "its own"
+        (args.scan, args.scene), args.rig = scan_on_disk(args.scan), "its own"
     else:
         args.scan = work / f"scan-{args.scene}-{args.rig}"
     if args.scan.parent == work and not (args.scan / "scan.yaml").is_file():  # simulated once into the work folder

@@ -85,7 +85,7 @@ def test_a_lens_with_a_halo_trains_with_the_lens_schedule(halo_scans, tmp_path):
     halo = Trainer(halo_scans["halo"], cfg, out_dir=tmp_path, progress=False)
     assert halo.halo_share > 0 and halo.lens_schedule == {"variance_lr_factor": 16.0, "lambda_reg": 0.5}
     assert halo.cfg.schedule.lambda_reg == 0.5 and variance_lr(halo) == pytest.approx(16.0 * cfg.schedule.lr)
-    assert halo.declared_cfg is cfg or halo.declared_cfg == cfg
+    assert halo.declared_cfg is cfg and halo.cfg != cfg  # validate() returns the config itself
     assert halo.state()["config"]["schedule"]["variance_lr_factor"] == cfg.schedule.variance_lr_factor
     halo.train()
     halo.save_checkpoint()
@@ -99,3 +99,27 @@ def test_a_lens_with_a_halo_trains_with_the_lens_schedule(halo_scans, tmp_path):
     assert Trainer(halo_scans["linear"], cfg.with_options(pattern_halo=0.1), progress=False).lens_schedule is not None
     plain = preset("tiny", device="cpu", iters=2, init_iters=2, pattern_halo=0.1)
     assert Trainer(halo_scans["linear"], plain, progress=False).lens_schedule is None
+
+
+def test_the_command_says_how_the_lens_trained_and_config_yaml_records_it(halo_scans, tmp_path, capsys):
+    """`slwarp reconstruct` prints the fitted halo and the lens schedule it trained with; config.yaml keeps both
+    under `fitted` and the declared options in its sections."""
+    import re
+
+    import yaml
+
+    from slwarp.cli import main as cli_main
+
+    folder = tmp_path / "scan"
+    halo_scans["halo"].save(folder)
+    out = tmp_path / "out"
+    assert cli_main(["reconstruct", str(folder), "--out", str(out), "--device", "cpu", "--preset", "tiny",
+                     "--iters", "2", "--init-iters", "2", "--mc-resolution", "32", "--pattern-halo", "auto",
+                     "--lens-variance-lr-factor", "16", "--lens-lambda-reg", "0.5"]) == 0
+    printed = capsys.readouterr().out
+    share = re.search(r"lens halo: (\d\.\d+) of the light", printed)
+    assert share and 0.05 <= float(share.group(1)) <= 0.15
+    assert "trained for a lens with a halo: variance_lr_factor 16, lambda_reg 0.5" in printed
+    doc = yaml.safe_load((out / "config.yaml").read_text())
+    assert doc["fitted"]["lens_schedule"] == {"variance_lr_factor": 16.0, "lambda_reg": 0.5}
+    assert doc["schedule"]["lambda_reg"] == 0.1 and doc["schedule"]["lens_lambda_reg"] == 0.5

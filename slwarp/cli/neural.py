@@ -129,8 +129,8 @@ def _reconstruct(args, pool) -> int:
         print(f"lens halo: {t['pattern_halo']:.3f} of the light over {fit['sigma_px']:g} projector px (pattern model's "
               f"misfit {fit['misfits'][0]:.4f} without, {min(fit['misfits']):.4f} at best; --pattern-halo 0 leaves it out)")
     if t.get("lens_schedule"):
-        print("trained as a lens with a halo needs: " + ", ".join(f"{k} {v:g}" for k, v in t["lens_schedule"].items())
-              + " (--lens-variance-lr-factor, --lens-lambda-reg; none: as without a halo)")
+        print("trained for a lens with a halo: " + ", ".join(f"{k} {v:g}" for k, v in t["lens_schedule"].items())
+              + " (--lens-variance-lr-factor none --lens-lambda-reg none trains as without one)")
     if t.get("refine_skipped") == "lens halo":
         print("photometric refinement skipped: the pattern model needed a lens halo, as real lenses have; it only "
               "approximates such optics, and refining would fit its errors (--refine-through-halo refines regardless; "
