@@ -66,13 +66,17 @@ class TrainConfig:
             raise ConfigError("option repair_grow: true needs search_repair: true (it spreads the repair's changes)")
         return self
 
-    def through_lens(self, halo_share: float) -> "TrainConfig":
-        """The config a run trains with when its lens halo's share is `halo_share`: with a halo (share > 0)
-        lens_variance_lr_factor and lens_lambda_reg, where set, in place of variance_lr_factor and lambda_reg;
-        otherwise self."""
+    def lens_options(self) -> dict:
+        """{option: value} a lens with a halo sets in place of this config's own: variance_lr_factor from
+        lens_variance_lr_factor, lambda_reg from lens_lambda_reg, each where set (none: not replaced)."""
         s = self.schedule
-        swap = {k: v for k, v in (("variance_lr_factor", s.lens_variance_lr_factor),
+        return {k: v for k, v in (("variance_lr_factor", s.lens_variance_lr_factor),
                                   ("lambda_reg", s.lens_lambda_reg)) if v is not None}
+
+    def through_lens(self, halo_share: float) -> "TrainConfig":
+        """The config a run trains with when its lens halo's share is `halo_share`: with a halo (share > 0) the
+        `lens_options` in place of the config's own; otherwise (or without lens options) self."""
+        swap = self.lens_options()
         return self.with_options(**swap) if halo_share > 0 and swap else self
 
     def fixed_options(self) -> dict:

@@ -323,8 +323,7 @@ class Trainer:
         None where it changed nothing."""
         if self.cfg is self.declared_cfg:
             return None
-        names = ("variance_lr_factor", "lambda_reg")
-        return {n: self.cfg.get(n) for n in names if self.cfg.get(n) != self.declared_cfg.get(n)} or None
+        return {n: v for n, v in self.declared_cfg.lens_options().items() if v != self.declared_cfg.get(n)} or None
 
     # --- checkpoints --------------------------------------------------------------------------
     def _compute_identity(self) -> None:
