@@ -308,6 +308,14 @@ def markdown(doc: dict) -> str:
     return "\n".join(lines)
 
 
+def reconstruct_flags(preset: str, device: str, options: list[str]) -> list[str]:
+    """The reconstruct command's flags for a preset, a device and --set's OPTION=VALUE items (booleans as --key /
+    --no-key, as bench.command_wall gives them)."""
+    from bench.command_wall import option_flags  # imported here: bench.command_wall imports this module
+
+    return ["--preset", preset, "--device", device, *option_flags(options)]
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scans", type=int, default=8, help="simulated scans in the batch (default 8)")
@@ -380,12 +388,7 @@ def main(argv=None) -> int:
             raise SystemExit(f"--configs: {c['token']} needs {c['gpus']} GPUs, {len(gpu_ids)} visible")
     preset = args.preset or ("tiny" if cpu else "paper")
     device = "cpu" if cpu else "cuda"
-    reconstruct_args = ["--preset", preset, "--device", device]
-    for item in args.set:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise SystemExit(f"--set: {item!r} is not OPTION=VALUE")
-        reconstruct_args += ["--" + key.replace("_", "-"), value]
+    reconstruct_args = reconstruct_flags(preset, device, args.set)
     if not args.no_warmup:
         first = info["scans"][0]
         warm = [sys.executable, "-m", "slwarp", "reconstruct", first, "--out", str(work / "warmup"), "--quiet",

@@ -31,3 +31,11 @@ def test_stage_means_split_each_scan_into_setup_train_extract_and_other(tmp_path
     md = batch_throughput.markdown(doc)
     assert "| 1cpu | 0.75 | 3.00 | 2.00 | 1.75 |" in md
     assert "filled by the warm-up and shared" in md
+
+
+def test_set_options_reach_the_command_as_its_flags():
+    from bench.batch_throughput import reconstruct_flags
+
+    assert reconstruct_flags("fast", "cuda", ["compile=true", "iters=20"]) == [
+        "--preset", "fast", "--device", "cuda", "--compile", "--iters", "20"]
+    assert reconstruct_flags("fast", "cpu", ["compile=false"])[-1] == "--no-compile"
