@@ -470,3 +470,53 @@ def test_trainer_sees_the_patterns_through_the_configured_halo():
     assert not np.array_equal(seen.patterns, scan.patterns)
     trainer = Trainer(scan, preset("tiny", device="cpu", pattern_halo=0.1, pattern_halo_sigma=10.0), progress=False)
     np.testing.assert_allclose(trainer.scan.patterns, seen.patterns)
+
+
+def _blur_fit_inputs(s):
+    """The tensors blur._fit_blur takes, for a scan on the CPU."""
+    from slwarp.neural.pattern_model.blur import _rays_in_projector
+    from slwarp.neural.pattern_model.image import lit_with_contrast, offset_and_modulation
+
+    d = torch.as_tensor(np.asarray(s.gt_depth, np.float32))
+    img = torch.as_tensor(np.asarray(s.images, np.float32))
+    _, b = offset_and_modulation(img)
+    ok = torch.isfinite(d) & lit_with_contrast(b)
+    return d, ok, _rays_in_projector(s.camera, s.projector, "cpu"), img, b
+
+
+def test_blur_fit_leaves_out_pixels_without_a_finite_ray_or_a_depth_in_front(blurred_scan):
+    from types import SimpleNamespace
+
+    from slwarp.neural.pattern_model.blur import _fit_blur
+
+    s = blurred_scan
+    d, ok, rays, img, b = _blur_fit_inputs(s)
+    ladder = _BlurLadder(s.patterns, "cpu")
+    z0, s0 = _fit_blur(d, ok, rays, s.projector, img, b, ladder, BLUR_BINS)
+    # a tenth of the rows without a finite ray, and as many pixels at depth 0 (a NaN projector depth made every
+    # bin edge NaN, equal depths made equal edges: either left bins empty and the fit raised)
+    ray = rays.ray.clone()
+    ray[: ray.shape[0] // 10] = float("nan")
+    d2 = d.clone()
+    d2[-(d.shape[0] // 10):] = 0.0
+    z1, s1 = _fit_blur(d2, ok, SimpleNamespace(ray=ray, T=rays.T), s.projector, img, b, ladder, BLUR_BINS)
+    assert len(z1) == len(s1) == len(z0) and torch.all(torch.diff(z1) > 0)
+    np.testing.assert_allclose(s1.numpy(), 1.0, atol=0.25)
+    np.testing.assert_allclose(s0.numpy(), 1.0, atol=0.25)
+
+
+def test_blur_fit_gives_one_sigma_per_bin_that_holds_pixels(blurred_scan):
+    from types import SimpleNamespace
+
+    from slwarp.neural.pattern_model.blur import _fit_blur
+
+    s = blurred_scan
+    d, ok, rays, img, b = _blur_fit_inputs(s)
+    # every ray with the same projector z per unit depth, and two depths: two projector depths over 6 bins
+    ray = rays.ray.clone()
+    ray[..., 2] = 1.0
+    d2 = torch.where(torch.arange(d.shape[1])[None, :] < d.shape[1] // 2, 700.0, 900.0).expand_as(d).contiguous()
+    z, sig = _fit_blur(d2, ok, SimpleNamespace(ray=ray, T=rays.T), s.projector, img, b, _BlurLadder(s.patterns, "cpu"),
+                       BLUR_BINS)
+    assert 1 <= len(z) == len(sig) < BLUR_BINS
+    assert torch.all(torch.diff(z) > 0) and torch.all(torch.isfinite(sig))

@@ -146,8 +146,12 @@ def _interp(x: torch.Tensor, xp: torch.Tensor, fp: torch.Tensor) -> torch.Tensor
 
 def _fit_blur(depth: torch.Tensor, ok: torch.Tensor, rays: _Rays, projector, images: torch.Tensor,
               b: torch.Tensor, ladder: _BlurLadder, bins: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """`fit_blur_by_projector_depth` on tensors: (z_p [K], sigma [K]) float64 on the device. One host
-    synchronisation (the pixel count), and the per-bin parabola on the K x R costs on the host."""
+    """`fit_blur_by_projector_depth` on tensors: (z_p [K], sigma [K]) float64 on the device. Host
+    synchronisations: the pixel count, the bins holding pixels, and the per-bin parabola on the K x R costs.
+    A pixel whose ray is not finite or whose depth is not in front of the camera is left out (a NaN among the
+    projector depths made every quantile NaN and left all but one bin empty); a bin without pixels (many pixels at
+    one projector depth make equal edges) gives no (z_p, sigma): K can be below `bins`."""
+    ok = ok & (depth > 0) & torch.isfinite(rays.ray).all(-1)
     n_ok = int(ok.sum())
     if n_ok < 100:
         raise ValueError(f"fit_blur_by_projector_depth: only {n_ok} pixels with depth and contrast")
@@ -157,17 +161,19 @@ def _fit_blur(depth: torch.Tensor, ok: torch.Tensor, rays: _Rays, projector, ima
     edges = torch.quantile(zp, torch.linspace(0.0, 1.0, bins + 1, dtype=zp.dtype, device=zp.device))
     which = (torch.searchsorted(edges, zp.contiguous(), right=True) - 1).clamp(0, bins - 1)
     uv = _projector_uv(X.float(), projector)
-    count = torch.bincount(which, minlength=bins).clamp_min(1).double()
+    count = torch.bincount(which, minlength=bins)
+    held = count.nonzero()[:, 0].tolist()  # the bins with pixels, in increasing z_p
+    count = count.clamp_min(1).double()
     img, bb = images[:, ok], b[ok]
     mse = []
     for j in range(len(BLUR_LADDER)):
         codes = ladder.sample(uv, torch.full_like(bb, min(float(j), ladder.r - 1 - 1e-6)))  # rung j (the last: inside)
         r = least_squares_residual(img, codes, bb)
         mse.append(torch.bincount(which, (r * r).mean(0).double(), bins) / count)
-    centres = torch.stack([torch.quantile(zp[which == k], 0.5) for k in range(bins)])
-    mse = torch.stack(mse).cpu().numpy()  # [R, K]
-    sigma = np.empty(bins)
-    for k in range(bins):
+    centres = torch.stack([torch.quantile(zp[which == k], 0.5) for k in held])
+    mse = torch.stack(mse).cpu().numpy()[:, held]  # [R, K]
+    sigma = np.empty(len(held))
+    for k in range(len(held)):
         j = int(np.argmin(mse[:, k]))
         sigma[k] = BLUR_LADDER[j]
         if 0 < j < len(BLUR_LADDER) - 1:
