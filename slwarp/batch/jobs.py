@@ -266,6 +266,10 @@ def run_scan(job: ScanJob, config, options: BatchOptions = BatchOptions(), worke
         if writing is not None:
             writing.append((row, res.wait_written))
         row.status = "done"
+        if res.timings.get("surface_lost"):  # its files are written, for a look; the scan counts as failed
+            from ..neural.reconstruct import lost_surface_message
+
+            row.status, row.error = "failed", lost_surface_message(res.timings["surface_lost"], res.trainer.depth_range)
         row.iterations = res.timings.get("iterations")
         row.valid_share = float(np.isfinite(res.depth).mean())
         if res.metrics is not None:

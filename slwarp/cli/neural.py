@@ -145,6 +145,10 @@ def _reconstruct(args, pool) -> int:
         print(f"photometric refinement {'kept' if check['keep'] else 'not kept'}: held-out frames' median residual "
               f"{before:.4f} -> {after:.4f} ({len(check['before'])} frames held out in turn; without --refine-check it is kept "
               "regardless)")
+    if t.get("surface_lost"):
+        from ..neural.reconstruct import lost_surface_message
+
+        print(f"warning: {lost_surface_message(t['surface_lost'], res.trainer.depth_range)}", file=sys.stderr)
     if res.metrics is not None:
         print(format_table([("neural SDF", res.metrics)]))
     print(f"wrote {args.out}/: depth.npy, depth.png, depth_color.png, confidence.npy, confidence.png, pixel_fate.png, "
