@@ -40,20 +40,31 @@ def small_scan():
     return simulate_scene("steps", "random6", rig="small", options=SimOptions(seed=0), device="cpu")
 
 
-@pytest.fixture
-def lose_the_surface(monkeypatch):
-    """The extraction leaves every lit pixel out of range (as a collapsed field does)."""
+def _collapse_extractions(monkeypatch, times: int | None) -> list:
+    """The extraction leaves every lit pixel out of range (as a field that lost the surface does) on its first
+    `times` calls (None: always); returns the seeds of the runs extracted, in order."""
     import slwarp.neural.reconstruct as rec
     from slwarp.neural.extraction.state import FATE
 
     real = rec.extract_depth
+    seeds = []
 
-    def collapsed(trainer, valid, **kw):
+    def collapsing(trainer, valid, **kw):
+        seeds.append(trainer.cfg.runtime.seed)
         depth, confidence, mesh, timings, fate = real(trainer, valid, **kw)
+        if times is not None and len(seeds) > times:
+            return depth, confidence, mesh, timings, fate
         fate = np.where(np.asarray(valid, bool), FATE["out_of_range"], fate).astype(fate.dtype)
         return np.full_like(depth, np.nan), np.full_like(confidence, np.nan), mesh, timings, fate
 
-    monkeypatch.setattr(rec, "extract_depth", collapsed)
+    monkeypatch.setattr(rec, "extract_depth", collapsing)
+    return seeds
+
+
+@pytest.fixture
+def lose_the_surface(monkeypatch):
+    """Every training loses the surface."""
+    return _collapse_extractions(monkeypatch, None)
 
 
 TINY = ["--device", "cpu", "--preset", "tiny", "--iters", "2", "--init-iters", "2", "--mc-resolution", "32"]
@@ -65,10 +76,42 @@ def test_the_command_warns_and_timings_json_records_it(small_scan, tmp_path, cap
     folder = tmp_path / "scan"
     small_scan.save(folder)
     assert cli_main(["reconstruct", str(folder), "--out", str(tmp_path / "out"), *TINY]) == 0
-    err = capsys.readouterr().err
-    assert "warning: the field lost the surface: 100% of the lit pixels got no depth inside the depth range" in err
-    lost = json.loads((tmp_path / "out" / "timings.json").read_text())["surface_lost"]
+    printed = capsys.readouterr()
+    assert "the training with seed 0 lost the surface (100% of the lit pixels" in printed.out
+    assert "trained again with seed 1, which lost it too" in printed.out
+    assert "warning: the field lost the surface: 100% of the lit pixels got no depth inside the depth range" in printed.err
+    timings = json.loads((tmp_path / "out" / "timings.json").read_text())
+    lost = timings["surface_lost"]
     assert lost["lost"] == 1.0 and lost["searched"] > LOST_SURFACE_SHARE
+    assert timings["lost_surface_retry"]["seed"] == 0 and lose_the_surface == [0, 1]
+
+
+def test_a_second_training_with_the_next_seed_replaces_a_lost_one(small_scan, tmp_path, capsys, monkeypatch):
+    import yaml
+
+    from slwarp.cli import main as cli_main
+
+    seeds = _collapse_extractions(monkeypatch, 1)
+    folder = tmp_path / "scan"
+    small_scan.save(folder)
+    assert cli_main(["reconstruct", str(folder), "--out", str(tmp_path / "out"), *TINY]) == 0
+    printed = capsys.readouterr()
+    assert "trained again with seed 1, which kept it" in printed.out and "warning" not in printed.err
+    assert seeds == [0, 1]
+    timings = json.loads((tmp_path / "out" / "timings.json").read_text())
+    assert timings["surface_lost"] is None and timings["lost_surface_retry"]["lost"] == 1.0
+    assert np.isfinite(np.load(tmp_path / "out" / "depth.npy")).any()
+    assert yaml.safe_load((tmp_path / "out" / "config.yaml").read_text())["runtime"]["seed"] == 1  # what trained
+
+
+def test_no_second_training_when_asked_for_none(small_scan, tmp_path, capsys, lose_the_surface):
+    from slwarp.cli import main as cli_main
+
+    folder = tmp_path / "scan"
+    small_scan.save(folder)
+    assert cli_main(["reconstruct", str(folder), "--out", str(tmp_path / "out"), *TINY,
+                     "--no-retry-lost-surface"]) == 0
+    assert "warning: the field lost the surface" in capsys.readouterr().err and lose_the_surface == [0]
 
 
 def test_a_batch_counts_the_scan_as_failed_and_keeps_its_files(small_scan, tmp_path, lose_the_surface):

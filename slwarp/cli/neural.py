@@ -145,6 +145,11 @@ def _reconstruct(args, pool) -> int:
         print(f"photometric refinement {'kept' if check['keep'] else 'not kept'}: held-out frames' median residual "
               f"{before:.4f} -> {after:.4f} ({len(check['before'])} frames held out in turn; without --refine-check it is kept "
               "regardless)")
+    retried = t.get("lost_surface_retry")
+    if retried:
+        print(f"the training with seed {retried['seed']} lost the surface ({retried['lost']:.0%} of the lit pixels without "
+              f"a depth in range): trained again with seed {retried['seed'] + 1}"
+              + (", which lost it too" if t.get("surface_lost") else ", which kept it"))
     if t.get("surface_lost"):
         from ..neural.reconstruct import lost_surface_message
 

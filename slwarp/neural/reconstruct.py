@@ -169,9 +169,12 @@ def _import_in_background(*modules) -> None:
         threading.Thread(target=run, name="slwarp-imports", daemon=True).start()
 
 
-def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log_every_s, overwrite, staging=None):
+def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log_every_s, overwrite, staging=None,
+                 retry=True):
     """reconstruct's work: (the Reconstruction, the jobs that write its files into `staging`: _output_jobs; None
-    without a staging folder); the final checkpoint goes to out/train in a thread (Trainer.wait_checkpoint)."""
+    without a staging folder); the final checkpoint goes to out/train in a thread (Trainer.wait_checkpoint). Where
+    the field lost the surface (lost_surface) and config.runtime.retry_lost_surface, it trains once more from the
+    start with the next seed and returns that run, its timings' "lost_surface_retry" saying what the first found."""
     from ..evaluation.metrics import depth_metrics
 
     t0 = time.perf_counter()
@@ -209,6 +212,13 @@ def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log
                "pattern_halo_fit": trainer.halo_fit, "lens_schedule": trainer.lens_schedule, **ext_t,
                "pixels": fate_counts(fate), "total_s": time.perf_counter() - t0}
     timings["surface_lost"] = lost_surface(timings["pixels"], trainer.init_depth)
+    if timings["surface_lost"] and retry and config.runtime.retry_lost_surface:
+        _settle_checkpoint(trainer)  # the next run replaces it
+        seed = config.runtime.seed
+        res, jobs = _reconstruct(scan, config.with_options(seed=seed + 1), out, False, depth_range, use_mask, progress,
+                                 log_every_s, True, staging, retry=False)
+        res.timings["lost_surface_retry"] = {"seed": seed, **timings["surface_lost"], "total_s": timings["total_s"]}
+        return res, jobs
     jobs = None
     if staging is not None:
         jobs = _output_jobs(staging, scan, config, trainer, depth, confidence, mesh, points, metrics, fate, timings)

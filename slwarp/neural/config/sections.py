@@ -171,6 +171,9 @@ class RuntimeConfig:
     cuda_graph: bool = option(True, "CUDA: capture the training step once as a CUDA graph and replay it", resumable=True)
     checkpoint_every: int = option(500, "iterations between checkpoints", min=1, resumable=True)
     log_every: int = option(50, "iterations between logged losses", min=1, resumable=True)
+    retry_lost_surface: bool = option(True, "train once more, with the next seed, where the field lost the surface "
+                                      "(most lit pixels without a depth in range where the depth search found one)",
+                                      resumable=True)
 
 
 
