@@ -338,3 +338,20 @@ def test_warp_marching_cubes_matches_scikit_image():
     diff = np.abs(d1[hit] - d2[hit])
     # the cells' triangulations may differ (the surface inside a cell is not planar): by a few % of a cell at most
     assert np.median(diff) < 1e-4 and diff.max() < 0.02 * h
+
+
+def test_depth_to_points_puts_each_finite_pixel_on_its_ray_at_its_depth():
+    from slwarp.neural.depth_maps import depth_to_points
+    from slwarp.scans.scanner import camera_rays
+    from slwarp.sim.rigs import make_rig
+
+    cam, _ = make_rig("small")
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(600, 900, (cam.height, cam.width)).astype(np.float32)
+    depth[rng.uniform(size=depth.shape) < 0.3] = np.nan
+    pts = depth_to_points(depth, cam)
+    ok = np.isfinite(depth)
+    assert pts.shape == (ok.sum(), 3) and pts.dtype == np.float32
+    np.testing.assert_allclose(pts[:, 2], depth[ok], rtol=1e-6)
+    rays = camera_rays(cam)[ok]
+    np.testing.assert_allclose(pts[:, :2], rays[:, :2] / rays[:, 2:3] * depth[ok][:, None], rtol=1e-5, atol=1e-3)

@@ -120,7 +120,9 @@ def on_depth(values: np.ndarray, depth: np.ndarray) -> np.ndarray:
 
 
 def depth_to_points(depth: np.ndarray, camera) -> np.ndarray:
-    """[P, 3] camera-frame points (mm) of the finite pixels of a depth map (z = depth)."""
+    """[P, 3] camera-frame points (mm) of the finite pixels of a depth map (z = depth). The rays are gathered once
+    (twice took 0.10 s at 1280 x 1024 on the CPU, once 0.05 s: a scan's time in a batch)."""
     d = camera_rays(camera)
     ok = np.isfinite(depth)
-    return (d[ok] / d[ok][:, 2:3] * depth[ok][:, None]).astype(np.float32)
+    rays = d[ok]
+    return (rays * (depth[ok] / rays[:, 2])[:, None]).astype(np.float32)
