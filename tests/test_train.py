@@ -233,10 +233,28 @@ def tr_levels_after(tr, iters):
     return tr.field.n_active
 
 
-def test_hashgrid_resume_matches_uninterrupted_run_and_refuses_another_field(small_scan, tmp_path):
+def test_hashgrid_levels_count_their_own_adam_steps(small_scan):
+    """level_adam_steps: the tables' Adam group holds one segment per level, and each level has counted the steps
+    since it was switched on (the level schedule's), while the coarse levels count every step."""
+    cfg = tiny_hashgrid(iters=40, init_iters=10, grid_start_levels=2, grid_level_every=8, level_adam_steps=True)
+    tr = Trainer(small_scan.select("0:6"), cfg, progress=False)
+    table = tr.optimizer.param_groups[0]
+    layout = tr.field.layout
+    assert table["segments"] == [(o, o + n) for o, n in zip(layout.offsets, layout.sizes)]
+    assert table["active_segments"] is tr.field.active
+    tr.train()
+    steps = tr.optimizer.state[tr.field.table]["segment_steps"].tolist()
+    total = tr.iteration
+    expect = [sum(1 for it in range(total) if tr.active_levels(it) > level) for level in range(layout.levels)]
+    assert steps == expect and expect[0] == total and 0 < expect[-1] < total
+
+
+@pytest.mark.parametrize("level_adam_steps", [False, True])
+def test_hashgrid_resume_matches_uninterrupted_run_and_refuses_another_field(small_scan, tmp_path, level_adam_steps):
     scan = small_scan.select("0:6")
     # the interruption (iteration 40) falls after the warm-up, between two added levels
-    cfg = tiny_hashgrid(iters=60, init_iters=20, checkpoint_every=40, grid_level_every=12)
+    cfg = tiny_hashgrid(iters=60, init_iters=20, checkpoint_every=40, grid_level_every=12,
+                        level_adam_steps=level_adam_steps)
     full = Trainer(scan, cfg, out_dir=tmp_path / "full", progress=False)
     full.train()
     part = Trainer(scan, cfg, out_dir=tmp_path / "part", progress=False)
@@ -256,14 +274,16 @@ def test_hashgrid_resume_matches_uninterrupted_run_and_refuses_another_field(sma
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
 @pytest.mark.parametrize("backend", ["warp", "torch"])
-def test_hashgrid_cuda_graph_step_matches_plain_launches(small_scan, backend):
+@pytest.mark.parametrize("level_adam_steps", [False, True])
+def test_hashgrid_cuda_graph_step_matches_plain_launches(small_scan, backend, level_adam_steps):
     """The captured step with the hash grid (levels switched on between replays through the device-side
-    level count) gives the plain launches' losses and parameters."""
+    level count, and with level_adam_steps the levels' Adam step counts) gives the plain launches' losses and
+    parameters."""
     scan = small_scan.select("0:6")
     runs = {}
     for graph in (False, True):
         cfg = tiny_hashgrid(device="cuda", backend=backend, cuda_graph=graph, compile=False, iters=20, init_iters=6,
-                            grid_level_every=4)
+                            grid_level_every=4, level_adam_steps=level_adam_steps)
         tr = Trainer(scan, cfg, progress=False)
         losses = [float(tr.step()["loss"]) for _ in range(26)]
         runs[graph] = (np.array(losses), params_vector(tr).cpu(), tr)

@@ -9,6 +9,12 @@ first step. This class does the same arithmetic with the same aten kernels and n
 
 `state_dict()` / `load_state_dict()` use torch.optim's layout, so checkpoints written by either load in the other.
 Only what the trainer uses: betas, eps, no weight decay, no amsgrad.
+
+Segments (a group's "segments" and "active_segments"): a parameter of one group (a hash grid's table, its levels'
+rows stacked) whose row ranges switch on one after another. Each segment counts its own steps, from the step it is
+switched on, so its bias correction is that of a new parameter; with one count for all, a level switched on at step
+t would take its first steps with the correction of step t (1 - 0.999^t instead of 0.001 for the second moment):
+2-4x the group's rate for tens of steps. Segments not switched on have zero gradient and stay where they are.
 """
 from __future__ import annotations
 
@@ -20,7 +26,11 @@ class Adam:
 
     configure(device, capturable): the step count lives on the device (fused kernel) on CUDA and on the CPU
     otherwise; with capturable=True each group's learning rate is a 0-d device tensor that a CUDA-graph replay
-    reads (set it with fill_)."""
+    reads (set it with fill_).
+
+    A group of one parameter may carry "segments", [(start, stop)] row ranges of it, and "active_segments", an int
+    tensor [1] on the parameter's device: segments [0, n) take steps, each with its own step count (module
+    docstring). Without them every parameter has one count."""
 
     def __init__(self, groups: list[dict], lr: float, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8):
         self.param_groups = []
@@ -30,6 +40,13 @@ class Adam:
             group.setdefault("lr", lr)
             group.setdefault("betas", tuple(betas))
             group.setdefault("eps", eps)
+            if "segments" in group:
+                if len(group["params"]) != 1 or "active_segments" not in group:
+                    raise ValueError("Adam: a group with segments holds one parameter and its active_segments")
+                rows = group["params"][0].shape[0]
+                group["segments"] = [(int(a), int(b)) for a, b in group["segments"]]
+                if any(not 0 <= a < b <= rows for a, b in group["segments"]):
+                    raise ValueError(f"Adam: segments {group['segments']} do not lie in the parameter's {rows} rows")
             self.param_groups.append(group)
         self.state: dict[torch.nn.Parameter, dict] = {}
         self.capturable = False
@@ -47,17 +64,23 @@ class Adam:
             group["lr"] = torch.tensor(lr, device=device) if self.capturable else lr
         for p, st in self.state.items():
             st["step"] = st["step"].to(self._step_device(p), torch.float32)
+            if "segment_steps" in st:
+                st["segment_steps"] = st["segment_steps"].to(p.device, torch.float32)
 
     @staticmethod
     def _step_device(p: torch.Tensor) -> torch.device:
         return p.device if p.device.type == "cuda" else torch.device("cpu")
 
-    def _state(self, p: torch.nn.Parameter) -> dict:
+    def _state(self, p: torch.nn.Parameter, segments: int = 0) -> dict:
         st = self.state.get(p)
         if st is None:
             st = self.state[p] = {"step": torch.zeros((), dtype=torch.float32, device=self._step_device(p)),
                                   "exp_avg": torch.zeros_like(p, memory_format=torch.preserve_format),
                                   "exp_avg_sq": torch.zeros_like(p, memory_format=torch.preserve_format)}
+        if segments and "segment_steps" not in st:
+            # steps each segment has taken, on the parameter's device (read there by the fused kernel, and
+            # counted there under a CUDA graph)
+            st["segment_steps"] = torch.zeros(segments, dtype=torch.float32, device=p.device)
         return st
 
     # --- the step -----------------------------------------------------------------------------
@@ -78,12 +101,49 @@ class Adam:
             params = [p for p in group["params"] if p.grad is not None]
             if not params:
                 continue
+            if "segments" in group:
+                self._segmented(group, params[0])
+                continue
             states = [self._state(p) for p in params]
             grads = [p.grad for p in params]
             if params[0].device.type == "cuda":
                 self._fused(group, params, grads, states)
             else:
                 self._elementwise(group, params, grads, states)
+
+    def _segmented(self, group: dict, p: torch.nn.Parameter) -> None:
+        """One step of a segmented parameter: the switched-on segments count a step, and each row range updates
+        with its own count (at least 1, so a segment not yet on, whose moments are 0, does not move). Everything
+        stays on the device: a CUDA graph replays it with the segment count of the moment."""
+        segments = group["segments"]
+        st = self._state(p, len(segments))
+        st["step"] += 1
+        counts = st["segment_steps"]
+        index = torch.arange(len(segments), device=counts.device)
+        counts.add_((index < group["active_segments"].to(counts.device)).to(counts.dtype))
+        steps = counts.clamp(min=1.0)
+        rows = [slice(a, b) for a, b in segments]
+        views = [(p[r], p.grad[r], st["exp_avg"][r], st["exp_avg_sq"][r]) for r in rows]
+        if p.device.type == "cuda":
+            beta1, beta2 = group["betas"]
+            torch._fused_adam_([v[0] for v in views], [v[1] for v in views], [v[2] for v in views],
+                               [v[3] for v in views], [], list(steps.unbind(0)), amsgrad=False, lr=group["lr"],
+                               beta1=beta1, beta2=beta2, weight_decay=0.0, eps=group["eps"], maximize=False,
+                               grad_scale=None, found_inf=None)
+            return
+        for (param, grad, exp_avg, exp_avg_sq), step in zip(views, steps.tolist()):
+            self._update(group, param, grad, exp_avg, exp_avg_sq, step)
+
+    @staticmethod
+    def _update(group: dict, p, grad, exp_avg, exp_avg_sq, step: float) -> None:
+        """torch's single-tensor Adam update of one tensor at step count `step` (the CPU path)."""
+        beta1, beta2 = group["betas"]
+        lr, eps = float(group["lr"]), group["eps"]
+        exp_avg.lerp_(grad, 1 - beta1)
+        exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+        step_size = lr / (1 - beta1 ** step)
+        denom = (exp_avg_sq.sqrt() / (1 - beta2 ** step) ** 0.5).add_(eps)
+        p.addcdiv_(exp_avg, denom, value=-step_size)
 
     @staticmethod
     def _fused(group: dict, params, grads, states) -> None:
@@ -94,19 +154,11 @@ class Adam:
                            steps, amsgrad=False, lr=group["lr"], beta1=beta1, beta2=beta2, weight_decay=0.0,
                            eps=group["eps"], maximize=False, grad_scale=None, found_inf=None)
 
-    @staticmethod
-    def _elementwise(group: dict, params, grads, states) -> None:
-        beta1, beta2 = group["betas"]
-        lr, eps = float(group["lr"]), group["eps"]
+    @classmethod
+    def _elementwise(cls, group: dict, params, grads, states) -> None:
         for p, grad, st in zip(params, grads, states):
             st["step"] += 1
-            exp_avg, exp_avg_sq = st["exp_avg"], st["exp_avg_sq"]
-            exp_avg.lerp_(grad, 1 - beta1)
-            exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
-            step = st["step"].item()
-            step_size = lr / (1 - beta1 ** step)
-            denom = (exp_avg_sq.sqrt() / (1 - beta2 ** step) ** 0.5).add_(eps)
-            p.addcdiv_(exp_avg, denom, value=-step_size)
+            cls._update(group, p, grad, st["exp_avg"], st["exp_avg_sq"], st["step"].item())
 
     # --- torch.optim's state layout -----------------------------------------------------------
 
@@ -116,7 +168,8 @@ class Adam:
         index = {p: i for i, p in enumerate(self._params())}
         groups = []
         for g in self.param_groups:
-            d = {k: v for k, v in g.items() if k != "params"}
+            # active_segments is the field's own count (its buffer), not the optimiser's state
+            d = {k: v for k, v in g.items() if k not in ("params", "active_segments")}
             d.update(weight_decay=0.0, amsgrad=False, maximize=False, capturable=self.capturable,
                      params=[index[p] for p in g["params"]])
             groups.append(d)
@@ -142,6 +195,8 @@ class Adam:
             self.state[p] = {"step": torch.as_tensor(st["step"], dtype=torch.float32).to(self._step_device(p)).clone(),
                              "exp_avg": st["exp_avg"].to(p.device, p.dtype).clone(),
                              "exp_avg_sq": st["exp_avg_sq"].to(p.device, p.dtype).clone()}
+            if "segment_steps" in st:
+                self.state[p]["segment_steps"] = torch.as_tensor(st["segment_steps"]).to(p.device, torch.float32).clone()
         for saved, group in zip(groups, self.param_groups):
             group["lr"] = float(saved["lr"])
             group["betas"] = tuple(saved.get("betas", group["betas"]))

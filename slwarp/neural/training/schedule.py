@@ -67,7 +67,8 @@ def set_levels(field_config, field, it: int, warmup_iters: int) -> None:
 
 def parameter_groups(config, field: torch.nn.Module, variance: torch.nn.Module) -> list[dict]:
     """Adam's groups, each with its base learning rate ("base_lr", scaled by the schedule's factor): the hash
-    grid's tables (grid_table_lr_factor x lr), the rest of the field (lr) and the NeuS variance
+    grid's tables (grid_table_lr_factor x lr; with level_adam_steps each level with its own step count), the rest
+    of the field (lr) and the NeuS variance
     (variance_lr_factor x lr); for other fields one group of everything (as checkpoints of the MLP hold it)
     unless the variance has a rate of its own. config: a TrainConfig."""
     lr = config.schedule.lr
@@ -81,7 +82,12 @@ def parameter_groups(config, field: torch.nn.Module, variance: torch.nn.Module) 
                 {"params": variance, "lr": variance_lr, "base_lr": variance_lr}]
     rest = [p for p in field.parameters() if p is not table]
     table_lr = lr * config.field.grid_table_lr_factor
-    return [{"params": [table], "lr": table_lr, "base_lr": table_lr},
+    tables = {"params": [table], "lr": table_lr, "base_lr": table_lr}
+    if config.schedule.level_adam_steps:
+        # each level's rows count their own steps from the iteration the level is switched on (training.adam)
+        layout = field.layout
+        tables.update(segments=[(o, o + n) for o, n in zip(layout.offsets, layout.sizes)], active_segments=field.active)
+    return [tables,
             {"params": rest, "lr": lr, "base_lr": lr},
             {"params": variance, "lr": variance_lr, "base_lr": variance_lr}]
 
