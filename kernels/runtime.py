@@ -40,6 +40,29 @@ def init():
     return wp
 
 
+@contextlib.contextmanager
+def torch_capture(torch_stream):
+    """Tell Warp that `torch_stream` is capturing a CUDA graph that torch began (torch.cuda.graph), for the
+    capture's duration. Why: Warp frees an array's memory when Python drops it, and a free while a stream captures
+    in global mode invalidates the capture (Warp CUDA error 900 in release_now), e.g. a simulation's arrays that the
+    garbage collector reaches during a warm process's next capture. Told of the capture, Warp defers those frees
+    until it ends (H100: a capture with a Warp array dropped inside failed without this and succeeded with it)."""
+    wp = init()
+    stream = wp.stream_from_torch(torch_stream)
+    mode = getattr(getattr(wp, "CaptureMode", None), "GLOBAL", None)  # torch.cuda.graph's default mode
+    if mode is None:
+        wp.capture_begin(stream=stream, external=True)
+    else:
+        wp.capture_begin(stream=stream, external=True, capture_mode=mode)
+    try:
+        yield
+    finally:
+        try:
+            wp.capture_end(stream=stream)  # ends Warp's record of it; torch ends the capture itself
+        except RuntimeError:
+            pass  # the capture failed: Warp has dropped its record already, and torch reports the failure
+
+
 # what Warp's native library prints (with fprintf, so Warp's log level does not apply) when it finds no CUDA driver:
 # on a CPU-only machine that is expected, not a problem worth a line on every command
 DRIVER_WARNING = "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver"

@@ -11,8 +11,11 @@ The captured step reads its inputs from device tensors that each replay fills: t
 the valid-pixel list, jitter [R]) and the weights ("warmup", "lambda_sc": 0-d); the learning rates and the hash
 grid's level count are device tensors too (schedule.configure_adam, HashGridSDF.set_active_levels), so neither
 recaptures. A change of `key` (the renderer's frames_version, whether there is a starting map) drops the graph; it
-is captured again after two plain steps, which compile kernels and create Adam's state. A failed capture warns and
-leaves plain launches for good. Every random draw comes from one CPU generator in the same order with or without a
+is captured again after two plain steps, which compile kernels and create Adam's state. Warp is told of the capture
+(kernels.runtime.torch_capture), so that an array it frees meanwhile does not break it. A failed capture warns and
+leaves plain launches for good, with the stream that was current before it current again (torch.cuda.graph leaves
+its capture stream current when the capture's end fails: the next run in the process then worked on it, and its
+depth search found no pixel). Every random draw comes from one CPU generator in the same order with or without a
 graph, so both give the same run and a checkpoint's generator state (`generator_state`) resumes it exactly.
 """
 from __future__ import annotations
@@ -21,6 +24,8 @@ import warnings
 from contextlib import nullcontext
 
 import torch
+
+from slwarp.kernels import runtime
 
 __all__ = ["DRAW_AHEAD", "DrawAhead", "GraphedStep"]
 
@@ -186,11 +191,13 @@ class GraphedStep:
         g = {"key": key, "pick": torch.zeros(R, dtype=torch.long, device=dev), "jitter": torch.zeros(R, device=dev),
              "warmup": torch.zeros((), device=dev), "lambda_sc": torch.zeros((), device=dev),
              "graph": torch.cuda.CUDAGraph()}
-        self.stream.wait_stream(torch.cuda.current_stream(dev))
+        current = torch.cuda.current_stream(dev)
+        self.stream.wait_stream(current)
         try:
-            with torch.cuda.graph(g["graph"], stream=self.stream):
+            with torch.cuda.graph(g["graph"], stream=self.stream), runtime.torch_capture(self.stream):
                 g["out"] = self.body(g["pick"], g["jitter"], {"warmup": g["warmup"], "lambda_sc": g["lambda_sc"]})
         except Exception as e:  # noqa: BLE001 - any capture failure leaves plain launches, which always work
+            torch.cuda.set_stream(current)
             warnings.warn(f"CUDA graph capture of the training step failed ({type(e).__name__}: {e}); "
                           "training continues without it (TrainConfig.cuda_graph=False silences this)", RuntimeWarning)
             self.enabled = False
