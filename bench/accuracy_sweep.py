@@ -110,9 +110,11 @@ def refine_facts(timings: dict) -> dict:
     """What an extraction decided, for study: the model's misfit, whether it refined, the held-out check's decision
     and per-fold residuals when it ran, the pixels the repair's growth changed, the edge pixels given back and the
     lens halo's share the pattern model used (fitted or given), and where the field lost the surface, what the run
-    (surface_lost) or its first training (lost_surface_retry, reconstruct.lost_surface) found."""
+    (surface_lost) or its first training (lost_surface_retry, reconstruct.lost_surface) found, the shares that rule
+    read (surface_shares) and whether the training step ran as a CUDA graph (graph_captured)."""
     return {k: timings[k] for k in ("refine_misfit", "refined", "refine_check", "repair_grown", "edge_readmitted",
-                                    "pattern_halo", "surface_lost", "lost_surface_retry")
+                                    "pattern_halo", "surface_lost", "lost_surface_retry", "surface_shares",
+                                    "graph_captured")
             if timings.get(k) is not None}
 
 

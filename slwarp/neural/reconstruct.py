@@ -44,11 +44,10 @@ from .training import Trainer
 LOST_SURFACE_SHARE = 0.5
 
 
-def lost_surface(counts: dict, start_depth: np.ndarray | None) -> dict | None:
+def surface_shares(counts: dict, start_depth: np.ndarray | None) -> dict | None:
     """{"lost": share of the lit pixels without a depth in range, "searched": share of them the depth search gave a
-    depth} when the field lost the surface (LOST_SURFACE_SHARE), else None. counts: fate_counts of the depth map;
-    start_depth: the depth search's map [H*W] or [H, W] (NaN: none), None when the run had no search (the rule
-    then reads the fates alone)."""
+    depth (None without a search)}, what lost_surface reads (None without lit pixels). counts: fate_counts of the
+    depth map; start_depth: the depth search's map [H*W] or [H, W] (NaN: none), or None."""
     lit = sum(counts.values()) - counts.get("no_contrast", 0)
     if lit <= 0:
         return None
@@ -58,8 +57,18 @@ def lost_surface(counts: dict, start_depth: np.ndarray | None) -> dict | None:
         found = (torch.isfinite(start_depth).sum().item() if isinstance(start_depth, torch.Tensor)
                  else np.isfinite(np.asarray(start_depth)).sum())
         searched = float(found) / lit
-    if lost > LOST_SURFACE_SHARE and (searched is None or searched > LOST_SURFACE_SHARE):
-        return {"lost": lost, "searched": searched}
+    return {"lost": lost, "searched": searched}
+
+
+def lost_surface(counts: dict, start_depth: np.ndarray | None) -> dict | None:
+    """surface_shares' {"lost", "searched"} when the field lost the surface (over LOST_SURFACE_SHARE of the lit
+    pixels lost while the search, if there was one, had found a depth on over that share of them), else None."""
+    shares = surface_shares(counts, start_depth)
+    if shares is None:
+        return None
+    searched = shares["searched"]
+    if shares["lost"] > LOST_SURFACE_SHARE and (searched is None or searched > LOST_SURFACE_SHARE):
+        return shares
     return None
 
 
@@ -211,6 +220,9 @@ def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log
                "first_steps_s": trainer.first_steps, "pattern_halo": trainer.halo_share,
                "pattern_halo_fit": trainer.halo_fit, "lens_schedule": trainer.lens_schedule, **ext_t,
                "pixels": fate_counts(fate), "total_s": time.perf_counter() - t0}
+    # what the lost-surface rule read, and whether the step ran as a CUDA graph (both for study: bench.accuracy_sweep)
+    timings["surface_shares"] = surface_shares(timings["pixels"], trainer.init_depth)
+    timings["graph_captured"] = trainer.graph_captured
     timings["surface_lost"] = lost_surface(timings["pixels"], trainer.init_depth)
     if timings["surface_lost"] and retry and config.runtime.retry_lost_surface:
         _settle_checkpoint(trainer)  # the next run replaces it
