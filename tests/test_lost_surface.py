@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from slwarp.neural.reconstruct import LOST_SURFACE_SHARE, lost_surface, lost_surface_message
+from slwarp.neural.reconstruct import LOST_SURFACE_SHARE, lost_surface, lost_surface_message, surface_shares
 
 
 def _counts(measured=0, no_contrast=0, no_surface=0, out_of_range=0, low_confidence=0):
@@ -28,6 +28,10 @@ def test_the_rule_reads_the_lit_pixels_fates_and_the_search():
     assert lost_surface(_counts(no_contrast=50), None) is None
     edge = int(1000 * LOST_SURFACE_SHARE)
     assert lost_surface(_counts(measured=1000 - edge, out_of_range=edge), None) is None
+    # the shares it reads, said for every run (timings.json's surface_shares)
+    assert surface_shares(_counts(measured=960, no_contrast=1000, no_surface=10, out_of_range=5, low_confidence=25),
+                          searched) == pytest.approx({"lost": 0.015, "searched": 0.95})
+    assert surface_shares(_counts(no_contrast=50), None) is None
     msg = lost_surface_message(lost, (500.0, 1500.0))
     assert "92% of the lit pixels" in msg and "500-1500 mm" in msg and "95%" in msg and "--seed" in msg
 
@@ -100,6 +104,9 @@ def test_a_second_training_with_the_next_seed_replaces_a_lost_one(small_scan, tm
     assert seeds == [0, 1]
     timings = json.loads((tmp_path / "out" / "timings.json").read_text())
     assert timings["surface_lost"] is None and timings["lost_surface_retry"]["lost"] == 1.0
+    # what the rule read on the kept run, and that it ran without a CUDA graph (the CPU has none)
+    shares = timings["surface_shares"]
+    assert shares["lost"] < LOST_SURFACE_SHARE < shares["searched"] and timings["graph_captured"] is False
     assert np.isfinite(np.load(tmp_path / "out" / "depth.npy")).any()
     assert yaml.safe_load((tmp_path / "out" / "config.yaml").read_text())["runtime"]["seed"] == 1  # what trained
 
