@@ -61,16 +61,19 @@ def surface_shares(counts: dict, start_depth: np.ndarray | None) -> dict | None:
     return {"lost": lost, "searched": searched}
 
 
-def lost_surface(counts: dict, start_depth: np.ndarray | None) -> dict | None:
-    """surface_shares' {"lost", "searched"} when the field lost the surface (over LOST_SURFACE_SHARE of the lit
-    pixels lost while the search, if there was one, had found a depth on over that share of them), else None."""
-    shares = surface_shares(counts, start_depth)
+def surface_is_lost(shares: dict | None) -> bool:
+    """Whether surface_shares' `shares` say the field lost the surface: over LOST_SURFACE_SHARE of the lit pixels
+    lost while the search, if there was one, had found a depth on over that share of them."""
     if shares is None:
-        return None
+        return False
     searched = shares["searched"]
-    if shares["lost"] > LOST_SURFACE_SHARE and (searched is None or searched > LOST_SURFACE_SHARE):
-        return shares
-    return None
+    return shares["lost"] > LOST_SURFACE_SHARE and (searched is None or searched > LOST_SURFACE_SHARE)
+
+
+def lost_surface(counts: dict, start_depth: np.ndarray | None) -> dict | None:
+    """surface_shares' {"lost", "searched"} when the field lost the surface (surface_is_lost), else None."""
+    shares = surface_shares(counts, start_depth)
+    return shares if surface_is_lost(shares) else None
 
 
 def lost_surface_message(info: dict, depth_range) -> str:
@@ -222,9 +225,9 @@ def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log
                "pattern_halo_fit": trainer.halo_fit, "lens_schedule": trainer.lens_schedule, **ext_t,
                "pixels": fate_counts(fate), "total_s": time.perf_counter() - t0}
     # what the lost-surface rule read, and whether the step ran as a CUDA graph (both for study: bench.accuracy_sweep)
-    timings["surface_shares"] = surface_shares(timings["pixels"], trainer.init_depth)
+    shares = timings["surface_shares"] = surface_shares(timings["pixels"], trainer.init_depth)
     timings["graph_captured"] = trainer.graph_captured
-    timings["surface_lost"] = lost_surface(timings["pixels"], trainer.init_depth)
+    timings["surface_lost"] = shares if surface_is_lost(shares) else None
     if timings["surface_lost"] and retry and config.runtime.retry_lost_surface:
         _settle_checkpoint(trainer)  # the next run replaces it
         seed = config.runtime.seed
