@@ -296,6 +296,12 @@ def test_extract_depth_applies_the_doubt_rule_only_by_dropping(tiny_rods_field):
     # a 60-iteration field leaves wrong depths on the rods for the rule to drop
     assert t_doubt["dropped"]["search_doubt"] == int((np.isfinite(plain) & ~kept).sum()) > 0
     assert np.isnan(conf[~kept]).all()
+    # doubt_confidence is the rule's threshold: 0 drops nothing, 1 every contradicted depth (at least as many)
+    dropped = {}
+    for threshold in (0.0, 1.0):
+        trainer.cfg = cfg.with_options(search_doubt=True, doubt_confidence=threshold)
+        dropped[threshold] = extract_depth(trainer, valid)[3]["dropped"].get("search_doubt", 0)
+    assert dropped[0.0] == 0 and dropped[1.0] >= t_doubt["dropped"]["search_doubt"]
 
 
 def test_grow_repair_spreads_the_repaired_surface_to_its_wrong_neighbours(scene):

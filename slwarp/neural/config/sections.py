@@ -9,12 +9,16 @@ from typing import Literal
 from .options import ConfigError, Option, StageList, collect_options, option
 from .switches import DEFAULT_STAGES
 
-__all__ = ["CONTRAST_THRESHOLD", "ExtractionConfig", "FieldConfig", "InitConfig", "OPTIONS", "REMOVED_OPTIONS",
+__all__ = ["CONTRAST_THRESHOLD", "DOUBT_CONFIDENCE", "ExtractionConfig", "FieldConfig", "InitConfig", "OPTIONS", "REMOVED_OPTIONS",
            "RESUMABLE", "RuntimeConfig", "SECTIONS", "SamplingConfig", "ScheduleConfig", "option_named"]
 
 # minimum modulation b (full-scale units, images in [0, 1]) of a pixel lit with usable contrast: the default of
 # contrast_threshold and of the pattern model's contrast test (slwarp.neural.pattern_model.lit_with_contrast)
 CONTRAST_THRESHOLD = 0.05
+# the search repair's doubt rule (extraction.repair): a depth a per-pixel search contradicts is dropped when its
+# photometric confidence is below this; the default of doubt_confidence. 0.7 against none: small rig, cpu-hashgrid,
+# rods 1.392 -> 1.066 mm, steps 0.646 -> 0.560, bunny and torus -0.001, completeness -0.2 to -0.3 pt
+DOUBT_CONFIDENCE = 0.7
 
 
 @dataclass
@@ -227,8 +231,15 @@ class ExtractionConfig:
                                "another surface's depth (over 20 mm off) where the codes fit the repaired surface "
                                "better; drops and fills nothing (needs search_repair)", resumable=True)
     search_doubt: bool = option(False, "drop depths that a per-pixel depth search (3x3 window) contradicts by more "
-                                "than 6 mm and whose photometric confidence is below 0.7 (the background's depth on "
-                                "a thin part); fills and replaces nothing (search_repair includes it)", resumable=True)
+                                "than 6 mm and whose photometric confidence is below doubt_confidence (the "
+                                "background's depth on a thin part); fills and replaces nothing (search_repair "
+                                "includes it)", resumable=True)
+    # 0.8 on the small rig with cpu-hashgrid, the same fields: mean MAE 0.360 -> 0.330 mm (rods 0.831 -> 0.645, steps
+    # 0.501 -> 0.455), completeness -0.2 pt (bench/results/accuracy-cpu-doubt-confidence.md); the presets keep 0.7
+    # until the other rigs and the real captures are measured
+    doubt_confidence: float = option(DOUBT_CONFIDENCE, "search repair and search_doubt: a depth the search "
+                                     "contradicts is dropped when its photometric confidence is below this",
+                                     min=0.0, max=1.0, resumable=True)
     uniform_fill: bool = option(False, "after the refinement, lit pixels without contrast (a projector square black or "
                                 "white in every pattern) take the field's depth where the codes it predicts there "
                                 "are uniform and explain the images with the neighbours' offset and modulation",

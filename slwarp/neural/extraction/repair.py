@@ -15,6 +15,7 @@ import numpy as np
 
 from ...devices import torch_device
 from ..depth_maps import AGREE_MM, component_sizes, neighbours_within
+from ..config.sections import DOUBT_CONFIDENCE
 from ..pattern_model import photometric_confidence
 from ..start.search import search_depth
 from .state import ModelInputs
@@ -27,9 +28,6 @@ DISAGREE_MM = 6.0
 FILL_CONFIDENCE = 0.8
 # a change is kept where at least this many of the pixel's 8 neighbours end within AGREE_MM of it
 SUPPORT = 2
-# a contested depth that is not replaced is dropped when its photometric confidence is below this (small rig,
-# cpu-hashgrid: rods 1.392 -> 1.066 mm, steps 0.646 -> 0.560, bunny and torus -0.001, completeness -0.2 to -0.3 pt)
-DOUBT_CONFIDENCE = 0.7
 # a depth is replaced by a search's whose photometric confidence is higher by this (rods: 0.1 fixes 109 pixels
 # and breaks 11, 0.0 fixes 128 and breaks 61)
 SWITCH_MARGIN = 0.1

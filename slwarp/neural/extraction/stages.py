@@ -191,6 +191,7 @@ class SearchRepair(Stage):
     marks = "repaired"
     min_confidence: float
     repair_min_component: int
+    doubt_confidence: float
 
     def __call__(self, state: State) -> State:
         if state.inputs.valid is None:
@@ -198,7 +199,8 @@ class SearchRepair(Stage):
         # no flying-pixel filter on the changed pixels: a search has no smoothness to bend it across a depth edge,
         # and a thin part is all edge
         depth, info = repair_by_search(state.depth, state.inputs, self.min_confidence,
-                                       min_component=self.repair_min_component)
+                                       min_component=self.repair_min_component,
+                                       doubt_confidence=self.doubt_confidence)
         info["kept"] = int((np.isfinite(depth) & ~(depth == state.depth)).sum())
         return state.replace(depth=depth, info={"repair": info})
 
@@ -210,11 +212,12 @@ class SearchDoubt(Stage):
 
     name = "search_doubt"
     drops = "search_doubt"
+    doubt_confidence: float
 
     def __call__(self, state: State) -> State:
         if state.inputs.valid is None:
             return state
-        depth, info = doubt_by_search(state.depth, state.inputs)
+        depth, info = doubt_by_search(state.depth, state.inputs, doubt_confidence=self.doubt_confidence)
         return state.replace(depth=depth, info={"repair": info})
 
 
