@@ -234,9 +234,10 @@ class ExtractionConfig:
                                 "than 6 mm and whose photometric confidence is below doubt_confidence (the "
                                 "background's depth on a thin part); fills and replaces nothing (search_repair "
                                 "includes it)", resumable=True)
-    # 0.8 on the small rig with cpu-hashgrid, the same fields: mean MAE 0.360 -> 0.330 mm (rods 0.831 -> 0.645, steps
-    # 0.501 -> 0.455), completeness -0.2 pt (bench/results/accuracy-cpu-doubt-confidence.md); the presets keep 0.7
-    # until the other rigs and the real captures are measured
+    # 0.8 with cpu-hashgrid, the same fields: mean MAE on the 4 small rigs 0.360 / 0.295 / 0.296 / 0.330 -> 0.330 /
+    # 0.278 / 0.287 / 0.319 mm (rods 0.831 -> 0.645 on the small rig), no scene worse, completeness -0.2 pt each
+    # (bench/results/accuracy-cpu-doubt-confidence*.md); the presets keep 0.7 until real captures are measured, whose
+    # photometric confidence runs lower (the model fits a real lens less well)
     doubt_confidence: float = option(DOUBT_CONFIDENCE, "search repair and search_doubt: a depth the search "
                                      "contradicts is dropped when its photometric confidence is below this",
                                      min=0.0, max=1.0, resumable=True)
