@@ -9,8 +9,8 @@ from typing import Literal
 from .options import ConfigError, Option, StageList, collect_options, option
 from .switches import DEFAULT_STAGES
 
-__all__ = ["CONTRAST_THRESHOLD", "DOUBT_CONFIDENCE", "ExtractionConfig", "FieldConfig", "InitConfig", "OPTIONS", "REMOVED_OPTIONS",
-           "RESUMABLE", "RuntimeConfig", "SECTIONS", "SamplingConfig", "ScheduleConfig", "option_named"]
+__all__ = ["CONTRAST_THRESHOLD", "DOUBT_CONFIDENCE", "ExtractionConfig", "FieldConfig", "InitConfig", "OPTIONS",
+           "REMOVED_OPTIONS", "RESUMABLE", "RuntimeConfig", "SECTIONS", "SamplingConfig", "ScheduleConfig", "option_named"]
 
 # minimum modulation b (full-scale units, images in [0, 1]) of a pixel lit with usable contrast: the default of
 # contrast_threshold and of the pattern model's contrast test (slwarp.neural.pattern_model.lit_with_contrast)
