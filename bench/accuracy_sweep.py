@@ -62,10 +62,11 @@ def _init_worker(devices, threads: int, keep: str | None = None) -> None:
         torch.cuda.set_device(torch.device(_DEVICE))
 
 
-def _scan(rig: str, scene: str, seed: int, designs: str | None = None, camera: str = "linear"):
+def _scan(rig: str, scene: str, seed: int, designs: str | None = None, camera: str = "linear",
+          device: str | None = None):
     """(scan, depth axis): random6 + gray7 along the depth axis, and with `designs` (a folder of
     <rig>/design<K>/patterns.yaml, bench.designed_patterns) every design of the rig after them; seen through the
-    named camera model (slwarp.sim.simulate.CAMERA_MODELS)."""
+    named camera model (slwarp.sim.simulate.CAMERA_MODELS); simulated on `device` (default: the worker's)."""
     from slwarp.decode import choose_plane_axis
     from slwarp.sim.rigs import make_rig
     from slwarp.sim.simulate import camera_model, simulate_scene
@@ -74,7 +75,8 @@ def _scan(rig: str, scene: str, seed: int, designs: str | None = None, camera: s
     axis = choose_plane_axis(projector)
     gray = "gray7" if axis == "col" else "gray7_row"
     spec = f"random6+{gray}" + "".join(f"+{p}" for p in rig_designs(designs, rig))
-    sim_device = _DEVICE if _DEVICE and _DEVICE.startswith("cuda") else None
+    device = _DEVICE if device is None else device
+    sim_device = device if device and device.startswith("cuda") else None
     return simulate_scene(scene, spec, rig, camera_model(camera, seed=seed), device=sim_device), axis
 
 

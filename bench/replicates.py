@@ -75,12 +75,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"replicates: {e}", file=sys.stderr)
         return 2
     device = args.device or ("cuda:0" if torch.cuda.is_available() else "cpu")
-    sweep._DEVICE = device
     if device.startswith("cuda"):
         torch.cuda.set_device(torch.device(device))
     rows = []
     for rig, scene, label, opts in cases:
-        scan, axis = sweep._scan(rig, scene, args.seed)
+        scan, axis = sweep._scan(rig, scene, args.seed, device=device)
         frames = scan.select(sweep.neural_frames({"frames": "random6"}, axis))
         overrides = {k: v for k, v in opts.items() if k != "preset"}
         for seed in range(args.runs):

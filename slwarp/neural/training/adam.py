@@ -119,7 +119,9 @@ class Adam:
         st = self._state(p, len(segments))
         st["step"] += 1
         counts = st["segment_steps"]
-        index = torch.arange(len(segments), device=counts.device)
+        index = group.get("segment_index")
+        if index is None or index.device != counts.device:  # made once, not on every step
+            index = group["segment_index"] = torch.arange(len(segments), device=counts.device)
         counts.add_((index < group["active_segments"].to(counts.device)).to(counts.dtype))
         steps = counts.clamp(min=1.0)
         rows = [slice(a, b) for a, b in segments]
@@ -168,8 +170,8 @@ class Adam:
         index = {p: i for i, p in enumerate(self._params())}
         groups = []
         for g in self.param_groups:
-            # active_segments is the field's own count (its buffer), not the optimiser's state
-            d = {k: v for k, v in g.items() if k not in ("params", "active_segments")}
+            # active_segments is the field's own count (its buffer) and segment_index a constant: no state
+            d = {k: v for k, v in g.items() if k not in ("params", "active_segments", "segment_index")}
             d.update(weight_decay=0.0, amsgrad=False, maximize=False, capturable=self.capturable,
                      params=[index[p] for p in g["params"]])
             groups.append(d)
