@@ -9,6 +9,8 @@ a finished change (`--acceptance`), never to tune.
     python -m bench.real_captures prepare --repo PATH_TO_CLONE            # captures 0-2 into data/real/
     python -m bench.real_captures run --presets fast,accurate,tuned       # every preset on every prepared capture
     python -m bench.real_captures run --presets fast,fast:free_space=0 --captures 1,2 --stem real-fast-ablation
+    python -m bench.real_captures run --presets fast,accurate --also-extract doubt_confidence=0.8
+                                        # extraction variants of the same trained fields (labelled PRESET+VARIANT)
 
 `prepare` reads a clone of the repository (a work tree or a bare git directory; its commit ccf1cd8 is used) and
 writes, per capture, `data/real/capture_N/scan/` (a native scan of the 7 most significant row-code images, no
@@ -26,6 +28,10 @@ time, and what the extraction decided about the photometric refinement (refined 
 held-out check's word); beside the full decode, the pattern model's misfit of the 7 images at that depth (what the
 gate compares with `refine_max_misfit`). The two classical references are reported the same way. Writes
 <out>/<stem>.json and .md.
+
+`--also-extract` compares extraction options without the noise of a second training: after each preset's run,
+each variant copies that run's final checkpoint into its own folder and continues it with `--resume` and the
+variant's options (only options marked 'may change on resume' may differ), so it extracts the same field again.
 """
 from __future__ import annotations
 
@@ -152,12 +158,21 @@ def _finished(job: dict) -> dict | None:
 
 
 def _run_one(job: dict, gpu: str | None) -> dict:
-    """One reconstruction as a fresh process of the CLI; the job with wall_s, rc and (on failure) the output's tail."""
+    """One reconstruction as a fresh process of the CLI; the job with wall_s, rc and (on failure) the output's tail.
+    A variant job (job["base_out"]: the folder of its preset's finished run) starts from a copy of that run's final
+    checkpoint and continues it with --resume: the same field, extracted with the variant's options."""
     env = dict(os.environ)
     if gpu is not None:
         env["CUDA_VISIBLE_DEVICES"] = gpu
     cmd = [sys.executable, "-m", "slwarp", "reconstruct", str(job["scan"]), "--config", str(job["config"]),
-           "--out", str(job["out"]), "--quiet", "--overwrite"]
+           "--out", str(job["out"]), "--quiet"]
+    if job.get("base_out") is not None:
+        out = Path(job["out"])
+        shutil.rmtree(out, ignore_errors=True)
+        shutil.copytree(Path(job["base_out"]) / "train", out / "train")
+        cmd.append("--resume")
+    else:
+        cmd.append("--overwrite")
     if job.get("depth_range"):
         cmd += ["--depth-range", job["depth_range"]]
     t = time.perf_counter()
@@ -185,16 +200,25 @@ def run(args) -> None:
     if acceptance:
         print(f"note: captures {acceptance} are the acceptance set: report them, never tune on them", flush=True)
     work.mkdir(parents=True, exist_ok=True)
-    labels = args.presets.split(",")
+    presets = args.presets.split(",")
+    variants = args.also_extract.split(",") if args.also_extract else []
+    labels = [lab for name in presets for lab in [name] + [f"{name}+{v}" for v in variants]]
     jobs = []
-    for label in labels:
+    for label in presets:
         name, *items = label.split(":")
-        cfg_path = work / f"config-{label.replace(':', '_').replace('=', '-')}.yaml"
-        save_config(cfg_path, preset(name, **parse_assignments(items)))
+        configs = {}
+        for variant in [None] + variants:
+            lab = label if variant is None else f"{label}+{variant}"
+            configs[lab] = work / f"config-{_folder_name(lab)}.yaml"
+            extra = parse_assignments(variant.split(":")) if variant else {}
+            save_config(configs[lab], preset(name, **{**parse_assignments(items), **extra}))
         for c in captures:
-            jobs.append({"label": label, "capture": c, "scan": data / f"capture_{c}" / "scan", "config": cfg_path,
-                         "out": work / f"capture_{c}" / label.replace(":", "_").replace("=", "-"),
-                         "depth_range": args.depth_range})
+            base = {"label": label, "capture": c, "scan": data / f"capture_{c}" / "scan", "config": configs[label],
+                    "out": work / f"capture_{c}" / _folder_name(label), "depth_range": args.depth_range}
+            # the variants run after their preset's run, on the same worker, from its checkpoint
+            base["variants"] = [dict(base, label=lab, config=configs[lab], out=work / f"capture_{c}" / _folder_name(lab),
+                                     base_out=base["out"]) for lab in configs if lab != label]
+            jobs.append(base)
     slots = [g for g in _gpus() for _ in range(args.workers_per_gpu)] or [None]
     queue, done, lock = list(jobs), [], threading.Lock()
 
@@ -204,12 +228,13 @@ def run(args) -> None:
                 if not queue:
                     return
                 job = queue.pop(0)
-            res = _finished(job) or _run_one(job, gpu)
-            with lock:
-                done.append(res)
-                print(f"capture_{res['capture']} {res['label']}: "
-                      + (f"{res['wall_s']:.1f} s" if res["wall_s"] is not None else "done before")
-                      + ("" if res["rc"] == 0 else f" FAILED rc={res['rc']}\n{res['tail']}"), flush=True)
+            base = _finished(job) or _run_one(job, gpu)
+            for res in [base] + [_finished(v) or _run_one(v, gpu) for v in (job["variants"] if base["rc"] == 0 else [])]:
+                with lock:
+                    done.append(res)
+                    print(f"capture_{res['capture']} {res['label']}: "
+                          + (f"{res['wall_s']:.1f} s" if res["wall_s"] is not None else "done before")
+                          + ("" if res["rc"] == 0 else f" FAILED rc={res['rc']}\n{res['tail']}"), flush=True)
 
     threads = [threading.Thread(target=worker, args=(g,)) for g in slots]
     for t in threads:
@@ -246,6 +271,11 @@ def run(args) -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{args.stem}.json").write_text(json.dumps(doc, indent=1, default=str))
     (out / f"{args.stem}.md").write_text(md + "\n")
+
+
+def _folder_name(label: str) -> str:
+    """A preset label as a folder or file name: fast:free_space=0+doubt_confidence=0.8 -> fast_free_space-0+doubt..."""
+    return label.replace(":", "_").replace("=", "-")
 
 
 def _device_name() -> str:
@@ -314,6 +344,9 @@ def main(argv=None) -> None:
     pr.add_argument("--captures", default=None, help="comma-separated capture numbers (default: every prepared one)")
     pr.add_argument("--data", default=str(DEFAULT_DEST))
     pr.add_argument("--work", default="/tmp/slwarp-real-captures", help="each run's output folder")
+    pr.add_argument("--also-extract", default=None, metavar="VARIANTS",
+                    help="comma-separated extraction variants, each key=value:key=value, run on each preset's trained "
+                    "field (its checkpoint continued with --resume), e.g. doubt_confidence=0.8")
     pr.add_argument("--workers-per-gpu", type=int, default=2)
     pr.add_argument("--depth-range", default=None, metavar="NEAR,FAR",
                     help="the neural runs' depth range in mm (default: the scans' own, 800-2600)")

@@ -34,3 +34,38 @@ def test_tables_give_the_means_and_the_refinement_decisions():
     assert any(line.startswith("| 0 | fast |") and line.endswith("| no (misfit 0.0270) |") for line in lines)
     assert any(line.startswith("| 1 | fast |") and line.endswith("| yes (check kept) |") for line in lines)
     assert any(line.startswith("| 1 | full 40-image gc-interp |") and "(0.0321 at this depth)" in line for line in lines)
+
+
+def test_an_extraction_variant_continues_its_presets_checkpoint_and_does_not_train_again(tmp_path):
+    import json
+
+    import torch
+
+    from slwarp.neural.config import preset, save_config
+    from slwarp.neural.training.checkpoint import read_checkpoint
+    from slwarp.sim.simulate import SimOptions, simulate_scene
+
+    folder = tmp_path / "scan"
+    simulate_scene("spheres", "random6", rig="small", options=SimOptions(seed=3)).save(folder)
+    opts = {"iters": 20, "init": "sphere", "init_iters": 10, "rays": 64, "mc_resolution": 32}
+    save_config(tmp_path / "base.yaml", preset("tiny", device="cpu", **opts))
+    save_config(tmp_path / "variant.yaml", preset("tiny", device="cpu", **opts, doubt_confidence=0.8))
+    base = {"label": "tiny", "capture": 0, "scan": folder, "config": tmp_path / "base.yaml", "out": tmp_path / "base",
+            "depth_range": None}
+    done = real_captures._run_one(base, None)
+    assert done["rc"] == 0, done.get("tail")
+    variant = dict(base, label="tiny+doubt_confidence=0.8", config=tmp_path / "variant.yaml", out=tmp_path / "variant",
+                   base_out=base["out"])
+    done = real_captures._run_one(variant, None)
+    assert done["rc"] == 0, done.get("tail")
+    base_ck = read_checkpoint(base["out"] / "train" / "checkpoint.pt")
+    variant_ck = read_checkpoint(variant["out"] / "train" / "checkpoint.pt")
+    assert variant_ck["iteration"] == base_ck["iteration"]
+    for name, tensor in base_ck["field"].items():  # the same field, not a new training
+        assert torch.equal(tensor, variant_ck["field"][name])
+    # no training step ran in the variant's process: its training time is what the base run's checkpoint carried
+    timings = {k: json.loads((job["out"] / "timings.json").read_text()) for k, job in (("base", base), ("v", variant))}
+    assert timings["v"]["iterations"] == timings["base"]["iterations"] == 20
+    assert timings["v"]["train_s"] < 0.25 * timings["base"]["train_s"]
+    assert "doubt_confidence: 0.8" in (variant["out"] / "config.yaml").read_text()
+    assert (base["out"] / "train" / "checkpoint.pt").is_file()  # the preset's own run is left as it was
