@@ -197,8 +197,8 @@ class ExtractionConfig:
 
     stages: tuple[str, ...] = option(StageList(DEFAULT_STAGES), "the extraction's stages in the order they run, "
                                      "comma-separated (slwarp.neural.extraction.STAGES); edge_filter, search_repair, "
-                                     "search_doubt, refine_range, uniform_fill, repair_grow and denoise_radius add or "
-                                     "remove theirs", resumable=True)
+                                     "search_doubt, refine_range, uniform_fill, repair_grow, edge_side_radius and "
+                                     "denoise_radius add or remove theirs", resumable=True)
     # below 16 cells a cell spans more than 1/16 of the working volume: no scene's surface survives it
     mc_resolution: int = option(384, "marching-cubes cells along the volume's longest side", min=16, resumable=True)
     depth_method: Literal["mesh", "sphere"] = option("mesh", "depth by ray casting the marching-cubes mesh, or by "
@@ -262,6 +262,13 @@ class ExtractionConfig:
                                       "median relative misfit of the lit pixels at the depth before refinement is above "
                                       "this (simulated scans 0.015-0.022, the real capture 0.026; 0: always refine)",
                                       min=0.0, resumable=True)
+    edge_side_radius: int = option(0, "after the repair and the fill: each pixel with a depth across a depth edge "
+                                   "(a jump above edge_filter footprints) within this many pixels keeps its depth, "
+                                   "takes the one across or is dropped, as its codes fit them (0: off)", min=0,
+                                   resumable=True)
+    edge_side_margin: float = option(0.5, "edge sides: a depth is kept or taken when its code residual is at most "
+                                     "this times the other's; between the two the pixel is dropped", above=0.0,
+                                     max=1.0, resumable=True)
     denoise_radius: int = option(0, "last: each depth becomes the value at its pixel of a plane fitted (least squares "
                                  "in pixel coordinates) to the depths of its (2r + 1)^2 window that lie within "
                                  "denoise_footprints pixel footprints of its own (0: off)", min=0, resumable=True)

@@ -22,6 +22,7 @@ import numpy as np
 
 from ..pattern_model import photometric_confidence, refine_where_model_fits, refinement_generalises
 from .confidence import depth_confidence
+from .edges import settle_edge_sides
 from .fill import fill_uniform_codes
 from .repair import doubt_by_search, grow_repair, repair_by_search
 from .state import FATE, State, evaluating, register_fate
@@ -290,6 +291,28 @@ class RepairGrow(Stage):
             return state.replace(info={"repair_grown": 0})
         depth, grown = grow_repair(state.depth, state.fate == FATE["repaired"], state.inputs)
         return state.replace(depth=depth, info={"repair_grown": int(grown.sum())})
+
+
+@dataclass(frozen=True)
+class EdgeSide(Stage):
+    """Each pixel with a depth across an edge (a jump above edge_filter pixel footprints within edge_side_radius
+    pixels) keeps its depth, takes the one across or is dropped, as its codes fit them (edges.settle_edge_sides, with
+    edge_side_margin); info edge_side (switched, dropped). Does nothing without edge_filter."""
+
+    name = "edge_side"
+    drops = "edge_side"
+    marks = "repaired"
+    edge_side_radius: int
+    edge_side_margin: float
+    edge_filter: float
+
+    def __call__(self, state: State) -> State:
+        if self.edge_filter <= 0:
+            return state.replace(info={"edge_side": {"switched": 0, "dropped": 0}})
+        depth, switched, dropped = settle_edge_sides(state.depth, state.inputs, self.edge_side_radius,
+                                                     self.edge_side_margin, self.edge_filter)
+        return state.replace(depth=depth, info={"edge_side": {"switched": int(switched.sum()),
+                                                               "dropped": int(dropped.sum())}})
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,81 @@
+"""The edge sides at extraction (slwarp.neural.extraction.edges.settle_edge_sides): a band of pixels that kept the
+other surface's depth beside a depth edge is given back its own surface, and the right pixels of an edge stay; the
+stage in a preset's list (extraction.stages.EdgeSide) through its switch, edge_side_radius."""
+import numpy as np
+import pytest
+import torch
+
+from slwarp.neural.config import preset
+from slwarp.neural.depth_maps import neighbour_stack
+from slwarp.neural.extraction.edges import settle_edge_sides
+from slwarp.neural.extraction.state import ModelInputs
+from slwarp.neural.pattern_model import blur_patterns, lit_with_contrast, offset_and_modulation
+from slwarp.sim.simulate import SimOptions, simulate_scene
+
+BLUR = 1.0  # projector px: the simulated defocus, and the blur the patterns are rendered with
+FOOTPRINTS = 10.0
+
+
+@pytest.fixture(scope="module")
+def steps():
+    """(scan, rendered patterns, valid pixels, the right depth map) of the small-rig steps scene: a depth-independent
+    projector blur, no noise, flat albedo."""
+    opts = SimOptions(noise=False, bits=0, defocus_sigma=BLUR, defocus_slope=0.0, shading=False, texture=False)
+    scan = simulate_scene("steps", "random6", rig="small", options=opts, device="cpu")
+    patterns = blur_patterns(torch.as_tensor(scan.patterns), BLUR).numpy()
+    valid = lit_with_contrast(offset_and_modulation(scan.images)[1]) & np.isfinite(scan.gt_depth)
+    return scan, patterns, valid, np.where(valid, scan.gt_depth, np.nan).astype(np.float32)
+
+
+def _inputs(scan, patterns, valid, device="cpu") -> ModelInputs:
+    if device != "cpu":  # the extraction on a GPU: the model's arrays as tensors there
+        images = torch.as_tensor(scan.images, device=device)
+        patterns = torch.as_tensor(patterns, device=device)
+        return ModelInputs(scan.camera, scan.projector, images, patterns, scan.depth_range, valid=valid, device=device,
+                           host_images=scan.images)
+    return ModelInputs(scan.camera, scan.projector, scan.images, patterns, scan.depth_range, valid=valid)
+
+
+def _far_band(gt, camera):
+    """[H, W] bool: the pixels on the far side of a depth edge, and [H, W] the nearest depth across it."""
+    limit = FOOTPRINTS * gt / min(camera.fx, camera.fy)
+    near = neighbour_stack(gt)
+    with np.errstate(invalid="ignore"):
+        nearer = near < gt - limit[None]
+    return nearer.any(0), np.min(np.where(nearer, near, np.inf), axis=0)
+
+
+def test_a_band_with_the_foregrounds_depth_takes_its_own_back(steps, device):
+    scan, patterns, valid, gt = steps
+    band, fore = _far_band(gt, scan.camera)
+    assert band.sum() > 500
+    depth = gt.copy()
+    depth[band] = fore[band]  # the field drew each step's edge a pixel too far out
+    out, switched, dropped = settle_edge_sides(depth, _inputs(scan, patterns, valid, device), 1, 0.5, FOOTPRINTS)
+    right = np.abs(out - gt) < 2.0
+    assert (band & right).sum() > 0.8 * band.sum()
+    assert (band & np.isfinite(out) & ~right).sum() < 0.1 * band.sum()  # few stay wrong; the rest are dropped
+    others = np.isfinite(depth) & ~band
+    assert not (switched & others).any() and (dropped & others).sum() < 0.05 * band.sum()
+    np.testing.assert_array_equal(out[~(switched | dropped)], depth[~(switched | dropped)])
+    assert not np.isfinite(out[dropped]).any() and np.isfinite(out[switched]).all()
+
+
+def test_the_right_map_keeps_its_edges_and_radius_0_changes_nothing(steps):
+    scan, patterns, valid, gt = steps
+    inputs = _inputs(scan, patterns, valid)
+    limit = FOOTPRINTS * gt / min(scan.camera.fx, scan.camera.fy)
+    edge = np.isfinite(gt) & (np.abs(np.nan_to_num(neighbour_stack(gt) - gt, nan=0.0)) > limit).any(0)
+    out, switched, dropped = settle_edge_sides(gt, inputs, 1, 0.5, FOOTPRINTS)
+    assert edge.sum() > 1000 and not switched.any() and dropped.sum() < 0.08 * edge.sum() and not (dropped & ~edge).any()
+    same, none, nothing = settle_edge_sides(gt, inputs, 0, 0.5, FOOTPRINTS)
+    np.testing.assert_array_equal(same, gt)
+    assert not none.any() and not nothing.any()
+
+
+def test_edge_side_radius_switches_the_stage_in_before_the_denoising():
+    on = preset("fast", edge_side_radius=2)
+    stages = list(on.extraction.stages)
+    assert stages.index("repair_grow") < stages.index("edge_side") == stages.index("denoise") - 1
+    assert "edge_side" not in preset("fast").extraction.stages
+    assert on.with_options(edge_side_radius=0).extraction.stages == preset("fast").extraction.stages
