@@ -19,9 +19,11 @@ FOOTPRINTS = 10.0
 @pytest.fixture(scope="module")
 def steps():
     """(scan, rendered patterns, valid pixels, the right depth map) of the small-rig steps scene: a depth-independent
-    projector blur, no noise, flat albedo."""
+    projector blur, no noise, flat albedo. Simulated on a GPU where there is one (the machines with one may lack
+    Warp's CPU compiler)."""
     opts = SimOptions(noise=False, bits=0, defocus_sigma=BLUR, defocus_slope=0.0, shading=False, texture=False)
-    scan = simulate_scene("steps", "random6", rig="small", options=opts, device="cpu")
+    scan = simulate_scene("steps", "random6", rig="small", options=opts,
+                          device="cuda:0" if torch.cuda.is_available() else "cpu")
     patterns = blur_patterns(torch.as_tensor(scan.patterns), BLUR).numpy()
     valid = lit_with_contrast(offset_and_modulation(scan.images)[1]) & np.isfinite(scan.gt_depth)
     return scan, patterns, valid, np.where(valid, scan.gt_depth, np.nan).astype(np.float32)
