@@ -37,6 +37,10 @@ _LENS = dict(pattern_halo="auto", refine_through_halo=False)
 _LENS_HASHGRID = dict(lens_variance_lr_factor=16.0, lens_lambda_reg=0.5)
 # the GPU presets' denoising window
 _GPU_DENOISE = dict(denoise_radius=4, denoise_footprints=8.0)
+# the pixels beside a depth edge settled by their codes, within 1 px: the same fields of fast / accurate, seed 0,
+# every rig (4 x H200): mean MAE 1-5% / 1-3% lower, RMSE 2-7% / 2-13% lower on each rig, completeness 0.01-0.10 pt
+# lower; real captures 0-2 the same plate RMS (bench/results/edge-side-cuda-*.md; docs/accuracy.md, section 26)
+_EDGE_SIDE = dict(edge_side_radius=1)
 # what the hash-grid presets share
 _HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, grid_table_lr_factor=10.0)
 
@@ -63,14 +67,14 @@ _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 800 iteration
         grid_gradient="finite_difference_4",
         grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, surface_weight=1.0,
         surface_after=1.0, surface_in_front=True, free_space=0.5, variance_lr_factor=4.0, **_DEFAULT_EXTRACTION,
-        **_LENS, **_LENS_HASHGRID, **_GPU_DENOISE, **_HASHGRID)
+        **_EDGE_SIDE, **_LENS, **_LENS_HASHGRID, **_GPU_DENOISE, **_HASHGRID)
 _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations of the paper's batch, levels "
         "coarse to fine, NeuS's variance at 4x the rate, with tuned's surface term and extraction and a free-space "
         "term, through a lens with a halo NeuS's variance at 16x and the Eikonal weight at 0.5: seconds a scan, as "
         "accurate as tuned on simulated scans and as the full 40-image decode on real ones (GPU default)",
         matmul="tf32", compile=False, iters=2000, grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2,
         grid_level_every=100, variance_lr_factor=4.0, surface_weight=1.0, surface_after=1.0, free_space=1.0,
-        **_DEFAULT_EXTRACTION, **_LENS, **_LENS_HASHGRID, **_GPU_DENOISE, **_HASHGRID)
+        **_DEFAULT_EXTRACTION, **_EDGE_SIDE, **_LENS, **_LENS_HASHGRID, **_GPU_DENOISE, **_HASHGRID)
 _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4-tap gradient), photometric depth "
         "refinement (+-3 mm, where the pattern model fits the images), the search repair in groups (grown), the "
         "uniform-code fill and the edge-aware denoising (5x5 windows): better MAE in less time than cpu (small rig)",
