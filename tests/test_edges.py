@@ -76,9 +76,10 @@ def test_the_right_map_keeps_its_edges_and_radius_0_changes_nothing(steps):
 
 
 def test_edge_side_radius_switches_the_stage_in_before_the_denoising():
-    on = preset("cpu-hashgrid", edge_side_radius=2)
+    on = preset("tuned", edge_side_radius=2)
     stages = list(on.extraction.stages)
     assert stages.index("repair_grow") < stages.index("edge_side") == stages.index("denoise") - 1
-    assert "edge_side" not in preset("cpu-hashgrid").extraction.stages
-    assert on.with_options(edge_side_radius=0).extraction.stages == preset("cpu-hashgrid").extraction.stages
-    assert preset("fast").extraction.stages == preset("fast", edge_side_radius=2).extraction.stages  # fast has it
+    assert "edge_side" not in preset("tuned").extraction.stages
+    assert on.with_options(edge_side_radius=0).extraction.stages == preset("tuned").extraction.stages
+    for name in ("fast", "accurate", "cpu-hashgrid"):  # the hash-grid presets have it
+        assert preset(name).extraction.stages == preset(name, edge_side_radius=2).extraction.stages

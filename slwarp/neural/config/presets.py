@@ -39,7 +39,9 @@ _LENS_HASHGRID = dict(lens_variance_lr_factor=16.0, lens_lambda_reg=0.5)
 _GPU_DENOISE = dict(denoise_radius=4, denoise_footprints=8.0)
 # the pixels beside a depth edge settled by their codes, within 1 px: the same fields of fast / accurate, seed 0,
 # every rig (4 x H200): mean MAE 1-5% / 1-3% lower, RMSE 2-7% / 2-13% lower on each rig, completeness 0.01-0.10 pt
-# lower; real captures 0-2 the same plate RMS (bench/results/edge-side-cuda-*.md; docs/accuracy.md, section 26)
+# lower; real captures 0-2 the same plate RMS (bench/results/edge-side-cuda-*.md; docs/accuracy.md, section 26).
+# cpu-hashgrid: the small rig's 8 scenes unchanged but checker (0.318 -> 0.312 mm, accuracy-cpu-edge-side.md), a
+# full-resolution rods scan 0.255 -> 0.199 mm (offline, docs/accuracy.md, section 26), real captures 0-2 the same
 _EDGE_SIDE = dict(edge_side_radius=1)
 # what the hash-grid presets share
 _HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, grid_table_lr_factor=10.0)
@@ -80,7 +82,8 @@ _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4
         "uniform-code fill and the edge-aware denoising (5x5 windows): better MAE in less time than cpu (small rig)",
         grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2,
         search_step_mm=2.0, mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
-        denoise_radius=2, denoise_footprints=4.0, **_DEFAULT_EXTRACTION, **_LENS, **_LENS_HASHGRID, **_HASHGRID)
+        denoise_radius=2, denoise_footprints=4.0, doubt_confidence=0.8, **_DEFAULT_EXTRACTION, **_EDGE_SIDE, **_LENS,
+        **_LENS_HASHGRID, **_HASHGRID)
 
 # the preset a run gets when it names none, per device type
 # (GPU: the best on the real captures within 15 s in process; accurate 0.412 mm plate RMS over captures 0-4 in 8.1-8.5
