@@ -13,7 +13,8 @@ A new stage is one subclass of `stages.Stage` (its settings: extraction options 
   filter and its edge readmission, the edge-aware denoising, point clouds.
 - `confidence`: per-pixel confidence maps of a depth map (the photometric term, which the training shares, is
   `slwarp.neural.pattern_model`'s).
-- `repair`: the search repair, its doubt rule and its growth; `fill`: the uniform-code fill.
+- `repair`: the search repair, its doubt rule and its growth; `fill`: the uniform-code fill; `edges`: the pixels beside
+  a depth edge settled by their codes.
 """
 from .runner import build_stages, extract_depth, run_stages
 from .stages import STAGES, Stage

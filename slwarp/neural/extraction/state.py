@@ -75,9 +75,10 @@ class ModelInputs:
 
 
 # what became of each camera pixel at extraction (the values of Extraction.fate): with a depth, "measured" (the
-# field's, refined), "repaired" (a depth search's, extraction.repair) or "filled" (the uniform-code fill); without,
-# the stage that left it without one: "no_contrast" (outside the lit-with-contrast map the decoders also use:
-# shadows, dark albedo, codes that never change), "no_surface" (no mesh hit), then the filters in their order
+# field's, refined), "repaired" (a depth search's, extraction.repair, or the depth across an edge its codes fit,
+# extraction.edges) or "filled" (the uniform-code fill); without, the stage that left it without one: "no_contrast"
+# (outside the lit-with-contrast map the decoders also use: shadows, dark albedo, codes that never change),
+# "no_surface" (no mesh hit), then the filters in their order ("edge_side", registered by its stage, after them)
 PIXEL_FATES = ("measured", "repaired", "filled", "no_contrast", "no_surface", "out_of_range", "flying_pixel",
                "low_confidence", "search_doubt")
 FATE = {name: i for i, name in enumerate(PIXEL_FATES)}
