@@ -83,3 +83,29 @@ def test_edge_side_radius_switches_the_stage_in_before_the_denoising():
     assert on.with_options(edge_side_radius=0).extraction.stages == preset("tuned").extraction.stages
     for name in ("fast", "accurate", "cpu-hashgrid"):  # the hash-grid presets have it
         assert preset(name).extraction.stages == preset(name, edge_side_radius=2).extraction.stages
+
+
+def test_extract_depth_with_the_edge_sides_records_their_fates_and_counts(tiny_rods_field):
+    """In the extraction (a tiny field on the small-rig rods, with the search repair, which gives the rods back
+    beside the background: edges the stage settles), the stage's drops get the fate "edge_side" and their count, its
+    switches the fate "repaired"; the pixels it leaves alone are as without it."""
+    from slwarp.neural.extraction import FATE, extract_depth, pixel_fates
+
+    _, cfg, trainer = tiny_rods_field
+    lit = trainer.renderer.valid_map.cpu().numpy()
+    try:
+        trainer.cfg = cfg.with_options(search_repair=True)
+        plain = extract_depth(trainer, lit)
+        trainer.cfg = cfg.with_options(search_repair=True, edge_side_radius=1)
+        got = extract_depth(trainer, lit)
+    finally:
+        trainer.cfg = cfg
+    counts = got.timings["edge_side"]
+    dropped = got.fate == pixel_fates().index("edge_side")
+    assert counts["switched"] > 100 and counts["dropped"] > 100
+    assert counts["dropped"] == int(dropped.sum()) == got.timings["dropped"].get("edge_side", 0)
+    assert np.isnan(got.depth[dropped]).all() and np.isfinite(plain.depth[dropped]).all()
+    moved = np.isfinite(got.depth) & (got.depth != plain.depth)
+    assert moved.sum() == counts["switched"] and (got.fate[moved] == FATE["repaired"]).all()
+    same = ~dropped & ~moved
+    np.testing.assert_array_equal(got.depth[same], plain.depth[same])
