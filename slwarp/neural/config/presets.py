@@ -43,6 +43,10 @@ _GPU_DENOISE = dict(denoise_radius=4, denoise_footprints=8.0)
 # cpu-hashgrid: the small rig's 8 scenes unchanged but checker (0.318 -> 0.312 mm, accuracy-cpu-edge-side.md), a
 # full-resolution rods scan 0.255 -> 0.199 mm (offline, docs/accuracy.md, section 26), real captures 0-2 the same
 _EDGE_SIDE = dict(edge_side_radius=1)
+# accurate also readmits the flying-pixel filter's edge pixels whose codes confirm them (as tuned), which the edge sides
+# then settle: the same fields, seed 0, completeness 0.2-0.3 points higher on every rig, now within 0.8 points of
+# GC(7)'s on each, for 0.001-0.003 mm of MAE; real captures 0-2 the same plate RMS (edge-readmit-side-cuda-seed0.md,
+# edge-readmit-cuda-real.md). fast keeps it off: its RMSE, above GC(7)'s, rose by 0.02-0.09 mm
 # what the hash-grid presets share
 _HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, grid_table_lr_factor=10.0)
 
@@ -76,7 +80,7 @@ _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations
         "accurate as tuned on simulated scans and as the full 40-image decode on real ones (GPU default)",
         matmul="tf32", compile=False, iters=2000, grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2,
         grid_level_every=100, variance_lr_factor=4.0, surface_weight=1.0, surface_after=1.0, free_space=1.0,
-        **_DEFAULT_EXTRACTION, **_EDGE_SIDE, **_LENS, **_LENS_HASHGRID, **_GPU_DENOISE, **_HASHGRID)
+        edge_readmit=True, **_DEFAULT_EXTRACTION, **_EDGE_SIDE, **_LENS, **_LENS_HASHGRID, **_GPU_DENOISE, **_HASHGRID)
 _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4-tap gradient), photometric depth "
         "refinement (+-3 mm, where the pattern model fits the images), the search repair in groups (grown), the "
         "uniform-code fill and the edge-aware denoising (5x5 windows): better MAE in less time than cpu (small rig)",
