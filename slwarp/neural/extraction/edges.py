@@ -46,28 +46,27 @@ def settle_edge_sides(depth: np.ndarray, inputs: ModelInputs, radius: int, margi
     pad = np.pad(d, radius, constant_values=np.nan)
     offsets = _window_offsets(radius)
 
-    def across(dy, dx):
-        n = pad[radius + dy : radius + dy + H, radius + dx : radius + dx + W]
-        with np.errstate(invalid="ignore"):
-            return np.where(np.abs(n - d) > limit, n, np.nan)  # NaN on either side: no depth across
-
+    # one offset at a time: the depths across a jump (NaN where none, or NaN on either side) and their residuals;
+    # the edge pixels are those with a depth across at some offset
     edge = np.zeros(d.shape, bool)
-    for dy, dx in offsets:
-        edge |= np.isfinite(across(dy, dx))
-    if not edge.any():
-        return out, none, none.copy()
-    r_own = photometric_residual(np.where(edge, d, np.nan).astype(np.float32), *inputs.model)
     best = np.full(d.shape, np.inf, np.float32)
     best_depth = np.full(d.shape, np.nan, np.float32)
     for dy, dx in offsets:
-        candidate = np.where(edge, across(dy, dx), np.nan).astype(np.float32)
-        if not np.isfinite(candidate).any():
+        n = pad[radius + dy : radius + dy + H, radius + dx : radius + dx + W]
+        with np.errstate(invalid="ignore"):
+            candidate = np.where(np.abs(n - d) > limit, n, np.nan).astype(np.float32)
+        found = np.isfinite(candidate)
+        if not found.any():
             continue
+        edge |= found
         r = np.nan_to_num(photometric_residual(candidate, *inputs.model), nan=np.inf)
         lower = r < best
         best = np.where(lower, r, best)
         best_depth = np.where(lower, candidate, best_depth)
-    r_own = np.nan_to_num(r_own, nan=np.inf)
+    if not edge.any():
+        return out, none, none.copy()
+    r_own = np.nan_to_num(photometric_residual(np.where(edge, d, np.nan).astype(np.float32), *inputs.model),
+                          nan=np.inf)
     switched = edge & np.isfinite(best) & (best <= margin * r_own)
     dropped = edge & ~switched & ~(r_own <= margin * best)
     out[switched] = best_depth[switched]
