@@ -288,14 +288,17 @@ class HashGridSDF(nn.Module):
         pts = x.reshape(-1, 3)
         h = self.finite_difference_step()
         e = self.tetrahedron.to(pts.dtype)  # [4, 3]
-        taps = pts[None] + h * e[:, None, :]  # [4, P, 3]
+        # point-major, a point's taps side by side: they lie within one finest cell of each other, so the encoding's
+        # backward, which sums consecutive points of one cell in registers (BACKWARD_RUN), adds them to the table
+        # in one atomic per corner at every coarser level
+        taps = pts[:, None] + h * e[None]  # [P, 4, 3]
         if self.gradient == "finite_difference_4":  # f from the taps' mean: one evaluation fewer
-            vals = self.forward(taps)  # [4, P]
-            f = vals.mean(0)
+            vals = self.forward(taps)  # [P, 4]
+            f = vals.mean(1)
         else:
-            vals = self.forward(torch.cat([pts[None], taps], 0))  # [5, P]: the centre, then the 4 taps
-            f, vals = vals[0], vals[1:]
-        grad = (vals[:, :, None] * e[:, None, :]).sum(0) / (4.0 * h)
+            vals = self.forward(torch.cat([pts[:, None], taps], 1))  # [P, 5]: the centre, then the 4 taps
+            f, vals = vals[:, 0], vals[:, 1:]
+        grad = (vals[:, :, None] * e[None]).sum(1) / (4.0 * h)
         return f.reshape(lead), grad.reshape(*lead, 3)
 
     def extra_repr(self) -> str:
