@@ -145,6 +145,30 @@ def test_repair_keeps_only_large_groups_of_changes_when_asked(scene):
     np.testing.assert_array_equal(out_none[kept], depth[kept])
 
 
+def test_the_repair_group_size_counts_pixels_as_on_a_full_size_camera(scene):
+    """repair_min_component is a count on a 1280 x 1024 camera: a quarter-size image (the small rigs) asks 1/16 of it,
+    a full-size or larger one all of it; the search repair stage repairs with the scaled size and reports it."""
+    from slwarp.neural.extraction.repair import scaled_min_component
+    from slwarp.neural.extraction.stages import SearchRepair
+    from slwarp.neural.extraction.state import State
+
+    assert scaled_min_component(100, (1024, 1280)) == 100 and scaled_min_component(100, (2048, 2560)) == 100
+    assert scaled_min_component(100, (256, 320)) == 6
+    assert scaled_min_component(0, (256, 320)) == 0 and scaled_min_component(3, (8, 8)) == 1
+    scan, patterns, valid = scene
+    assert valid.shape == (256, 320)
+    depth = np.where(valid, scan.gt_depth, np.nan).astype(np.float32)
+    depth[40:70, 60:90] += 40.0
+    inputs = _inputs(scan, patterns, valid)
+    state = State(inputs=inputs, field=None, fate=np.zeros(valid.shape, np.uint8), timings={}, depth=depth)
+    out = SearchRepair(min_confidence=0.6, repair_min_component=4800, doubt_confidence=0.7)(state)
+    want, _ = repair_by_search(depth, inputs, min_confidence=0.6, min_component=300, doubt_confidence=0.7)
+    assert out.info["repair"]["min_component"] == 300
+    np.testing.assert_array_equal(out.depth, want)
+    refused, _ = repair_by_search(depth, inputs, min_confidence=0.6, min_component=4800, doubt_confidence=0.7)
+    assert not np.array_equal(np.isfinite(refused), np.isfinite(want))  # the unscaled size would refuse the block
+
+
 def test_neighbours_within_at_listed_pixels_equals_the_dense_count():
     """neighbours_within(..., index) counts at the listed pixels what the dense map counts there, borders and NaN
     neighbours included (the uniform-code fill asks it at its fills only)."""

@@ -32,6 +32,21 @@ SUPPORT = 2
 # and breaks 11, 0.0 fixes 128 and breaks 61)
 SWITCH_MARGIN = 0.1
 
+# the camera a repair_min_component counts its pixels on: the full-resolution rigs' and the real captures' (1280 x 1024)
+COMPONENT_REFERENCE_PIXELS = 1280 * 1024
+
+
+def scaled_min_component(min_component: int, shape) -> int:
+    """The repair's group size for an image of `shape` (H, W, ...): `min_component` as given for a 1280 x 1024 camera,
+    scaled by the pixel count where the image has fewer (the same view in fewer, larger pixels: a group covering the
+    same surface holds fewer of them); unchanged for larger images; 0 stays 0 (off), anything else at least 1.
+    Why: 100 pixels, right at full resolution, is 16x the surface on a quarter-size camera; there 6 took the small
+    rigs' rods from 0.76x / 0.75x GC(7)'s MAE to 0.70x / 0.68x (bench/results/accuracy-cpu-repair-footprint.md)."""
+    if min_component <= 0:
+        return 0
+    ratio = min(1.0, int(shape[0]) * int(shape[1]) / COMPONENT_REFERENCE_PIXELS)
+    return max(1, round(min_component * ratio))
+
 
 def repair_by_search(depth: np.ndarray, inputs: ModelInputs, min_confidence: float, *, margin: float = SWITCH_MARGIN,
                      fill_confidence: float = FILL_CONFIDENCE, support: int = SUPPORT,

@@ -24,7 +24,7 @@ from ..pattern_model import photometric_confidence, refine_where_model_fits, ref
 from .confidence import depth_confidence
 from .edges import settle_edge_sides
 from .fill import fill_uniform_codes
-from .repair import doubt_by_search, grow_repair, repair_by_search
+from .repair import doubt_by_search, grow_repair, repair_by_search, scaled_min_component
 from .state import FATE, State, evaluating, register_fate
 from .surface import (denoise_depth, extract_mesh, flying_pixel_filter, mesh_depth, readmit_edge_pixels,
                       sphere_trace_depth)
@@ -184,8 +184,9 @@ class ConfidenceFilter(Stage):
 @dataclass(frozen=True)
 class SearchRepair(Stage):
     """Where a per-pixel depth search contradicts the field or fills its holes (thin parts it missed), its depth,
-    kept in connected groups of repair_min_component pixels; contradicted depths the codes do not support dropped
-    (repair.repair_by_search; info repair). Needs inputs.valid (none: nothing to search)."""
+    kept in connected groups of repair_min_component pixels (counted as on a 1280 x 1024 camera:
+    repair.scaled_min_component); contradicted depths the codes do not support dropped (repair.repair_by_search;
+    info repair). Needs inputs.valid (none: nothing to search)."""
 
     name = "search_repair"
     drops = "search_doubt"
@@ -199,10 +200,11 @@ class SearchRepair(Stage):
             return state
         # no flying-pixel filter on the changed pixels: a search has no smoothness to bend it across a depth edge,
         # and a thin part is all edge
-        depth, info = repair_by_search(state.depth, state.inputs, self.min_confidence,
-                                       min_component=self.repair_min_component,
+        min_component = scaled_min_component(self.repair_min_component, state.depth.shape)
+        depth, info = repair_by_search(state.depth, state.inputs, self.min_confidence, min_component=min_component,
                                        doubt_confidence=self.doubt_confidence)
         info["kept"] = int((np.isfinite(depth) & ~(depth == state.depth)).sum())
+        info["min_component"] = min_component
         return state.replace(depth=depth, info={"repair": info})
 
 
