@@ -9,7 +9,7 @@ from slwarp.neural.config import preset
 from slwarp.neural.depth_maps import neighbour_stack
 from slwarp.neural.extraction.edges import settle_edge_sides
 from slwarp.neural.extraction.state import ModelInputs
-from slwarp.neural.pattern_model import blur_patterns, lit_with_contrast, offset_and_modulation
+from slwarp.neural.pattern_model import blur_patterns, lit_with_contrast, offset_and_modulation, photometric_residual
 from slwarp.sim.simulate import SimOptions, simulate_scene
 
 BLUR = 1.0  # projector px: the simulated defocus, and the blur the patterns are rendered with
@@ -61,6 +61,53 @@ def test_a_band_with_the_foregrounds_depth_takes_its_own_back(steps, device):
     assert not (switched & others).any() and (dropped & others).sum() < 0.05 * band.sum()
     np.testing.assert_array_equal(out[~(switched | dropped)], depth[~(switched | dropped)])
     assert not np.isfinite(out[dropped]).any() and np.isfinite(out[switched]).all()
+
+
+def _settle_with_maps(depth, inputs, radius, margin, footprints):
+    """The edge sides as first written (the reference): a residual map per window offset
+    (pattern_model.photometric_residual), the lowest kept by a strict comparison, offset after offset."""
+    d = np.asarray(depth, np.float32)
+    H, W = d.shape
+    limit = footprints * d / min(inputs.camera.fx, inputs.camera.fy)
+    pad = np.pad(d, radius, constant_values=np.nan)
+    edge = np.zeros(d.shape, bool)
+    best = np.full(d.shape, np.inf, np.float32)
+    best_depth = np.full(d.shape, np.nan, np.float32)
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            if (dy, dx) == (0, 0):
+                continue
+            n = pad[radius + dy : radius + dy + H, radius + dx : radius + dx + W]
+            with np.errstate(invalid="ignore"):
+                candidate = np.where(np.abs(n - d) > limit, n, np.nan).astype(np.float32)
+            edge |= np.isfinite(candidate)
+            r = np.nan_to_num(photometric_residual(candidate, *inputs.model), nan=np.inf)
+            lower = r < best
+            best, best_depth = np.where(lower, r, best), np.where(lower, candidate, best_depth)
+    r_own = np.nan_to_num(photometric_residual(np.where(edge, d, np.nan).astype(np.float32), *inputs.model), nan=np.inf)
+    switched = edge & np.isfinite(best) & (best <= margin * r_own)
+    dropped = edge & ~switched & ~(r_own <= margin * best)
+    out = d.copy()
+    out[switched] = best_depth[switched]
+    out[dropped] = np.nan
+    return out, switched, dropped
+
+
+def test_the_pairs_in_one_call_settle_as_a_residual_map_per_offset_did(steps, device):
+    """settle_edge_sides evaluates every (pixel, depth across) pair in one call where the model's patterns are; it
+    settles each pixel exactly as the per-offset residual maps did (holes in the map, radius 1 and 2)."""
+    scan, patterns, valid, gt = steps
+    band, fore = _far_band(gt, scan.camera)
+    depth = gt.copy()
+    depth[band] = fore[band]
+    depth[::7, ::5] = np.nan
+    inputs = _inputs(scan, patterns, valid, device)
+    for radius in (1, 2):
+        got = settle_edge_sides(depth, inputs, radius, 0.5, FOOTPRINTS)
+        want = _settle_with_maps(depth, inputs, radius, 0.5, FOOTPRINTS)
+        assert want[1].sum() > 100 and want[2].sum() > 10
+        for g, w in zip(got, want):
+            np.testing.assert_array_equal(g, w)
 
 
 def test_the_right_map_keeps_its_edges_and_radius_0_changes_nothing(steps):

@@ -12,8 +12,9 @@ one pixel, 490 within two.
 from __future__ import annotations
 
 import numpy as np
+import torch
 
-from ..pattern_model import photometric_residual
+from ..pattern_model import residual_at
 from .state import ModelInputs
 
 __all__ = ["settle_edge_sides"]
@@ -29,46 +30,54 @@ def settle_edge_sides(depth: np.ndarray, inputs: ModelInputs, radius: int, margi
     edge: a pixel of its (2 radius + 1)^2 window whose depth differs from its own by more than `footprints` pixel
     footprints (z / f mm each).
 
-    r: the relative RMS residual of the pattern model at a depth (`pattern_model.photometric_residual`; patterns as
-    rendered), r_own at the pixel's depth and r_across the lowest over the depths across. The pixel keeps its depth
-    where r_own <= margin r_across, takes the depth of that lowest where r_across <= margin r_own, and is dropped
-    where neither explains its codes that much better (margin < 1; 0.5: one residual at most half the other).
-    Comparing two depths instead of searching the whole ray keeps chance matches rare: with 6 codes, a search of
-    the ray finds another depth that fits as well on about a quarter of the pixels (extraction.confidence,
-    `uniqueness`). Cost: one residual at the edge pixels per window offset (24 for radius 2)."""
+    r: the relative RMS residual of the pattern model at a depth (`pattern_model.residual_at`; patterns as rendered),
+    r_own at the pixel's depth and r_across the lowest over the depths across (the first window offset on a tie). The
+    pixel keeps its depth where r_own <= margin r_across, takes the depth of that lowest where r_across <= margin
+    r_own, and is dropped where neither explains its codes that much better (margin < 1; 0.5: one residual at most
+    half the other). Comparing two depths instead of searching the whole ray keeps chance matches rare: with 6 codes,
+    a search of the ray finds another depth that fits as well on about a quarter of the pixels (extraction.confidence,
+    `uniqueness`). Runs where the model's patterns are (a GPU's extraction: there), every (pixel, depth across) pair
+    and the edge pixels' own depths in one residual call: a residual map per window offset, on the host, took 0.2 s
+    of a 1280 x 1024 extraction (H100, cProfile)."""
     d = np.asarray(depth, np.float32)
     out = d.copy()
     none = np.zeros(d.shape, bool)
     if radius <= 0 or not np.isfinite(d).any():
         return out, none, none.copy()
+    dev = inputs.patterns.device if isinstance(inputs.patterns, torch.Tensor) else torch.device("cpu")
     H, W = d.shape
-    limit = footprints * d / min(inputs.camera.fx, inputs.camera.fy)
-    pad = np.pad(d, radius, constant_values=np.nan)
-    offsets = _window_offsets(radius)
+    flat = torch.as_tensor(d, device=dev).reshape(-1)
+    limit = footprints * flat / min(inputs.camera.fx, inputs.camera.fy)
+    pad = torch.nn.functional.pad(flat.reshape(1, 1, H, W), (radius,) * 4, value=float("nan"))[0, 0]
 
-    # one offset at a time: the depths across a jump (NaN where none, or NaN on either side) and their residuals;
-    # the edge pixels are those with a depth across at some offset
-    edge = np.zeros(d.shape, bool)
-    best = np.full(d.shape, np.inf, np.float32)
-    best_depth = np.full(d.shape, np.nan, np.float32)
-    for dy, dx in offsets:
-        n = pad[radius + dy : radius + dy + H, radius + dx : radius + dx + W]
-        with np.errstate(invalid="ignore"):
-            candidate = np.where(np.abs(n - d) > limit, n, np.nan).astype(np.float32)
-        found = np.isfinite(candidate)
-        if not found.any():
-            continue
-        edge |= found
-        r = np.nan_to_num(photometric_residual(candidate, *inputs.model), nan=np.inf)
-        lower = r < best
-        best = np.where(lower, r, best)
-        best_depth = np.where(lower, candidate, best_depth)
-    if not edge.any():
+    # the (pixel, depth across) pairs, offset after offset: a neighbour more than the limit away (NaN on either side
+    # never is); the edge pixels are those with a pair
+    pixels, across = [], []
+    for dy, dx in _window_offsets(radius):
+        n = pad[radius + dy : radius + dy + H, radius + dx : radius + dx + W].reshape(-1)
+        idx = torch.nonzero((n - flat).abs() > limit).squeeze(1)
+        pixels.append(idx)
+        across.append(n[idx])
+    pix, across = torch.cat(pixels), torch.cat(across)
+    if pix.numel() == 0:
         return out, none, none.copy()
-    r_own = np.nan_to_num(photometric_residual(np.where(edge, d, np.nan).astype(np.float32), *inputs.model),
-                          nan=np.inf)
-    switched = edge & np.isfinite(best) & (best <= margin * r_own)
-    dropped = edge & ~switched & ~(r_own <= margin * best)
-    out[switched] = best_depth[switched]
-    out[dropped] = np.nan
-    return out, switched, dropped
+    edge = torch.unique(pix)  # sorted
+    r = torch.nan_to_num(residual_at(torch.cat([pix, edge]), torch.cat([across, flat[edge]]), *inputs.model),
+                         nan=float("inf"))
+    r_across, r_own = r[: pix.numel()], r[pix.numel():]
+    # per edge pixel the lowest residual across, the earliest offset on a tie: stable sorts by residual, then pixel
+    k = torch.sort(r_across, stable=True).indices
+    k = k[torch.sort(pix[k], stable=True).indices]
+    first = torch.ones(k.numel(), dtype=torch.bool, device=dev)
+    first[1:] = pix[k[1:]] != pix[k[:-1]]
+    k = k[first]  # one pair per edge pixel, in the order of `edge`
+    best, best_depth = r_across[k], across[k]
+    switched = torch.isfinite(best) & (best <= margin * r_own)
+    dropped = ~switched & ~(r_own <= margin * best)
+    sw, dr = edge[switched].cpu().numpy(), edge[dropped].cpu().numpy()
+    out.reshape(-1)[sw] = best_depth[switched].cpu().numpy()
+    out.reshape(-1)[dr] = np.nan
+    switched_map, dropped_map = none.copy(), none.copy()
+    switched_map.reshape(-1)[sw] = True
+    dropped_map.reshape(-1)[dr] = True
+    return out, switched_map, dropped_map

@@ -24,12 +24,12 @@ from .blur import (BLUR_BINS, BLUR_FIT_PIXELS, BLUR_LADDER, BLUR_LADDER_STEP, es
                    fit_blur_by_projector_depth)
 from .image import (CONTRAST_THRESHOLD, LS_RIDGE, MIN_MODULATION, OFF_IMAGE_PX, blur_patterns,
                     least_squares_offset_modulation, least_squares_residual, lit_with_contrast, offset_and_modulation,
-                    predicted_intensities, projector_coords, projector_coords_at, sample_patterns, sample_patterns_at,
-                    with_halo)
+                    predicted_intensities, projector_coords, projector_coords_at, projector_coords_of, sample_patterns,
+                    sample_patterns_at, with_halo)
 from .halo import HALO_SHARES, HALO_SIGMA, fit_halo, halo_light
 from .refine import (REFINE_RADIUS, REFINE_STEP_MM, model_misfit, refine_depth, refine_where_model_fits,
                      refinement_generalises)
-from .residual import photometric_confidence, photometric_filter, photometric_residual
+from .residual import photometric_confidence, photometric_filter, photometric_residual, residual_at
 
 __all__ = [
     "CONTRAST_THRESHOLD",
@@ -46,12 +46,14 @@ __all__ = [
     "HALO_SIGMA",
     "projector_coords",
     "projector_coords_at",
+    "projector_coords_of",
     "sample_patterns",
     "sample_patterns_at",
     "predicted_intensities",
     "least_squares_residual",
     "least_squares_offset_modulation",
     "photometric_residual",
+    "residual_at",
     "photometric_filter",
     "photometric_confidence",
     "BLUR_FIT_PIXELS",

@@ -21,6 +21,7 @@ __all__ = [
     "with_halo",
     "projector_coords",
     "projector_coords_at",
+    "projector_coords_of",
     "sample_patterns",
     "sample_patterns_at",
     "predicted_intensities",
@@ -89,7 +90,12 @@ def projector_coords(depth: np.ndarray, camera, projector) -> np.ndarray:
 
 def projector_coords_at(index: np.ndarray, depth: np.ndarray, camera, projector) -> np.ndarray:
     """[P, 2] projector_coords of the pixels at flat indices `index` [P] of the depth map [H, W] only."""
-    return _project_rays(camera_rays(camera).reshape(-1, 3)[index], np.asarray(depth).reshape(-1)[index], projector)
+    return projector_coords_of(index, np.asarray(depth).reshape(-1)[index], camera, projector)
+
+
+def projector_coords_of(index: np.ndarray, depths: np.ndarray, camera, projector) -> np.ndarray:
+    """[P, 2] projector pixels of the camera pixels at flat indices `index` [P] (repeats allowed) at depths [P] mm."""
+    return _project_rays(camera_rays(camera).reshape(-1, 3)[index], np.asarray(depths), projector)
 
 
 def sample_patterns(patterns: np.ndarray, uv: np.ndarray) -> np.ndarray:

@@ -14,10 +14,10 @@ import torch
 from ...scans.scanner import bounded_cache, camera_rays
 from ..depth_maps import on_depth
 from ..ops.twin import bilinear_patterns
-from .image import (MIN_MODULATION, OFF_IMAGE_PX, offset_and_modulation, predicted_intensities, projector_coords_at,
+from .image import (MIN_MODULATION, OFF_IMAGE_PX, offset_and_modulation, predicted_intensities, projector_coords_of,
                     sample_patterns_at)
 
-__all__ = ["SPARSE_SHARE", "photometric_residual", "photometric_filter", "photometric_confidence"]
+__all__ = ["SPARSE_SHARE", "photometric_residual", "residual_at", "photometric_filter", "photometric_confidence"]
 
 
 # below this share of pixels with depth, photometric_residual works on those pixels only (the same values): the
@@ -30,15 +30,23 @@ def _relative_rms(images, a, b, pred):
     return np.sqrt(np.mean((images - a - b * pred) ** 2, axis=0)) / np.maximum(b, MIN_MODULATION)
 
 
+def _host_residual_at(index: np.ndarray, depths: np.ndarray, camera, projector, images: np.ndarray,
+                      patterns: np.ndarray) -> np.ndarray:
+    """[P] float32: the residual of the pixels at flat indices `index` [P] at `depths` [P] mm (finite), on the host
+    (the dense path's arithmetic per pixel)."""
+    obs = images.reshape(len(images), -1)[:, index]  # [N, P]
+    a, b = offset_and_modulation(obs)
+    pred = sample_patterns_at(patterns, projector_coords_of(index, depths, camera, projector))
+    return _relative_rms(obs, a, b, pred).astype(np.float32)
+
+
 def _sparse_residual(depth: np.ndarray, camera, projector, images: np.ndarray, patterns: np.ndarray) -> np.ndarray:
     """photometric_residual computed at the finite pixels of depth only (the same arithmetic per pixel)."""
     out = np.full(depth.shape, np.nan, np.float32)
     index = np.flatnonzero(np.isfinite(depth))
     if index.size:
-        obs = images.reshape(len(images), -1)[:, index]  # [N, P]
-        a, b = offset_and_modulation(obs)
-        pred = sample_patterns_at(patterns, projector_coords_at(index, depth, camera, projector))
-        out.reshape(-1)[index] = _relative_rms(obs, a, b, pred)
+        out.reshape(-1)[index] = _host_residual_at(index, np.asarray(depth).reshape(-1)[index], camera, projector,
+                                                   images, patterns)
     return out
 
 
@@ -64,18 +72,40 @@ def _residual_on_device(depth: np.ndarray, camera, projector, images, patterns: 
     out = torch.full_like(flat, float("nan"))
     idx = torch.nonzero(torch.isfinite(flat)).squeeze(1)
     if idx.numel():
-        rays = _rays_on(camera, dev)[idx]
-        uv = projector.project_camera_points(rays * (flat[idx].double() / rays[:, 2])[:, None])
-        uv = torch.where(torch.isfinite(uv), uv, torch.full_like(uv, OFF_IMAGE_PX)).float()
-        pred = bilinear_patterns(patterns.float(), uv).t()  # [N, P]
-        obs = torch.as_tensor(images, dtype=torch.float32, device=dev).reshape(len(pred), -1)[:, idx]  # [N, P]
-        a, b = offset_and_modulation(obs)
-        diff = obs - a - b * pred
-        total = diff[0] * diff[0]
-        for k in range(1, len(diff)):  # frame by frame, as numpy sums an axis-0 mean
-            total = total + diff[k] * diff[k]
-        out[idx] = torch.sqrt(total / len(diff)) / torch.clamp(b, min=MIN_MODULATION)
+        out[idx] = _device_residual_at(idx, flat[idx], camera, projector, images, patterns)
     return out.reshape(np.shape(depth)).cpu().numpy()
+
+
+def _device_residual_at(idx: torch.Tensor, depths: torch.Tensor, camera, projector, images,
+                        patterns: torch.Tensor) -> torch.Tensor:
+    """[P] float32 on the device of patterns: the residual of the pixels at flat indices idx [P] (long, there) at
+    depths [P] mm (float32, there, finite); `_residual_on_device`'s arithmetic per pixel."""
+    dev = patterns.device
+    rays = _rays_on(camera, dev)[idx]
+    uv = projector.project_camera_points(rays * (depths.double() / rays[:, 2])[:, None])
+    uv = torch.where(torch.isfinite(uv), uv, torch.full_like(uv, OFF_IMAGE_PX)).float()
+    pred = bilinear_patterns(patterns.float(), uv).t()  # [N, P]
+    obs = torch.as_tensor(images, dtype=torch.float32, device=dev).reshape(len(pred), -1)[:, idx]  # [N, P]
+    a, b = offset_and_modulation(obs)
+    diff = obs - a - b * pred
+    total = diff[0] * diff[0]
+    for k in range(1, len(diff)):  # frame by frame, as numpy sums an axis-0 mean
+        total = total + diff[k] * diff[k]
+    return torch.sqrt(total / len(diff)) / torch.clamp(b, min=MIN_MODULATION)
+
+
+def residual_at(index: torch.Tensor, depths: torch.Tensor, camera, projector, images, patterns) -> torch.Tensor:
+    """[P] float32 on the device of `index`: `photometric_residual` of the pixels at flat indices index [P] (long;
+    repeats allowed) at depths [P] mm (finite), the same value per pixel and depth as a map would give. One call
+    for several depths per pixel (extraction.edges: the depths across an edge). Computed on the device of patterns
+    when they are a tensor, else on the host."""
+    if isinstance(patterns, torch.Tensor):
+        dev = patterns.device
+        return _device_residual_at(index.to(dev), depths.to(dev, torch.float32), camera, projector, images,
+                                   patterns).to(index.device)
+    r = _host_residual_at(index.cpu().numpy(), depths.cpu().numpy().astype(np.float32), camera, projector,
+                          np.asarray(images, np.float32), patterns)
+    return torch.from_numpy(r).to(index.device)
 
 
 def photometric_residual(depth: np.ndarray, camera, projector, images, patterns) -> np.ndarray:
