@@ -146,15 +146,16 @@ def test_repair_keeps_only_large_groups_of_changes_when_asked(scene):
 
 
 def test_the_repair_group_size_counts_pixels_as_on_a_full_size_camera(scene):
-    """repair_min_component is a count on a 1280 x 1024 camera: a quarter-size image (the small rigs) asks 1/16 of it,
-    a full-size or larger one all of it; the search repair stage repairs with the scaled size and reports it."""
+    """repair_min_component is a count on a 1280 x 1024 camera: a quarter-size image (the small rigs) asks 1/16 of it
+    but at least 10 (or what was given, when less), a full-size or larger one all of it; the search repair stage
+    repairs with the scaled size and reports it."""
     from slwarp.neural.extraction.repair import scaled_min_component
     from slwarp.neural.extraction.stages import SearchRepair
     from slwarp.neural.extraction.state import State
 
     assert scaled_min_component(100, (1024, 1280)) == 100 and scaled_min_component(100, (2048, 2560)) == 100
-    assert scaled_min_component(100, (256, 320)) == 6
-    assert scaled_min_component(0, (256, 320)) == 0 and scaled_min_component(3, (8, 8)) == 1
+    assert scaled_min_component(100, (256, 320)) == 10 and scaled_min_component(320, (256, 320)) == 20
+    assert scaled_min_component(0, (256, 320)) == 0 and scaled_min_component(3, (8, 8)) == 3
     scan, patterns, valid = scene
     assert valid.shape == (256, 320)
     depth = np.where(valid, scan.gt_depth, np.nan).astype(np.float32)

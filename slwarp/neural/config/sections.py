@@ -226,8 +226,8 @@ class ExtractionConfig:
                                  "missed), judged by the photometric confidence", resumable=True)
     repair_min_component: int = option(0, "search repair: keep a fill or replacement only in a connected group of at "
                                        "least this many changed pixels of one surface, counted as on a 1280x1024 camera "
-                                       "(fewer on a smaller image, in proportion to its pixel count; 0: two agreeing "
-                                       "neighbours suffice)", min=0, resumable=True)
+                                       "(fewer on a smaller image, in proportion to its pixel count, down to 10; 0: "
+                                       "two agreeing neighbours suffice)", min=0, resumable=True)
     repair_grow: bool = option(False, "search repair: at the end, spread its changes to neighbouring pixels that kept "
                                "another surface's depth (over 20 mm off) where the codes fit the repaired surface "
                                "better; drops and fills nothing (needs search_repair)", resumable=True)

@@ -34,18 +34,23 @@ SWITCH_MARGIN = 0.1
 
 # the camera a repair_min_component counts its pixels on: the full-resolution rigs' and the real captures' (1280 x 1024)
 COMPONENT_REFERENCE_PIXELS = 1280 * 1024
+# the smallest group a scaled size asks for: on the small rigs (1/16 of the pixels) 6 let a few groups of wrong fills
+# in (bunny RMSE 1.43 -> 2.06 mm, vertical-rig vase 0.43 -> 0.89), 8 and 10 did not
+# (bench/results/accuracy-cpu-repair-footprint-8-10.md)
+MIN_SCALED_COMPONENT = 10
 
 
 def scaled_min_component(min_component: int, shape) -> int:
     """The repair's group size for an image of `shape` (H, W, ...): `min_component` as given for a 1280 x 1024 camera,
     scaled by the pixel count where the image has fewer (the same view in fewer, larger pixels: a group covering the
-    same surface holds fewer of them); unchanged for larger images; 0 stays 0 (off), anything else at least 1.
-    Why: 100 pixels, right at full resolution, is 16x the surface on a quarter-size camera; there 6 took the small
-    rigs' rods from 0.76x / 0.75x GC(7)'s MAE to 0.70x / 0.68x (bench/results/accuracy-cpu-repair-footprint.md)."""
+    same surface holds fewer of them), but not below MIN_SCALED_COMPONENT (nor above what was given); unchanged for
+    larger images; 0 stays 0 (off). Why: 100 pixels, right at full resolution, cover 16x the surface on a quarter-size
+    camera; there 10 took the small rigs' steps from 0.83x to 0.73x GC(7)'s MAE and rods from 0.76x / 0.75x to
+    0.72x / 0.71x (bench/results/accuracy-cpu-repair-footprint*.md)."""
     if min_component <= 0:
         return 0
     ratio = min(1.0, int(shape[0]) * int(shape[1]) / COMPONENT_REFERENCE_PIXELS)
-    return max(1, round(min_component * ratio))
+    return max(min(min_component, MIN_SCALED_COMPONENT), round(min_component * ratio))
 
 
 def repair_by_search(depth: np.ndarray, inputs: ModelInputs, min_confidence: float, *, margin: float = SWITCH_MARGIN,
