@@ -47,6 +47,12 @@ _EDGE_SIDE = dict(edge_side_radius=1)
 # then settle: the same fields, seed 0, completeness 0.2-0.3 points higher on every rig, now within 0.8 points of
 # GC(7)'s on each, for 0.001-0.003 mm of MAE; real captures 0-2 the same plate RMS (edge-readmit-side-cuda-seed0.md,
 # edge-readmit-cuda-real.md). fast keeps it off: its RMSE, above GC(7)'s, rose by 0.02-0.09 mm
+# cpu-hashgrid drops depth pixels of photometric confidence below 0.65 (0.6 elsewhere): on the same fields of the small
+# and small-vertical rigs' 8 scenes, mean MAE 0.315 / 0.274 -> 0.290 / 0.269 mm, RMSE lower, steps and rods from
+# 0.73x / 0.72x / 0.71x to 0.59x / 0.59x / 0.67x GC(7), for 0.5 points of completeness (accuracy-cpu-steps-rods-
+# extraction.md, -six-scenes-extraction.md); real captures 0-2 the same plate RMS, 0.5-0.9 points fewer pixels with
+# depth (real-captures-cuda-cpu-default-minconf.md)
+_CPU_MIN_CONFIDENCE = 0.65
 # what the hash-grid presets share
 _HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, grid_table_lr_factor=10.0)
 
@@ -86,8 +92,8 @@ _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4
         "uniform-code fill and the edge-aware denoising (5x5 windows): better MAE in less time than cpu (small rig)",
         grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2,
         search_step_mm=2.0, mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
-        denoise_radius=2, denoise_footprints=4.0, doubt_confidence=0.8, **_DEFAULT_EXTRACTION, **_EDGE_SIDE, **_LENS,
-        **_LENS_HASHGRID, **_HASHGRID)
+        denoise_radius=2, denoise_footprints=4.0, doubt_confidence=0.8, min_confidence=_CPU_MIN_CONFIDENCE,
+        **_DEFAULT_EXTRACTION, **_EDGE_SIDE, **_LENS, **_LENS_HASHGRID, **_HASHGRID)
 
 # the preset a run gets when it names none, per device type
 # (GPU: the best on the real captures within 15 s in process; accurate 0.412 mm plate RMS over captures 0-4 in 8.1-8.5
