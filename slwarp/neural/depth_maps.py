@@ -78,6 +78,8 @@ def _roots(parent: np.ndarray, i: np.ndarray) -> np.ndarray:
 
 # the 8 neighbours as (dy, dx) into the map padded by one pixel, in the order of neighbour_stack's rows
 _NEIGHBOURS = tuple((dy, dx) for dy in range(3) for dx in range(3) if (dy, dx) != (1, 1))
+# the same as offsets (dy, dx) from the pixel
+NEIGHBOUR_OFFSETS = tuple((dy - 1, dx - 1) for dy, dx in _NEIGHBOURS)
 
 
 def neighbour_stack(depth):

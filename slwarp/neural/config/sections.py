@@ -197,8 +197,8 @@ class ExtractionConfig:
 
     stages: tuple[str, ...] = option(StageList(DEFAULT_STAGES), "the extraction's stages in the order they run, "
                                      "comma-separated (slwarp.neural.extraction.STAGES); edge_filter, search_repair, "
-                                     "search_doubt, refine_range, uniform_fill, repair_grow, edge_side_radius and "
-                                     "denoise_radius add or remove theirs", resumable=True)
+                                     "search_doubt, refine_range, uniform_fill, repair_grow, edge_side_radius, "
+                                     "denoise_radius and hole_fill add or remove theirs", resumable=True)
     # below 16 cells a cell spans more than 1/16 of the working volume: no scene's surface survives it
     mc_resolution: int = option(384, "marching-cubes cells along the volume's longest side", min=16, resumable=True)
     depth_method: Literal["mesh", "sphere"] = option("mesh", "depth by ray casting the marching-cubes mesh, or by "
@@ -277,6 +277,11 @@ class ExtractionConfig:
     denoise_footprints: float = option(4.0, "denoising: a window's depth takes part in the plane fit when within this "
                                        "many pixel footprints (z / f mm each) of the centre's depth", above=0.0,
                                        resumable=True)
+    hole_fill: int = option(0, "after the denoising: a pixel without depth (lit with contrast) at least this many of "
+                            "whose 8 neighbours have depths on one plane takes the plane's depth there (0: off)", min=0,
+                            max=8, resumable=True)
+    hole_fill_footprints: float = option(0.5, "hole fill: every neighbour within this many pixel footprints (z / f mm "
+                                         "each) of the fitted plane", above=0.0, resumable=True)
 
 
 SECTIONS = {"field": FieldConfig, "sampling": SamplingConfig, "schedule": ScheduleConfig, "init": InitConfig,

@@ -26,8 +26,8 @@ from .edges import settle_edge_sides
 from .fill import fill_uniform_codes
 from .repair import doubt_by_search, grow_repair, repair_by_search, scaled_min_component
 from .state import FATE, State, evaluating, register_fate
-from .surface import (denoise_depth, extract_mesh, flying_pixel_filter, mesh_depth, readmit_edge_pixels,
-                      sphere_trace_depth)
+from .surface import (denoise_depth, extract_mesh, fill_pinholes, flying_pixel_filter, mesh_depth,
+                      readmit_edge_pixels, sphere_trace_depth)
 
 # the stages by name: every subclass of Stage with a name, as it is defined
 STAGES: dict[str, type["Stage"]] = {}
@@ -331,3 +331,23 @@ class Denoise(Stage):
         i = state.inputs
         return state.replace(depth=denoise_depth(state.depth, i.camera, self.denoise_radius, self.denoise_footprints,
                                                  device=i.device))
+
+
+@dataclass(frozen=True)
+class HoleFill(Stage):
+    """Pinholes closed: each pixel without depth inside inputs.valid with at least hole_fill of its 8 neighbours
+    holding depths, all within hole_fill_footprints pixel footprints of the plane fitted to them, takes that plane's
+    depth (surface.fill_pinholes); the runner scores their confidence. After the denoising, whose smooth depths
+    make the plane check tight. info hole_filled."""
+
+    name = "hole_fill"
+    marks = "interpolated"
+    hole_fill: int
+    hole_fill_footprints: float
+
+    def __call__(self, state: State) -> State:
+        i = state.inputs
+        depth, filled = fill_pinholes(state.depth, i.camera, i.valid, self.hole_fill, self.hole_fill_footprints)
+        if not filled.any():
+            return state.replace(info={"hole_filled": 0})
+        return state.replace(depth=depth, info={"hole_filled": int(filled.sum())})

@@ -20,7 +20,7 @@ import torch
 
 from ...devices import warp_device
 from ...scans.scanner import camera_rays
-from ..depth_maps import neighbour_stack
+from ..depth_maps import NEIGHBOUR_OFFSETS, neighbour_stack
 from ..fields import Volume
 from ..training.progress import Progress
 from slwarp.kernels import runtime
@@ -204,6 +204,45 @@ def readmit_edge_pixels(before: np.ndarray, after: np.ndarray, camera, footprint
         return candidates
     confidence = np.asarray(confidence_of(np.where(candidates, b, np.nan).astype(np.float32)))
     return candidates & (np.nan_to_num(confidence, nan=0.0) >= min_confidence)
+
+
+def fill_pinholes(depth: np.ndarray, camera, region: np.ndarray | None, min_neighbours: int,
+                  footprints: float) -> tuple[np.ndarray, np.ndarray]:
+    """(depth [H, W] float32 mm, filled [H, W] bool): each pixel without depth inside `region` ([H, W] bool; None:
+    anywhere) at least `min_neighbours` of whose 8 neighbours have a depth takes the depth at its centre of the plane
+    d = c0 + c1 u + c2 v fitted to them by least squares (u, v: their pixel offsets), when every one of them lies
+    within `footprints` pixel footprints (z / f mm each) of that plane. Only the input's depths take part: a hole of
+    one or two pixels closes, a larger one does not grow shut.
+
+    Why: the filters drop single pixels inside smooth surfaces (a confidence just below its threshold, a doubt), and
+    a depth map with scattered pinholes on a flat wall is less complete than a decoder's without being more right.
+    A hole beside a depth edge or on a crease fails the plane check and stays; neighbours on a line (a degenerate
+    fit) fill nothing."""
+    d = np.asarray(depth, np.float64)
+    hole = ~np.isfinite(d)
+    if region is not None:
+        hole &= np.asarray(region, bool)
+    nb = neighbour_stack(d)  # [8, H, W]
+    candidates = hole & (np.isfinite(nb).sum(0) >= min_neighbours)
+    filled = np.zeros(d.shape, bool)
+    out = np.asarray(depth, np.float32).copy()
+    if not candidates.any():
+        return out, filled
+    ys, xs = np.nonzero(candidates)
+    z = nb[:, ys, xs].T  # [P, 8]
+    has = np.isfinite(z)
+    w = has.astype(np.float64)
+    X = np.array([(1.0, dx, dy) for dy, dx in NEIGHBOUR_OFFSETS])  # [8, 3]: 1, u, v of each neighbour
+    A = np.einsum("pk,ki,kj->pij", w, X, X)
+    b = np.einsum("pk,ki->pi", w * np.nan_to_num(z), X)
+    solvable = np.abs(np.linalg.det(A)) > 1e-9
+    coef = np.zeros_like(b)
+    coef[solvable] = np.linalg.solve(A[solvable], b[solvable, :, None])[..., 0]
+    residual = np.where(has, np.abs(z - coef @ X.T), 0.0).max(1)
+    ok = solvable & (coef[:, 0] > 0) & (residual <= footprints * coef[:, 0] / min(camera.fx, camera.fy))
+    out[ys[ok], xs[ok]] = coef[ok, 0]
+    filled[ys[ok], xs[ok]] = True
+    return out, filled
 
 
 @torch.no_grad()
