@@ -40,6 +40,20 @@ def test_sparsification_curve_hand_computed():
         sparsification_curve(err, conf[:3], [1.0])
 
 
+def test_the_oracle_curve_is_the_curve_ranked_by_the_error():
+    """confidence_metrics' oracle (a plain sort of the errors) is sparsification_curve with the errors' negatives as
+    confidence, ties and partly cut pixels included."""
+    from slwarp.evaluation.metrics import SPARSIFICATION_FRACTIONS, _oracle_curve
+
+    rng = np.random.default_rng(0)
+    for n in (1, 7, 1000):
+        err = np.abs(rng.normal(size=n))
+        err[: n // 3] = np.round(err[: n // 3], 1)  # ties
+        np.testing.assert_allclose(_oracle_curve(err, SPARSIFICATION_FRACTIONS),
+                                   sparsification_curve(err, -err, SPARSIFICATION_FRACTIONS), rtol=1e-12)
+    assert np.isnan(_oracle_curve(np.array([]), [1.0, 0.5])).all()
+
+
 def test_confidence_metrics_hand_computed():
     gt = np.full((2, 3), 500.0)
     gt[1, 2] = np.nan  # not compared

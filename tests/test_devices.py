@@ -2,7 +2,7 @@
 import pytest
 import torch
 
-from slwarp.devices import DeviceError, torch_device, warp_device
+from slwarp.devices import DeviceError, torch_device, warp_device, with_index
 
 
 def test_cpu_and_auto():
@@ -43,3 +43,10 @@ def test_devices_users_try_are_refused_with_the_allowed_forms(spec, hint):
         with pytest.raises(DeviceError) as e:
             resolve(spec)
         assert repr(spec) in str(e.value) and "'auto', 'cpu', 'cuda' or 'cuda:N'" in str(e.value) and hint in str(e.value)
+
+
+def test_with_index_names_the_current_cuda_device():
+    assert with_index(torch.device("cpu")) == torch.device("cpu")
+    assert with_index(torch.device("cuda", 0)) == torch.device("cuda", 0)  # no lookup: no CUDA needed
+    if torch.cuda.is_available():
+        assert with_index(torch.device("cuda")) == torch.device("cuda", torch.cuda.current_device())

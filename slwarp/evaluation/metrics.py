@@ -115,6 +115,20 @@ def sparsification_curve(errors: np.ndarray, confidence: np.ndarray, fractions=S
     return (cum[whole] + part * partial) / k
 
 
+def _oracle_curve(errors: np.ndarray, fractions) -> np.ndarray:
+    """sparsification_curve(errors, -errors, fractions), the pixels ranked by their own error: a plain sort of the
+    errors (equal errors need no tie averaging), half the time of the argsort and gather."""
+    e = np.sort(np.asarray(errors, np.float64).ravel())
+    f = np.asarray(fractions, np.float64)
+    if e.size == 0:
+        return np.full(f.shape, np.nan)
+    cum = np.r_[0.0, np.cumsum(e)]
+    k = f * e.size
+    whole = np.minimum(np.floor(k).astype(np.int64), e.size)
+    partial = np.where(whole < e.size, e[np.minimum(whole, e.size - 1)], 0.0)
+    return (cum[whole] + (k - whole) * partial) / k
+
+
 def confidence_metrics(pred: np.ndarray, confidence: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None,
                        fractions=SPARSIFICATION_FRACTIONS) -> dict:
     """How well a confidence map [H, W] ranks the pixels of a depth map by their error (both against gt, NaN
@@ -142,7 +156,7 @@ def confidence_metrics(pred: np.ndarray, confidence: np.ndarray, gt: np.ndarray,
     # one sort for the curve and the shares' MAEs together (a sort of every compared pixel is most of the time)
     with_shares = sparsification_curve(err, c, np.r_[f, CONFIDENCE_SHARES])
     curve, at_shares = with_shares[:f.size], with_shares[f.size:]
-    oracle = sparsification_curve(err, -err, f)
+    oracle = _oracle_curve(err, f)
     width = float(f.max() - f.min())
 
     def area(y):  # trapezoids over the fractions, divided by their range

@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ...devices import torch_device
+from ...devices import torch_device, with_index
 from ...scans.scanner import with_halo
 from ..config import TrainConfig
 from ..fields import Volume
@@ -158,7 +158,7 @@ class Trainer:
         halo = config.sampling.pattern_halo
         self.halo_share, self.halo_fit = (0.0 if halo == "auto" else float(halo)), None
         self.scan = scan = seen_through_lens(scan, self.halo_share, config.sampling.pattern_halo_sigma)
-        self.device = torch_device(config.runtime.device)
+        self.device = with_index(torch_device(config.runtime.device))
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self.progress = progress
         self.progress_interval_s = progress_interval_s
