@@ -107,28 +107,13 @@ def read_mask(path: Path) -> np.ndarray:
 
 
 def read_image_stack(files: list[tuple[Path, str]], shape: tuple[int, int], kind: str, size_name: str) -> np.ndarray:
-    """Read images of one kind into [N, height, width] float32 and check their size against `shape` (height, width).
-
-    The files are decoded in threads: OpenCV's decoder and the conversions leave the interpreter lock free, so 12
-    frames of 1280 x 1024 load in about the time of two (0.3 s of a fresh `slwarp reconstruct` read them one by one).
-    A bad file raises the ScanError the first bad file in the list would raise read alone."""
-    from concurrent.futures import ThreadPoolExecutor
-
+    """Read images of one kind and check their size against `shape` (height, width)."""
     out = np.empty((len(files), *shape), np.float32)
-
-    def read(i: int) -> None:
-        f, what = files[i]
+    for i, (f, what) in enumerate(files):
         img = read_image(f, what)
         if img.shape != shape:
             raise ScanError(
                 f"{kind} size {img.shape[1]}x{img.shape[0]} != {size_name} size {shape[1]}x{shape[0]}: {f}"
             )
         out[i] = img
-
-    if len(files) < 2:
-        for i in range(len(files)):
-            read(i)
-        return out
-    with ThreadPoolExecutor(max_workers=min(len(files), os.cpu_count() or 1, 8)) as pool:
-        list(pool.map(read, range(len(files))))  # raises the first file's error in list order
     return out
