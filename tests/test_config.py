@@ -31,6 +31,7 @@ FLAT_DEFAULTS = dict(iters=4000, rays=2048, n_samples=32, n_importance=32, up_sa
 SEARCH_STAGES = (*FLAT_DEFAULTS["stages"], "search_repair", "refine", "uniform_fill", "repair_grow", "denoise")
 # fast and accurate: the edge sides settled before the denoising
 EDGE_SIDE_STAGES = (*SEARCH_STAGES[:-1], "edge_side", "denoise")
+HOLE_FILL_STAGES = (*EDGE_SIDE_STAGES, "hole_fill")
 HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, grid_table_lr_factor=10.0)
 FLAT_PRESETS = {
     "paper": dict(matmul="tf32"),
@@ -51,17 +52,17 @@ FLAT_PRESETS = {
                  grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, refine_range=3.0,
                  refine_max_misfit=0.024, search_doubt=True, search_repair=True, repair_min_component=100, repair_grow=True,
                  surface_weight=1.0, surface_after=1.0, surface_in_front=True, free_space=0.5, variance_lr_factor=4.0, uniform_fill=True, denoise_radius=4,
-                 denoise_footprints=8.0, edge_side_radius=1, stages=EDGE_SIDE_STAGES, pattern_halo="auto",
+                 denoise_footprints=8.0, edge_side_radius=1, hole_fill=7, stages=HOLE_FILL_STAGES, pattern_halo="auto",
                  refine_through_halo=False, lens_variance_lr_factor=16.0, lens_lambda_reg=0.5, **HASHGRID),
     "accurate": dict(matmul="tf32", compile=False, iters=2000, grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2, grid_level_every=100, variance_lr_factor=4.0, refine_range=3.0,
                      refine_max_misfit=0.024, search_doubt=True, search_repair=True, repair_min_component=100, repair_grow=True,
                      surface_weight=1.0, surface_after=1.0, free_space=1.0, uniform_fill=True, edge_readmit=True,
                      denoise_radius=4,
-                     denoise_footprints=8.0, edge_side_radius=1, stages=EDGE_SIDE_STAGES, pattern_halo="auto",
+                     denoise_footprints=8.0, edge_side_radius=1, hole_fill=7, stages=HOLE_FILL_STAGES, pattern_halo="auto",
                      refine_through_halo=False, lens_variance_lr_factor=16.0, lens_lambda_reg=0.5, **HASHGRID),
     "cpu-hashgrid": dict(refine_range=3.0, refine_max_misfit=0.024, search_doubt=True, search_repair=True, repair_min_component=100, repair_grow=True, uniform_fill=True,
                          denoise_radius=2, denoise_footprints=4.0, doubt_confidence=0.8, min_confidence=0.65, edge_side_radius=1,
-                         stages=EDGE_SIDE_STAGES,
+                         hole_fill=7, stages=HOLE_FILL_STAGES,
                          grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, search_step_mm=2.0,
                          mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
                          pattern_halo="auto", refine_through_halo=False, lens_variance_lr_factor=16.0,

@@ -65,10 +65,12 @@ def test_neighbours_on_a_line_fill_nothing():
 
 
 def test_hole_fill_switches_the_stage_in_after_the_denoising():
-    on = preset("fast", hole_fill=6)
+    on = preset("tuned", hole_fill=6)
     stages = list(on.extraction.stages)
     assert stages[-1] == "hole_fill" and stages[-2] == "denoise"
-    assert on.with_options(hole_fill=0).extraction.stages == preset("fast").extraction.stages
+    assert on.with_options(hole_fill=0).extraction.stages == preset("tuned").extraction.stages
+    for name in ("fast", "accurate", "cpu-hashgrid"):  # the hash-grid presets close pinholes of 7 neighbours
+        assert preset(name).extraction.stages[-1] == "hole_fill" and preset(name).extraction.hole_fill == 7
     with pytest.raises(ConfigError, match="hole_fill"):
         preset("fast", hole_fill=9)
 

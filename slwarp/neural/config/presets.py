@@ -53,6 +53,14 @@ _EDGE_SIDE = dict(edge_side_radius=1)
 # extraction.md, -six-scenes-extraction.md); real captures 0-2 the same plate RMS, 0.5-0.9 points fewer pixels with
 # depth (real-captures-cuda-cpu-default-minconf.md)
 _CPU_MIN_CONFIDENCE = 0.65
+# the pinholes closed (extraction.stages.HoleFill): a pixel without depth, 7 of whose 8 neighbours hold depths on one
+# plane, takes the plane's depth. The same fields, seed 0, every rig (4 x H200, accuracy-cuda-hole-fill-seed0.md):
+# completeness +0.2-0.25 points for fast and accurate on every rig (fast now within 1 point of GC(7) on each), MAE +0 to
+# +0.001 mm, RMSE within 0.003 mm; the small and small-vertical rigs' 8 scenes with cpu-hashgrid (2-core CPU,
+# accuracy-cpu-hole-fill.md): +0.3-0.9 points, MAE the same but rods (+0.002 mm). With 6 neighbours a thin part the
+# filters dropped took its background's depth (rods: accurate 0.127 -> 0.473 mm). Real captures 0-2 with 6 (a superset
+# of 7's fills): the same plate RMS (real-captures-cuda-hole-fill.md)
+_HOLE_FILL = dict(hole_fill=7)
 # what the hash-grid presets share
 _HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, grid_table_lr_factor=10.0)
 
@@ -79,21 +87,22 @@ _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 800 iteration
         grid_gradient="finite_difference_4",
         grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, surface_weight=1.0,
         surface_after=1.0, surface_in_front=True, free_space=0.5, variance_lr_factor=4.0, **_DEFAULT_EXTRACTION,
-        **_EDGE_SIDE, **_LENS, **_LENS_HASHGRID, **_GPU_DENOISE, **_HASHGRID)
+        **_EDGE_SIDE, **_HOLE_FILL, **_LENS, **_LENS_HASHGRID, **_GPU_DENOISE, **_HASHGRID)
 _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations of the paper's batch, levels "
         "coarse to fine, NeuS's variance at 4x the rate, with tuned's surface term and extraction and a free-space "
         "term, through a lens with a halo NeuS's variance at 16x and the Eikonal weight at 0.5: seconds a scan, as "
         "accurate as tuned on simulated scans and as the full 40-image decode on real ones (GPU default)",
         matmul="tf32", compile=False, iters=2000, grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2,
         grid_level_every=100, variance_lr_factor=4.0, surface_weight=1.0, surface_after=1.0, free_space=1.0,
-        edge_readmit=True, **_DEFAULT_EXTRACTION, **_EDGE_SIDE, **_LENS, **_LENS_HASHGRID, **_GPU_DENOISE, **_HASHGRID)
+        edge_readmit=True, **_DEFAULT_EXTRACTION, **_EDGE_SIDE, **_HOLE_FILL, **_LENS, **_LENS_HASHGRID, **_GPU_DENOISE,
+        **_HASHGRID)
 _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4-tap gradient), photometric depth "
         "refinement (+-3 mm, where the pattern model fits the images), the search repair in groups (grown), the "
         "uniform-code fill and the edge-aware denoising (5x5 windows): better MAE in less time than cpu (small rig)",
         grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2,
         search_step_mm=2.0, mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
         denoise_radius=2, denoise_footprints=4.0, doubt_confidence=0.8, min_confidence=_CPU_MIN_CONFIDENCE,
-        **_DEFAULT_EXTRACTION, **_EDGE_SIDE, **_LENS, **_LENS_HASHGRID, **_HASHGRID)
+        **_DEFAULT_EXTRACTION, **_EDGE_SIDE, **_HOLE_FILL, **_LENS, **_LENS_HASHGRID, **_HASHGRID)
 
 # the preset a run gets when it names none, per device type
 # (GPU: the best on the real captures within 15 s in process; accurate 0.412 mm plate RMS over captures 0-4 in 8.1-8.5
