@@ -55,9 +55,9 @@ _EDGE_SIDE = dict(edge_side_radius=1)
 _CPU_MIN_CONFIDENCE = 0.65
 # the pinholes closed (extraction.stages.HoleFill): a pixel without depth, 7 of whose 8 neighbours hold depths on one
 # plane, takes the plane's depth. The same fields, seed 0, every rig (4 x H200, accuracy-cuda-hole-fill-seed0.md):
-# completeness +0.2-0.25 points for fast and accurate on every rig (fast now within 1 point of GC(7) on each), MAE +0 to
-# +0.001 mm, RMSE within 0.003 mm; the small and small-vertical rigs' 8 scenes with cpu-hashgrid (2-core CPU,
-# accuracy-cpu-hole-fill.md): +0.3-0.9 points, MAE the same but rods (+0.002 mm). With 6 neighbours a thin part the
+# completeness +0.17-0.24 points for fast and accurate on every rig (fast now within 1 point of GC(7) on each), MAE +0
+# to +0.001 mm, RMSE within 0.003 mm; the small and small-vertical rigs' 8 scenes with cpu-hashgrid (2-core CPU,
+# accuracy-cpu-hole-fill.md): +0.68 / +0.72 points, MAE 0.290 / 0.269 -> 0.290 / 0.270 mm. With 6 neighbours a thin part the
 # filters dropped took its background's depth (rods: accurate 0.127 -> 0.473 mm). Real captures 0-2 with 6 (a superset
 # of 7's fills): the same plate RMS (real-captures-cuda-hole-fill.md)
 _HOLE_FILL = dict(hole_fill=7)
