@@ -130,3 +130,38 @@ def test_a_batch_counts_the_scan_as_failed_and_keeps_its_files(small_scan, tmp_p
     rows = run_scans([ScanJob("scan", str(tmp_path / "scan"), str(tmp_path / "out"))], cfg, BatchOptions(log=False))
     assert rows[0].status == "failed" and rows[0].error.startswith("the field lost the surface")
     assert (tmp_path / "out" / "depth.npy").is_file()
+
+
+def test_a_scene_outside_the_depth_range_is_said_apart_from_a_lost_field():
+    """Few lit pixels with depth while the search found little: the range is to blame, not the training."""
+    from slwarp.neural.reconstruct import range_missed, range_missed_message
+
+    few = np.r_[np.full(40, 800.0), np.full(1960, np.nan)]  # the search: 40 of the 1000 lit pixels
+    # a field trained outside the scene: its surfaces fail the confidence check, or lie out of range
+    counts = _counts(measured=30, no_contrast=1000, out_of_range=300, low_confidence=670)
+    missed = range_missed(counts, few)
+    assert missed == pytest.approx({"searched": 0.04, "with_depth": 0.03})
+    assert lost_surface(counts, few) is None  # not the field's failure
+    msg = range_missed_message(missed, (3000.0, 4000.0))
+    assert "3000-4000 mm on only 4%" in msg and "3% of them have one" in msg and "--depth-range" in msg
+    # a healthy run, a lost field (the search found the surface), a run without a search and a narrow range that
+    # keeps its part of the scene are not range misses
+    assert range_missed(_counts(measured=960, no_contrast=1000, no_surface=40), np.full(1000, 800.0)) is None
+    assert range_missed(_counts(measured=30, no_contrast=1000, out_of_range=970), np.full(1000, 800.0)) is None
+    assert range_missed(counts, None) is None
+    assert range_missed(_counts(measured=600, no_contrast=1000, out_of_range=400), few) is None
+
+
+def test_the_command_warns_when_the_scene_lies_outside_the_depth_range(small_scan, tmp_path, capsys):
+    from slwarp.cli import main as cli_main
+
+    folder = tmp_path / "scan"
+    small_scan.save(folder)
+    out = tmp_path / "out"
+    assert cli_main(["reconstruct", str(folder), "--out", str(out), *TINY, "--depth-range", "3000,4000"]) == 0
+    printed = capsys.readouterr()
+    assert "warning: the depth search found a depth inside the depth range 3000-4000 mm on only" in printed.err
+    assert "lost the surface" not in printed.out + printed.err  # no second training: the field is not to blame
+    timings = json.loads((out / "timings.json").read_text())
+    assert timings["range_missed"]["searched"] < 0.25 and timings["range_missed"]["with_depth"] < 0.5
+    assert timings["surface_lost"] is None

@@ -270,6 +270,11 @@ def run_scan(job: ScanJob, config, options: BatchOptions = BatchOptions(), worke
             from ..neural.reconstruct import lost_surface_message
 
             row.status, row.error = "failed", lost_surface_message(res.timings["surface_lost"], res.trainer.depth_range)
+        if res.timings.get("range_missed"):  # not failed: a range kept narrow on purpose leaves the rest out
+            from ..neural.reconstruct import range_missed_message
+
+            say(f"[{worker} {device}] {job.name}: warning: "
+                f"{range_missed_message(res.timings['range_missed'], res.trainer.depth_range)}")
         row.iterations = res.timings.get("iterations")
         row.valid_share = float(np.isfinite(res.depth).mean())
         if res.metrics is not None:

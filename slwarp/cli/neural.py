@@ -154,6 +154,10 @@ def _reconstruct(args, pool) -> int:
         from ..neural.reconstruct import lost_surface_message
 
         print(f"warning: {lost_surface_message(t['surface_lost'], res.trainer.depth_range)}", file=sys.stderr)
+    if t.get("range_missed"):
+        from ..neural.reconstruct import range_missed_message
+
+        print(f"warning: {range_missed_message(t['range_missed'], res.trainer.depth_range)}", file=sys.stderr)
     if res.metrics is not None:
         print(format_table([("neural SDF", res.metrics)]))
     print(f"wrote {args.out}/: depth.npy, depth.png, depth_color.png, confidence.npy, confidence.png, pixel_fate.png, "

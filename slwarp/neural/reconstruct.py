@@ -76,6 +76,35 @@ def lost_surface(counts: dict, start_depth: np.ndarray | None) -> dict | None:
     return shares if surface_is_lost(shares) else None
 
 
+# the scene seems to lie outside the depth range when the depth search, which looks only inside it, found a depth on
+# under this share of the lit pixels (healthy runs: 90% and more) and under half of them end with one in the map (a field
+# trained there draws surfaces the confidence check mostly drops); lost_surface does not blame the field then, and
+# without this rule nothing said why the map was empty
+FEW_FOUND_SHARE = 0.25
+
+
+def range_missed(counts: dict, start_depth) -> dict | None:
+    """{"searched": share of the lit pixels the depth search gave a depth, "with_depth": share of them with a depth in
+    the map} when the scene seems to lie outside the depth range (see FEW_FOUND_SHARE), else None. counts: fate_counts
+    of the depth map; start_depth: the depth search's map (None without a search: nothing to say)."""
+    shares = surface_shares(counts, start_depth)
+    if shares is None or shares["searched"] is None:
+        return None
+    lit = sum(counts.values()) - counts.get("no_contrast", 0)
+    with_depth = sum(counts.get(f, 0) for f in ("measured", "repaired", "filled", "interpolated")) / lit
+    if shares["searched"] < FEW_FOUND_SHARE and with_depth < 0.5:
+        return {"searched": shares["searched"], "with_depth": with_depth}
+    return None
+
+
+def range_missed_message(info: dict, depth_range) -> str:
+    """One line for a user: what range_missed found and what to do."""
+    near, far = depth_range
+    return (f"the depth search found a depth inside the depth range {near:g}-{far:g} mm on only {info['searched']:.0%} "
+            f"of the lit pixels, and {info['with_depth']:.0%} of them have one in the map: the scene seems to lie "
+            "outside that range (give --depth-range NEAR,FAR in mm, or correct the scan's depth_range)")
+
+
 def lost_surface_message(info: dict, depth_range) -> str:
     """One line for a user: what lost_surface found and what to do."""
     near, far = depth_range
@@ -228,6 +257,7 @@ def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log
     shares = timings["surface_shares"] = surface_shares(timings["pixels"], trainer.init_depth)
     timings["graph_captured"] = trainer.graph_captured
     timings["surface_lost"] = shares if surface_is_lost(shares) else None
+    timings["range_missed"] = range_missed(timings["pixels"], trainer.init_depth)
     if timings["surface_lost"] and retry and config.runtime.retry_lost_surface:
         _settle_checkpoint(trainer)  # the next run replaces it
         seed = config.runtime.seed
