@@ -107,12 +107,17 @@ def sparsification_curve(errors: np.ndarray, confidence: np.ndarray, fractions=S
         sums = np.add.reduceat(es, starts)
         counts = np.diff(np.r_[starts, es.size])
         es = np.repeat(sums / counts, counts)
+    return _mean_of_first(es, f)
+
+
+def _mean_of_first(es: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """[len(f)]: the mean of the first f * P of the P errors es [P] in their order (a fraction that cuts a pixel
+    takes it in part)."""
     cum = np.r_[0.0, np.cumsum(es)]
     k = f * es.size
     whole = np.minimum(np.floor(k).astype(np.int64), es.size)
-    part = k - whole
     partial = np.where(whole < es.size, es[np.minimum(whole, es.size - 1)], 0.0)
-    return (cum[whole] + part * partial) / k
+    return (cum[whole] + (k - whole) * partial) / k
 
 
 def _oracle_curve(errors: np.ndarray, fractions) -> np.ndarray:
@@ -120,13 +125,7 @@ def _oracle_curve(errors: np.ndarray, fractions) -> np.ndarray:
     errors (equal errors need no tie averaging), half the time of the argsort and gather."""
     e = np.sort(np.asarray(errors, np.float64).ravel())
     f = np.asarray(fractions, np.float64)
-    if e.size == 0:
-        return np.full(f.shape, np.nan)
-    cum = np.r_[0.0, np.cumsum(e)]
-    k = f * e.size
-    whole = np.minimum(np.floor(k).astype(np.int64), e.size)
-    partial = np.where(whole < e.size, e[np.minimum(whole, e.size - 1)], 0.0)
-    return (cum[whole] + (k - whole) * partial) / k
+    return np.full(f.shape, np.nan) if e.size == 0 else _mean_of_first(e, f)
 
 
 def confidence_metrics(pred: np.ndarray, confidence: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None,
