@@ -137,19 +137,23 @@ def test_a_scene_outside_the_depth_range_is_said_apart_from_a_lost_field():
     from slwarp.neural.reconstruct import range_missed, range_missed_message
 
     few = np.r_[np.full(40, 800.0), np.full(1960, np.nan)]  # the search: 40 of the 1000 lit pixels
+
+    def missed_in(counts, search):
+        return range_missed(counts, surface_shares(counts, search), counts["measured"])
+
     # a field trained outside the scene: its surfaces fail the confidence check, or lie out of range
     counts = _counts(measured=30, no_contrast=1000, out_of_range=300, low_confidence=670)
-    missed = range_missed(counts, few)
+    missed = missed_in(counts, few)
     assert missed == pytest.approx({"searched": 0.04, "with_depth": 0.03})
     assert lost_surface(counts, few) is None  # not the field's failure
     msg = range_missed_message(missed, (3000.0, 4000.0))
     assert "3000-4000 mm on only 4%" in msg and "3% of them have one" in msg and "--depth-range" in msg
     # a healthy run, a lost field (the search found the surface), a run without a search and a narrow range that
     # keeps its part of the scene are not range misses
-    assert range_missed(_counts(measured=960, no_contrast=1000, no_surface=40), np.full(1000, 800.0)) is None
-    assert range_missed(_counts(measured=30, no_contrast=1000, out_of_range=970), np.full(1000, 800.0)) is None
-    assert range_missed(counts, None) is None
-    assert range_missed(_counts(measured=600, no_contrast=1000, out_of_range=400), few) is None
+    assert missed_in(_counts(measured=960, no_contrast=1000, no_surface=40), np.full(1000, 800.0)) is None
+    assert missed_in(_counts(measured=30, no_contrast=1000, out_of_range=970), np.full(1000, 800.0)) is None
+    assert missed_in(counts, None) is None
+    assert missed_in(_counts(measured=600, no_contrast=1000, out_of_range=400), few) is None
 
 
 def test_the_command_warns_when_the_scene_lies_outside_the_depth_range(small_scan, tmp_path, capsys):

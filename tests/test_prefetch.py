@@ -119,6 +119,6 @@ def test_rays_ahead_fills_the_cache_and_a_second_caller_waits_for_it(saved_scan,
     gate.set()
     thread.join(10), waiter.join(10)
     # one computation, its bands of rows in threads of its own; a second one would have doubled the calls
-    bands = min(os.cpu_count() or 1, 8, cam.height)
+    bands = min(os.cpu_count() or 1, scanner.RAY_BANDS, cam.height)
     assert len(calls) == (bands if bands > 1 else 1) and "waiter" not in calls
     assert cam.cache_key in scanner._RAYS_CACHE

@@ -83,17 +83,16 @@ def lost_surface(counts: dict, start_depth: np.ndarray | None) -> dict | None:
 FEW_FOUND_SHARE = 0.25
 
 
-def range_missed(counts: dict, start_depth) -> dict | None:
+def range_missed(counts: dict, shares: dict | None, with_depth: int) -> dict | None:
     """{"searched": share of the lit pixels the depth search gave a depth, "with_depth": share of them with a depth in
     the map} when the scene seems to lie outside the depth range (see FEW_FOUND_SHARE), else None. counts: fate_counts
-    of the depth map; start_depth: the depth search's map (None without a search: nothing to say)."""
-    shares = surface_shares(counts, start_depth)
+    of the depth map; shares: surface_shares of it (None, or "searched" None without a search: nothing to say);
+    with_depth: the map's pixels with a depth."""
     if shares is None or shares["searched"] is None:
         return None
-    lit = sum(counts.values()) - counts.get("no_contrast", 0)
-    with_depth = sum(counts.get(f, 0) for f in ("measured", "repaired", "filled", "interpolated")) / lit
-    if shares["searched"] < FEW_FOUND_SHARE and with_depth < 0.5:
-        return {"searched": shares["searched"], "with_depth": with_depth}
+    share = with_depth / (sum(counts.values()) - counts.get("no_contrast", 0))
+    if shares["searched"] < FEW_FOUND_SHARE and share < 0.5:
+        return {"searched": shares["searched"], "with_depth": share}
     return None
 
 
@@ -257,7 +256,7 @@ def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log
     shares = timings["surface_shares"] = surface_shares(timings["pixels"], trainer.init_depth)
     timings["graph_captured"] = trainer.graph_captured
     timings["surface_lost"] = shares if surface_is_lost(shares) else None
-    timings["range_missed"] = range_missed(timings["pixels"], trainer.init_depth)
+    timings["range_missed"] = range_missed(timings["pixels"], shares, int(np.isfinite(depth).sum()))
     if timings["surface_lost"] and retry and config.runtime.retry_lost_surface:
         _settle_checkpoint(trainer)  # the next run replaces it
         seed = config.runtime.seed

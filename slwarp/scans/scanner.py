@@ -341,13 +341,17 @@ def camera_rays(camera: Camera, uv: np.ndarray | None = None) -> np.ndarray:
         return bounded_cache(_RAYS_CACHE, camera.cache_key, lambda: _read_only(_ray_grid(camera)))
 
 
+# the threads (bands of rows) a camera's ray grid is undistorted in, at most (and no more than the CPU count)
+RAY_BANDS = 8
+
+
 def _ray_grid(camera: Camera) -> np.ndarray:
     """[H, W, 3] float64: every pixel's ray, bands of rows undistorted in threads (numpy's array operations leave the
     interpreter lock free: 1280 x 1024 rays took 0.35-0.5 s in one thread, most of a fresh run's first depth search)."""
     from concurrent.futures import ThreadPoolExecutor
 
     uv = camera.pixel_grid()
-    bands = np.array_split(np.arange(camera.height), min(os.cpu_count() or 1, 8, camera.height))
+    bands = np.array_split(np.arange(camera.height), min(os.cpu_count() or 1, RAY_BANDS, camera.height))
     if len(bands) < 2:
         return camera.pixel_to_ray(uv)
     out = np.empty((camera.height, camera.width, 3), np.float64)

@@ -20,7 +20,7 @@ import torch
 
 from ...devices import warp_device
 from ...scans.scanner import camera_rays
-from ..depth_maps import NEIGHBOUR_OFFSETS, neighbour_stack
+from ..depth_maps import NEIGHBOUR_OFFSETS, neighbour_stack, neighbours_at
 from ..fields import Volume
 from ..training.progress import Progress
 from slwarp.kernels import runtime
@@ -222,14 +222,15 @@ def fill_pinholes(depth: np.ndarray, camera, region: np.ndarray | None, min_neig
     hole = ~np.isfinite(d)
     if region is not None:
         hole &= np.asarray(region, bool)
-    nb = neighbour_stack(d)  # [8, H, W]
-    candidates = hole & (np.isfinite(nb).sum(0) >= min_neighbours)
     filled = np.zeros(d.shape, bool)
     out = np.asarray(depth, np.float32).copy()
-    if not candidates.any():
+    index = np.flatnonzero(hole)
+    z = neighbours_at(d, index).T  # [P, 8]: the holes' neighbours only
+    enough = np.isfinite(z).sum(1) >= min_neighbours
+    index, z = index[enough], z[enough]
+    if not index.size:
         return out, filled
-    ys, xs = np.nonzero(candidates)
-    z = nb[:, ys, xs].T  # [P, 8]
+    ys, xs = np.divmod(index, d.shape[1])
     has = np.isfinite(z)
     w = has.astype(np.float64)
     X = np.array([(1.0, dx, dy) for dy, dx in NEIGHBOUR_OFFSETS])  # [8, 3]: 1, u, v of each neighbour
