@@ -256,12 +256,12 @@ def ensure_dir(path) -> Path:
     return p
 
 
-# a colour per pixel fate (slwarp.neural.extraction.PIXEL_FATES and edge_side, its stage's): pixels with depth in grays
+# a colour per pixel fate (slwarp.neural.extraction.PIXEL_FATES and the stages' own): pixels with depth in grays
 # and blues, the stages that left pixels without depth in warm colours, no contrast black
 FATE_COLOURS = {"measured": (0.55, 0.55, 0.55), "repaired": (0.2, 0.4, 1.0), "filled": (0.3, 0.85, 0.95),
                 "no_contrast": (0.0, 0.0, 0.0), "no_surface": (1.0, 1.0, 1.0), "out_of_range": (0.85, 0.2, 0.85),
                 "flying_pixel": (1.0, 0.55, 0.0), "low_confidence": (0.9, 0.1, 0.1), "search_doubt": (1.0, 0.9, 0.1),
-                "edge_side": (0.6, 0.3, 0.1), "interpolated": (0.75, 0.9, 0.75)}
+                "edge_side": (0.6, 0.3, 0.1), "interpolated": (0.75, 0.9, 0.75), "edge_band": (0.75, 0.45, 0.55)}
 
 
 def _legend_panel(entries: list[tuple[tuple[int, int, int], str]], height: int, title: str | None = None) -> np.ndarray:

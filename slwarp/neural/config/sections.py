@@ -198,7 +198,7 @@ class ExtractionConfig:
     stages: tuple[str, ...] = option(StageList(DEFAULT_STAGES), "the extraction's stages in the order they run, "
                                      "comma-separated (slwarp.neural.extraction.STAGES); edge_filter, search_repair, "
                                      "search_doubt, refine_range, uniform_fill, repair_grow, edge_side_radius, "
-                                     "denoise_radius and hole_fill add or remove theirs", resumable=True)
+                                     "denoise_radius, hole_fill and edge_band_radius add or remove theirs", resumable=True)
     # below 16 cells a cell spans more than 1/16 of the working volume: no scene's surface survives it
     mc_resolution: int = option(384, "marching-cubes cells along the volume's longest side", min=16, resumable=True)
     depth_method: Literal["mesh", "sphere"] = option("mesh", "depth by ray casting the marching-cubes mesh, or by "
@@ -282,6 +282,15 @@ class ExtractionConfig:
                             max=8, resumable=True)
     hole_fill_footprints: float = option(0.5, "hole fill: every neighbour within this many pixel footprints (z / f mm "
                                          "each) of the fitted plane", above=0.0, resumable=True)
+    edge_band_radius: int = option(0, "last: a depth within this many pixels of a depth edge of the field (a jump "
+                                   "above edge_filter footprints; behind it, or on either side: edge_band_sides) is "
+                                   "kept only with a confidence of at least edge_band_confidence: an outline the field "
+                                   "drew a pixel or two off leaves those pixels with the other surface's depth (0: off)",
+                                   min=0, resumable=True)
+    edge_band_confidence: float = option(0.8, "edge band: the confidence a depth near a depth edge must reach", min=0.0,
+                                         max=1.0, resumable=True)
+    edge_band_sides: Literal["far", "both"] = option("both", "edge band: the pixels on either side of an edge (both) "
+                                                     "or only behind it (far)", resumable=True)
 
 
 SECTIONS = {"field": FieldConfig, "sampling": SamplingConfig, "schedule": ScheduleConfig, "init": InitConfig,

@@ -26,7 +26,7 @@ from .edges import settle_edge_sides
 from .fill import fill_uniform_codes
 from .repair import doubt_by_search, grow_repair, repair_by_search, scaled_min_component
 from .state import FATE, State, evaluating, register_fate
-from .surface import (denoise_depth, extract_mesh, fill_pinholes, flying_pixel_filter, mesh_depth,
+from .surface import (denoise_depth, extract_mesh, edge_band_pixels, fill_pinholes, flying_pixel_filter, mesh_depth,
                       readmit_edge_pixels, sphere_trace_depth)
 
 # the stages by name: every subclass of Stage with a name, as it is defined
@@ -351,3 +351,31 @@ class HoleFill(Stage):
         if not filled.any():
             return state.replace(info={"hole_filled": 0})
         return state.replace(depth=depth, info={"hole_filled": int(filled.sum())})
+
+
+@dataclass(frozen=True)
+class EdgeBand(Stage):
+    """Last: the depths within edge_band_radius pixels of a depth edge of the field (a jump above edge_filter pixel
+    footprints in state.field_depth; behind it, or with edge_band_sides "both" on either side:
+    surface.edge_band_pixels) kept only with a confidence of at least edge_band_confidence; fills and interpolations
+    included, which is why it runs after them. Does nothing without edge_filter. info edge_band_dropped."""
+
+    name = "edge_band"
+    drops = "edge_band"
+    after = ("depth", "confidence")
+    edge_band_radius: int
+    edge_band_confidence: float
+    edge_band_sides: str
+    edge_filter: float
+
+    def __call__(self, state: State) -> State:
+        if self.edge_filter <= 0 or state.field_depth is None:
+            return state.replace(info={"edge_band_dropped": 0})
+        band = edge_band_pixels(state.field_depth, state.inputs.camera, self.edge_band_radius, self.edge_filter,
+                                self.edge_band_sides, device=state.inputs.device)
+        drop = band & np.isfinite(state.depth) & ~(state.confidence >= self.edge_band_confidence)
+        if not drop.any():
+            return state.replace(info={"edge_band_dropped": 0})
+        depth = state.depth.copy()
+        depth[drop] = np.nan
+        return state.replace(depth=depth, info={"edge_band_dropped": int(drop.sum())})

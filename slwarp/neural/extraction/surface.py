@@ -7,6 +7,8 @@
   depth = camera z of the first hit (or the first K hits), NaN where no hit.
 - `flying_pixel_filter`: removes the pixels on depth edges, where a smooth SDF bends from the foreground
   to the background over a few pixels.
+- `edge_band_pixels`: the pixels a few pixels from a depth edge of the field, where an outline it drew a pixel or
+  two off leaves them with the other surface's depth.
 - `denoise_depth`: an edge-aware local plane fit of the final depth map (the field's fine-scale noise).
 - `sphere_trace_depth`: the alternative without a mesh: march each ray with steps of the SDF value,
   then refine the first sign change by the secant method.
@@ -179,6 +181,33 @@ def flying_pixel_filter(depth: np.ndarray, camera, footprints: float = 10.0, dev
     jump = torch.nan_to_num(torch.abs(neighbour_stack(d) - d), nan=0.0).amax(0)
     out = torch.where(jump > limit, torch.full_like(d, float("nan")), d)
     return out.float().cpu().numpy()
+
+
+def edge_band_pixels(field_depth: np.ndarray, camera, radius: int, footprints: float = 10.0, sides: str = "both",
+                     device=None) -> np.ndarray:
+    """[H, W] bool: the pixels of `field_depth` ([H, W] mm, NaN: none) within `radius` pixels of a depth edge: some
+    depth of their (2 radius + 1)^2 window lies nearer or farther than theirs (sides "both"; "far": nearer only, the
+    pixels behind the edge) by more than `footprints` pixel footprints (z / f mm each, z their own depth).
+
+    Why: a smooth field draws an outline a pixel or two off. Where it draws a silhouette too small, the outline's
+    pixels carry the background's depth (fast, default rig, H200: the spheres' gross errors lay 2 pixels from the
+    field's edge, 18 of 24); where it draws a thin part too thick, the background beside it carries the part's
+    depth (rods, steps: 2 pixels on the near side). The flying-pixel filter drops only the pixel beside the edge,
+    so those one or two further out keep the wrong depth wherever the codes fit it by chance. Computed by torch on
+    `device` (window extremes: max-pools)."""
+    d = torch.as_tensor(np.asarray(field_depth, np.float32), device=device)
+    if radius <= 0:
+        return np.zeros(d.shape, bool)
+    has = torch.isfinite(d)
+    limit = footprints * d / min(camera.fx, camera.fy)
+
+    def window_max(x):
+        return torch.nn.functional.max_pool2d(x[None, None], 2 * radius + 1, stride=1, padding=radius)[0, 0]
+
+    band = has & (d + window_max(-torch.where(has, d, torch.inf)) > limit)  # a nearer depth in the window
+    if sides == "both":
+        band |= has & (window_max(torch.where(has, d, -torch.inf)) - d > limit)  # a farther one
+    return band.cpu().numpy()
 
 
 def readmit_edge_pixels(before: np.ndarray, after: np.ndarray, camera, footprints: float, confidence_of,
