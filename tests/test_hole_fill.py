@@ -70,7 +70,8 @@ def test_hole_fill_switches_the_stage_in_after_the_denoising():
     assert stages[-1] == "hole_fill" and stages[-2] == "denoise"
     assert on.with_options(hole_fill=0).extraction.stages == preset("tuned").extraction.stages
     for name in ("fast", "accurate", "cpu-hashgrid"):  # the hash-grid presets close pinholes of 7 neighbours
-        assert preset(name).extraction.stages[-1] == "hole_fill" and preset(name).extraction.hole_fill == 7
+        stages = [s for s in preset(name).extraction.stages if s != "edge_band"]  # fast's, accurate's last stage
+        assert stages[-1] == "hole_fill" and preset(name).extraction.hole_fill == 7
     with pytest.raises(ConfigError, match="hole_fill"):
         preset("fast", hole_fill=9)
 

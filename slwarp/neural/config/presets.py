@@ -46,7 +46,7 @@ _EDGE_SIDE = dict(edge_side_radius=1)
 # accurate also readmits the flying-pixel filter's edge pixels whose codes confirm them (as tuned), which the edge sides
 # then settle: the same fields, seed 0, completeness 0.2-0.3 points higher on every rig, now within 0.8 points of
 # GC(7)'s on each, for 0.001-0.003 mm of MAE; real captures 0-2 the same plate RMS (edge-readmit-side-cuda-seed0.md,
-# edge-readmit-cuda-real.md). fast keeps it off: its RMSE, above GC(7)'s, rose by 0.02-0.09 mm
+# edge-readmit-cuda-real.md). fast took it with the edge band, which removed the RMSE it had cost (0.02-0.09 mm)
 # cpu-hashgrid drops depth pixels of photometric confidence below 0.65 (0.6 elsewhere): on the same fields of the small
 # and small-vertical rigs' 8 scenes, mean MAE 0.315 / 0.274 -> 0.290 / 0.269 mm, RMSE lower, steps and rods from
 # 0.73x / 0.72x / 0.71x to 0.59x / 0.59x / 0.67x GC(7), for 0.5 points of completeness (accuracy-cpu-steps-rods-
@@ -61,6 +61,15 @@ _CPU_MIN_CONFIDENCE = 0.65
 # filters dropped took its background's depth (rods: accurate 0.127 -> 0.473 mm). Real captures 0-2 with 6 (a superset
 # of 7's fills): the same plate RMS (real-captures-cuda-hole-fill.md)
 _HOLE_FILL = dict(hole_fill=7)
+# the depths within 3 pixels of a depth edge of the field, on either side, kept only with a photometric confidence of
+# 0.8 (extraction.stages.EdgeBand): an outline the field drew a pixel or two off had left them the other surface's
+# depth, most of the hash-grid presets' RMSE (fast, default rig: 10-43 such pixels per smooth scene gave RMSE 0.7-1.2
+# mm, 0.13-0.18 without them; gross-errors-cuda-fast.md). The same fields, seed 0, every rig (2 x H200, 2026-11-28,
+# accuracy-cuda-edge-band-seed0.md): accurate's mean MAE 3-7% and RMSE 25-31% lower on each rig, completeness 0.16-0.19
+# points lower; fast (with edge_readmit, which gives the completeness back) MAE 5-14% and RMSE 35-39% lower,
+# completeness within 0.04 points (again on 2 x H100: accuracy-cuda-edge-band-fast-seed0.md); real captures 0-2 the
+# same plate RMS (real-captures-cuda-edge-band.md)
+_EDGE_BAND = dict(edge_band_radius=3, edge_band_sides="both", edge_band_confidence=0.8)
 # what the hash-grid presets share
 _HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, grid_table_lr_factor=10.0)
 
@@ -86,16 +95,17 @@ _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 800 iteration
         matmul="tf32", compile=False, iters=800, init_iters=200, rays=1024, up_sample_steps=2, grid_levels=8,
         grid_gradient="finite_difference_4",
         grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, surface_weight=1.0,
-        surface_after=1.0, surface_in_front=True, free_space=0.5, variance_lr_factor=4.0, **_DEFAULT_EXTRACTION,
-        **_EDGE_SIDE, **_HOLE_FILL, **_LENS, **_LENS_HASHGRID, **_GPU_DENOISE, **_HASHGRID)
+        surface_after=1.0, surface_in_front=True, free_space=0.5, variance_lr_factor=4.0, edge_readmit=True,
+        **_DEFAULT_EXTRACTION, **_EDGE_SIDE, **_HOLE_FILL, **_EDGE_BAND, **_LENS, **_LENS_HASHGRID, **_GPU_DENOISE,
+        **_HASHGRID)
 _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations of the paper's batch, levels "
         "coarse to fine, NeuS's variance at 4x the rate, with tuned's surface term and extraction and a free-space "
         "term, through a lens with a halo NeuS's variance at 16x and the Eikonal weight at 0.5: seconds a scan, as "
         "accurate as tuned on simulated scans and as the full 40-image decode on real ones (GPU default)",
         matmul="tf32", compile=False, iters=2000, grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2,
         grid_level_every=100, variance_lr_factor=4.0, surface_weight=1.0, surface_after=1.0, free_space=1.0,
-        edge_readmit=True, **_DEFAULT_EXTRACTION, **_EDGE_SIDE, **_HOLE_FILL, **_LENS, **_LENS_HASHGRID, **_GPU_DENOISE,
-        **_HASHGRID)
+        edge_readmit=True, **_DEFAULT_EXTRACTION, **_EDGE_SIDE, **_HOLE_FILL, **_EDGE_BAND, **_LENS, **_LENS_HASHGRID,
+        **_GPU_DENOISE, **_HASHGRID)
 _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4-tap gradient), photometric depth "
         "refinement (+-3 mm, where the pattern model fits the images), the search repair in groups (grown), the "
         "uniform-code fill and the edge-aware denoising (5x5 windows): better MAE in less time than cpu (small rig)",
