@@ -53,6 +53,13 @@ _EDGE_SIDE = dict(edge_side_radius=1)
 # extraction.md, -six-scenes-extraction.md); real captures 0-2 the same plate RMS, 0.5-0.9 points fewer pixels with
 # depth (real-captures-cuda-cpu-default-minconf.md)
 _CPU_MIN_CONFIDENCE = 0.65
+# cpu-hashgrid drops a depth the repair's search contradicts below a photometric confidence of 0.9 (0.8 before, 0.7
+# elsewhere): the same fields, the four small rigs' 8 scenes (2-core CPU, accuracy-cpu-doubt09.md), mean MAE 0.290 /
+# 0.270 / 0.230 / 0.301 -> 0.287 / 0.264 / 0.224 / 0.291 mm, rods 0.59x / 0.67x / 0.51x / 0.74x -> 0.57x / 0.62x / 0.46x
+# / 0.66x GC(7) (every scene of every small rig now at most 0.66x), no scene worse, RMSE lower, completeness 0.2-0.5
+# points lower; real captures 0-2 the same plate RMS, 0.3-1.2 points fewer pixels with depth
+# (real-captures-cuda-cpu-default-doubt09.md)
+_CPU_DOUBT_CONFIDENCE = 0.9
 # the pinholes closed (extraction.stages.HoleFill): a pixel without depth, 7 of whose 8 neighbours hold depths on one
 # plane, takes the plane's depth. The same fields, seed 0, every rig (4 x H200, accuracy-cuda-hole-fill-seed0.md):
 # completeness +0.17-0.24 points for fast and accurate on every rig (fast now within 1 point of GC(7) on each), MAE +0
@@ -111,7 +118,7 @@ _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4
         "uniform-code fill and the edge-aware denoising (5x5 windows): better MAE in less time than cpu (small rig)",
         grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2,
         search_step_mm=2.0, mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
-        denoise_radius=2, denoise_footprints=4.0, doubt_confidence=0.8, min_confidence=_CPU_MIN_CONFIDENCE,
+        denoise_radius=2, denoise_footprints=4.0, doubt_confidence=_CPU_DOUBT_CONFIDENCE, min_confidence=_CPU_MIN_CONFIDENCE,
         **_DEFAULT_EXTRACTION, **_EDGE_SIDE, **_HOLE_FILL, **_LENS, **_LENS_HASHGRID, **_HASHGRID)
 
 # the preset a run gets when it names none, per device type

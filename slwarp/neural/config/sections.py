@@ -238,8 +238,8 @@ class ExtractionConfig:
     # 0.8 with cpu-hashgrid, the same fields: mean MAE on the 4 small rigs 0.360 / 0.295 / 0.296 / 0.330 -> 0.330 /
     # 0.278 / 0.287 / 0.319 mm (rods 0.831 -> 0.645 on the small rig), no scene worse, completeness -0.2 pt each
     # (bench/results/accuracy-cpu-doubt-confidence*.md); real captures 0-2 the same plate RMS (doubt-confidence-cuda-
-    # real.md, edge-side-cuda-real.md): cpu-hashgrid takes 0.8. fast and accurate keep 0.7: 2-4% of MAE for 0.2 pt of
-    # the completeness they are short of (doubt-confidence-cuda-seed0.md)
+    # real.md, edge-side-cuda-real.md): cpu-hashgrid took 0.8, and later 0.9 (config.presets). fast and accurate keep
+    # 0.7: 2-4% of MAE for 0.2 pt of the completeness they are short of (doubt-confidence-cuda-seed0.md)
     doubt_confidence: float = option(DOUBT_CONFIDENCE, "search repair and search_doubt: a depth the search "
                                      "contradicts is dropped when its photometric confidence is below this",
                                      min=0.0, max=1.0, resumable=True)
