@@ -121,3 +121,56 @@ def test_job_key_names_the_camera_model_when_it_is_not_the_linear_one():
     assert accuracy_sweep.job_key(job) == "fast__default__bunny__s0"
     assert accuracy_sweep.job_key({**job, "camera": "linear"}) == "fast__default__bunny__s0"
     assert accuracy_sweep.job_key({**job, "camera": "halo"}) == "fast__halo__default__bunny__s0"
+
+
+def _spawned(pid: int) -> set[int]:
+    """The pids of a process's children that multiprocessing spawned to run work (Linux /proc): its pool's workers and
+    its Manager's server, not its resource tracker (which ends on its own once its pipe closes)."""
+    found = set()
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        for child in (task / "children").read_text().split():
+            try:
+                if "spawn_main" in Path(f"/proc/{child}/cmdline").read_text():
+                    found.add(int(child))
+            except FileNotFoundError:  # ended meanwhile
+                pass
+    return found
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="reads the children from Linux's /proc")
+def test_sigterm_stops_the_workers_and_keeps_what_finished(tmp_path):
+    """A sweep sent SIGTERM while its workers train ends within seconds with status 130, its worker processes gone
+    (not left training after it), and says where its finished runs are."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    cmd = [sys.executable, "-m", "bench.accuracy_sweep", "--small", "--presets", "tiny", "--set", "iters=5000",
+           "--rigs", "default", "--scenes", "bunny", "--workers", "2", "--out", str(tmp_path)]
+    proc = subprocess.Popen(cmd, cwd=accuracy_sweep.REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.time() + 120
+        workers = set()
+        while time.time() < deadline and len(workers) < 3:  # the Manager's server and the two workers
+            time.sleep(0.5)
+            workers = _spawned(proc.pid)
+        assert len(workers) >= 3, "the sweep started no workers"
+        time.sleep(5)  # the workers are importing or training
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130
+    assert "interrupted" in err and str(tmp_path / "accuracy-state") in err
+    time.sleep(1)
+    alive = []
+    for pid in workers:
+        try:
+            os.kill(pid, 0)
+            alive.append(pid)
+        except ProcessLookupError:
+            pass
+    assert not alive, f"worker processes still running after the sweep ended: {alive}"
