@@ -13,7 +13,6 @@ foreground outline given the background's depth) or a nearer ground-truth surfac
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import sys
 import time
@@ -58,25 +57,17 @@ def first_wrong(maps: dict, gt: np.ndarray, gross: np.ndarray, gross_mm: float) 
 
 
 def stage_maps(trainer) -> tuple[dict, object]:
-    """({stage: depth [H, W] after it}, the final state) of the trainer's extraction, run stage by stage as
-    extract_depth runs it (over the renderer's lit pixels)."""
-    from slwarp.neural.extraction.confidence import depth_confidence
-    from slwarp.neural.extraction.runner import _settle, build_stages
-    from slwarp.neural.extraction.state import ModelInputs, State, TrainedField
+    """({stage: depth [H, W] after it}, the Extraction) of the trainer's extraction as its run made it (over the
+    renderer's lit pixels)."""
+    from slwarp.neural.extraction import extract_depth
 
-    cfg = trainer.cfg
-    valid = trainer.renderer.valid_map.cpu().numpy()
-    inputs = ModelInputs.from_trainer(trainer, valid, None)
-    field = TrainedField.from_trainer(trainer)
-    score = functools.partial(depth_confidence, inputs, kind=cfg.extraction.confidence, field=field)
-    state = State.start(inputs, field, False)
     maps = {}
-    for stage in build_stages(cfg.extraction):
-        after = stage(state)
-        state = _settle(stage, state, after, score) if after is not state else after
+
+    def keep(name, state):
         if state.depth is not None:
-            maps[stage.name] = np.asarray(state.depth, np.float32).copy()
-    return maps, state
+            maps[name] = np.asarray(state.depth, np.float32).copy()
+
+    return maps, extract_depth(trainer, trainer.renderer.valid_map.cpu().numpy(), on_stage=keep)
 
 
 def scene_row(rig: str, scene: str, preset_name: str, overrides: dict, device: str, gross_mm: float) -> dict:
@@ -90,11 +81,11 @@ def scene_row(rig: str, scene: str, preset_name: str, overrides: dict, device: s
     scan, axis = _scan(rig, scene, 0, device=device)
     cfg = preset(preset_name, device=device, **overrides)
     rec = reconstruct(scan.select(neural_frames({}, axis)), cfg, progress=False)
-    maps, state = stage_maps(rec.trainer)
+    maps, final = stage_maps(rec.trainer)
     gt = scan.gt_depth
     ref = scan.mask & np.isfinite(gt) & (gt > 0)
-    err = state.depth - gt
-    has = ref & np.isfinite(state.depth)
+    err = final.depth - gt
+    has = ref & np.isfinite(final.depth)
     with np.errstate(invalid="ignore"):
         gross = has & (np.abs(err) > gross_mm)
     gc7, _, _ = reconstruct_depth(scan, "gc-interp", frames=f"gray:{axis}:bit=0-6:noinv")
@@ -109,10 +100,10 @@ def scene_row(rig: str, scene: str, preset_name: str, overrides: dict, device: s
             "rmse_gc7": float(np.sqrt(np.mean(e7[has7] ** 2))),
             "run_rmse": float(rec.metrics["rmse"]),  # the run's own extraction: the same map on a CPU
             "first_wrong_after": first_wrong(maps, gt, gross, gross_mm),
-            "fates": {names[i]: int(c) for i, c in zip(*np.unique(state.fate[gross], return_counts=True))},
+            "fates": {names[i]: int(c) for i, c in zip(*np.unique(final.fate[gross], return_counts=True))},
             "farther_within_1": int((gross & (farther == 1)).sum()), "nearer_within_1": int((gross & (nearer == 1)).sum()),
             "gc7_right": int((gross & (np.abs(np.nan_to_num(e7, nan=np.inf)) < 5)).sum()),
-            "confidence": (np.nanpercentile(state.confidence[gross], [10, 50, 90]).round(3).tolist()
+            "confidence": (np.nanpercentile(final.confidence[gross], [10, 50, 90]).round(3).tolist()
                            if gross.any() else None),
             "wall_s": time.perf_counter() - t0}
 

@@ -42,9 +42,10 @@ def build_stages(extraction) -> list[Stage]:
     return stages
 
 
-def run_stages(stages, state: State, score) -> State:
+def run_stages(stages, state: State, score, on_stage=None) -> State:
     """The state after each stage in turn, each timed (timings[name + "_s"]) and settled (`_settle`). score(depth
-    [H, W] mm, NaN elsewhere) -> confidence [H, W]: how the confidence of a changed depth is scored."""
+    [H, W] mm, NaN elsewhere) -> confidence [H, W]: how the confidence of a changed depth is scored. on_stage(name,
+    state), when given, sees the state after each stage (studies of what each stage did: bench.gross_errors)."""
     for stage in stages:
         t0 = time.perf_counter()
         after = stage(state)
@@ -52,6 +53,8 @@ def run_stages(stages, state: State, score) -> State:
             after = _settle(stage, state, after, score)
         after.timings[f"{stage.name}_s"] = time.perf_counter() - t0
         state = after
+        if on_stage is not None:
+            on_stage(stage.name, state)
     return state
 
 
@@ -86,19 +89,19 @@ def _settle(stage: Stage, before: State, after: State, score) -> State:
 
 
 def extract_depth(trainer, valid: np.ndarray | None = None, progress: bool = False, region: np.ndarray | None = None,
-                  stages: list[Stage] | None = None) -> Extraction:
+                  stages: list[Stage] | None = None, on_stage=None) -> Extraction:
     """An Extraction (depth [H, W], confidence [H, W], mesh, timings, fate [H, W]) of a trained field: the stages its
     config's `extraction.stages` names (or `stages`, built already: `build_stages`), run in order. valid [H, W]: the
     pixels the depth map may cover (default: every pixel); region [H, W]: where the uniform-code fill may add pixels
     (default: anywhere); progress: a bar for the marching cubes. The confidence is the term `extraction.confidence`.
     timings: seconds per stage (name + "_s"), "dropped" (the pixels each stage left without depth, by fate) and the
     counts the stages report (edge_readmitted, repair, refine_misfit, refined, refine_check, filled_uniform,
-    repair_grown); fate: state.pixel_fates()'s index per pixel."""
+    repair_grown); fate: state.pixel_fates()'s index per pixel. on_stage: as run_stages'."""
     ex = trainer.cfg.extraction
     stages = build_stages(ex) if stages is None else stages
     # the pattern model's inputs, once (on a GPU its own tensors), and the trained field
     inputs = ModelInputs.from_trainer(trainer, valid, region)
     field = TrainedField.from_trainer(trainer)
     score = functools.partial(depth_confidence, inputs, kind=ex.confidence, field=field)
-    state = run_stages(stages, State.start(inputs, field, progress), score)
+    state = run_stages(stages, State.start(inputs, field, progress), score, on_stage)
     return Extraction(state.depth, state.confidence, state.mesh, state.timings, state.fate)
