@@ -77,6 +77,12 @@ _HOLE_FILL = dict(hole_fill=7)
 # completeness within 0.04 points (again on 2 x H100: accuracy-cuda-edge-band-fast-seed0.md); real captures 0-2 the
 # same plate RMS (real-captures-cuda-edge-band.md)
 _EDGE_BAND = dict(edge_band_radius=3, edge_band_sides="both", edge_band_confidence=0.8)
+# cpu-hashgrid's band is 2 pixels wide (its small rig's pixels are twice the size): the same fields, the four small
+# rigs' 8 scenes (2-core CPU, accuracy-cpu-edge-band-small.md, -rigs.md), mean MAE 0.287 / 0.264 / 0.224 / 0.291 ->
+# 0.278 / 0.262 / 0.216 / 0.288 mm, RMSE 2.29 / 1.70 / 1.64 / 1.68 -> 1.90 / 1.64 / 1.35 / 1.67 mm, no scene's MAE
+# worse, completeness 0.09-0.12 points lower; real captures 0-2 the same plate RMS, 0.0-0.4 points fewer pixels with
+# depth (one H100, 2026-11-28, real-captures-cuda-cpu-default-edge-band.md)
+_CPU_EDGE_BAND = dict(edge_band_radius=2, edge_band_sides="both", edge_band_confidence=0.8)
 # what the hash-grid presets share
 _HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, grid_table_lr_factor=10.0)
 
@@ -115,11 +121,12 @@ _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations
         **_GPU_DENOISE, **_HASHGRID)
 _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4-tap gradient), photometric depth "
         "refinement (+-3 mm, where the pattern model fits the images), the search repair in groups (grown), the "
-        "uniform-code fill and the edge-aware denoising (5x5 windows): better MAE in less time than cpu (small rig)",
+        "uniform-code fill, the edge-aware denoising (5x5 windows) and the edge band (2 pixels): better MAE in less time "
+        "than cpu (small rig)",
         grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2,
         search_step_mm=2.0, mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
         denoise_radius=2, denoise_footprints=4.0, doubt_confidence=_CPU_DOUBT_CONFIDENCE, min_confidence=_CPU_MIN_CONFIDENCE,
-        **_DEFAULT_EXTRACTION, **_EDGE_SIDE, **_HOLE_FILL, **_LENS, **_LENS_HASHGRID, **_HASHGRID)
+        **_DEFAULT_EXTRACTION, **_EDGE_SIDE, **_HOLE_FILL, **_CPU_EDGE_BAND, **_LENS, **_LENS_HASHGRID, **_HASHGRID)
 
 # the preset a run gets when it names none, per device type
 # (GPU: the best on the real captures within 15 s in process; accurate 0.412 mm plate RMS over captures 0-4 in 8.1-8.5
