@@ -22,7 +22,7 @@ FLAT_DEFAULTS = dict(iters=4000, rays=2048, n_samples=32, n_importance=32, up_sa
                      device="auto", matmul="fp32", compile=True, cuda_graph=True, incremental=False, start_frames=3,
                      add_every=500, checkpoint_every=500, log_every=50, retry_lost_surface=True, mc_resolution=384, depth_method="mesh",
                      edge_filter=10.0, edge_readmit=False, edge_readmit_support=3, edge_readmit_confidence=0.9, refine_range=0.0, search_repair=False, repair_min_component=0, repair_grow=False, search_doubt=False, doubt_confidence=0.7,
-                     uniform_fill=False, edge_side_radius=0, edge_side_margin=0.5, refine_check=False, refine_through_halo=True, refine_max_misfit=0.0, denoise_radius=0, denoise_footprints=4.0, hole_fill=0, hole_fill_footprints=0.5, edge_band_radius=0, edge_band_confidence=0.8, edge_band_sides="both", surface_weight=0.0, surface_after=0.0, surface_in_front=False, free_space=0.0, surface_band_mm=0.5,
+                     uniform_fill=False, edge_side_radius=0, edge_side_margin=0.5, refine_check=False, refine_through_halo=True, refine_max_misfit=0.0, denoise_radius=0, denoise_footprints=4.0, hole_fill=0, hole_fill_footprints=0.5, edge_band_radius=0, edge_band_confidence=0.8, edge_band_sides="both", edge_band_far_radius=0, edge_band_far_confidence=0.0, surface_weight=0.0, surface_after=0.0, surface_in_front=False, free_space=0.0, surface_band_mm=0.5,
                      field="mlp", grid_levels=16, grid_log2_table=19, grid_base=16, grid_finest="auto",
                      grid_hidden=64, grid_layers=1, grid_activation="softplus", grid_gradient="finite_difference",
                      grid_table_lr_factor=10.0, grid_start_levels=2, grid_level_every=150,

@@ -291,6 +291,10 @@ class ExtractionConfig:
                                          max=1.0, resumable=True)
     edge_band_sides: Literal["far", "both"] = option("both", "edge band: the pixels on either side of an edge (both) "
                                                      "or only behind it (far)", resumable=True)
+    edge_band_far_radius: int = option(0, "edge band: behind an edge, the band's width in pixels (0: edge_band_radius)",
+                                       min=0, resumable=True)
+    edge_band_far_confidence: float = option(0.0, "edge band: behind an edge, the confidence a depth must reach (0: "
+                                             "edge_band_confidence)", min=0.0, max=1.0, resumable=True)
 
 
 SECTIONS = {"field": FieldConfig, "sampling": SamplingConfig, "schedule": ScheduleConfig, "init": InitConfig,

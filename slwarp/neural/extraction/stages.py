@@ -26,7 +26,7 @@ from .edges import settle_edge_sides
 from .fill import fill_uniform_codes
 from .repair import doubt_by_search, grow_repair, repair_by_search, scaled_min_component
 from .state import FATE, State, evaluating, register_fate
-from .surface import (denoise_depth, extract_mesh, edge_band_pixels, fill_pinholes, flying_pixel_filter, mesh_depth,
+from .surface import (denoise_depth, extract_mesh, edge_band_sides, fill_pinholes, flying_pixel_filter, mesh_depth,
                       readmit_edge_pixels, sphere_trace_depth)
 
 # the stages by name: every subclass of Stage with a name, as it is defined
@@ -150,7 +150,7 @@ class FlyingPixelFilter(Stage):
             back = readmit_edge_pixels(state.depth, depth, i.camera, self.edge_filter,
                                        lambda d: photometric_confidence(d, *i.model),
                                        min_support=self.edge_readmit_support,
-                                       min_confidence=self.edge_readmit_confidence)
+                                       min_confidence=self.edge_readmit_confidence, device=i.device)
             depth = np.where(back, state.depth, depth).astype(np.float32)
             readmitted = int(back.sum())
         return state.replace(depth=depth, info={"edge_readmitted": readmitted})
@@ -357,8 +357,10 @@ class HoleFill(Stage):
 class EdgeBand(Stage):
     """Last: the depths within edge_band_radius pixels of a depth edge of the field (a jump above edge_filter pixel
     footprints in state.field_depth; behind it, or with edge_band_sides "both" on either side:
-    surface.edge_band_pixels) kept only with a confidence of at least edge_band_confidence; fills and interpolations
-    included, which is why it runs after them. Does nothing without edge_filter. info edge_band_dropped."""
+    surface.edge_band_sides) kept only with a confidence of at least edge_band_confidence; behind an edge, within
+    edge_band_far_radius pixels with edge_band_far_confidence where those are set (0: as in front). Fills and
+    interpolations included, which is why it runs after them. Does nothing without edge_filter. info
+    edge_band_dropped."""
 
     name = "edge_band"
     drops = "edge_band"
@@ -366,14 +368,21 @@ class EdgeBand(Stage):
     edge_band_radius: int
     edge_band_confidence: float
     edge_band_sides: str
+    edge_band_far_radius: int
+    edge_band_far_confidence: float
     edge_filter: float
 
     def __call__(self, state: State) -> State:
         if self.edge_filter <= 0 or state.field_depth is None:
             return state.replace(info={"edge_band_dropped": 0})
-        band = edge_band_pixels(state.field_depth, state.inputs.camera, self.edge_band_radius, self.edge_filter,
-                                self.edge_band_sides, device=state.inputs.device)
-        drop = band & np.isfinite(state.depth) & ~(state.confidence >= self.edge_band_confidence)
+        near_radius = self.edge_band_radius if self.edge_band_sides == "both" else 0
+        near, far = edge_band_sides(state.field_depth, state.inputs.camera, near_radius,
+                                    self.edge_band_far_radius or self.edge_band_radius, self.edge_filter,
+                                    device=state.inputs.device)
+        confidence = state.confidence
+        weak_near = ~(confidence >= self.edge_band_confidence)
+        weak_far = ~(confidence >= (self.edge_band_far_confidence or self.edge_band_confidence))
+        drop = np.isfinite(state.depth) & ((near & weak_near) | (far & weak_far))
         if not drop.any():
             return state.replace(info={"edge_band_dropped": 0})
         depth = state.depth.copy()

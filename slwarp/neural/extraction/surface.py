@@ -7,8 +7,8 @@
   depth = camera z of the first hit (or the first K hits), NaN where no hit.
 - `flying_pixel_filter`: removes the pixels on depth edges, where a smooth SDF bends from the foreground
   to the background over a few pixels.
-- `edge_band_pixels`: the pixels a few pixels from a depth edge of the field, where an outline it drew a pixel or
-  two off leaves them with the other surface's depth.
+- `edge_band_pixels`, `edge_band_sides`: the pixels a few pixels from a depth edge of the field (in front of it and
+  behind it), where an outline it drew a pixel or two off leaves them with the other surface's depth.
 - `denoise_depth`: an edge-aware local plane fit of the final depth map (the field's fine-scale noise).
 - `sphere_trace_depth`: the alternative without a mesh: march each ray with steps of the SDF value,
   then refine the first sign change by the secant method.
@@ -188,30 +188,39 @@ def edge_band_pixels(field_depth: np.ndarray, camera, radius: int, footprints: f
     """[H, W] bool: the pixels of `field_depth` ([H, W] mm, NaN: none) within `radius` pixels of a depth edge: some
     depth of their (2 radius + 1)^2 window lies nearer or farther than theirs (sides "both"; "far": nearer only, the
     pixels behind the edge) by more than `footprints` pixel footprints (z / f mm each, z their own depth).
+    The union of `edge_band_sides`' two masks with one radius.
 
     Why: a smooth field draws an outline a pixel or two off. Where it draws a silhouette too small, the outline's
     pixels carry the background's depth (fast, default rig, H200: the spheres' gross errors lay 2 pixels from the
     field's edge, 18 of 24); where it draws a thin part too thick, the background beside it carries the part's
     depth (rods, steps: 2 pixels on the near side). The flying-pixel filter drops only the pixel beside the edge,
-    so those one or two further out keep the wrong depth wherever the codes fit it by chance. Computed by torch on
-    `device` (window extremes: max-pools)."""
+    so those one or two further out keep the wrong depth wherever the codes fit it by chance."""
+    near, far = edge_band_sides(field_depth, camera, radius if sides == "both" else 0, radius, footprints, device)
+    return near | far
+
+
+def edge_band_sides(field_depth: np.ndarray, camera, near_radius: int, far_radius: int, footprints: float = 10.0,
+                    device=None) -> tuple[np.ndarray, np.ndarray]:
+    """(near [H, W] bool, far [H, W] bool): the pixels of `field_depth` ([H, W] mm, NaN: none) in front of a depth edge
+    (some depth of their (2 near_radius + 1)^2 window lies farther than theirs by more than `footprints` pixel
+    footprints, z / f mm each, z their own depth) and behind one (a depth of their (2 far_radius + 1)^2 window lies
+    nearer by that much). A radius of 0: that side's mask is empty. Computed by torch on `device` (window extremes:
+    max-pools)."""
     d = torch.as_tensor(np.asarray(field_depth, np.float32), device=device)
-    if radius <= 0:
-        return np.zeros(d.shape, bool)
     has = torch.isfinite(d)
     limit = footprints * d / min(camera.fx, camera.fy)
 
-    def window_max(x):
+    def window_max(x, radius):
         return torch.nn.functional.max_pool2d(x[None, None], 2 * radius + 1, stride=1, padding=radius)[0, 0]
 
-    band = has & (d + window_max(-torch.where(has, d, torch.inf)) > limit)  # a nearer depth in the window
-    if sides == "both":
-        band |= has & (window_max(torch.where(has, d, -torch.inf)) - d > limit)  # a farther one
-    return band.cpu().numpy()
+    none = torch.zeros_like(has)
+    far = has & (d + window_max(-torch.where(has, d, torch.inf), far_radius) > limit) if far_radius > 0 else none
+    near = has & (window_max(torch.where(has, d, -torch.inf), near_radius) - d > limit) if near_radius > 0 else none
+    return near.cpu().numpy(), far.cpu().numpy()
 
 
 def readmit_edge_pixels(before: np.ndarray, after: np.ndarray, camera, footprints: float, confidence_of,
-                        *, min_support: int, min_confidence: float) -> np.ndarray:
+                        *, min_support: int, min_confidence: float, device=None) -> np.ndarray:
     """[H, W] bool: the pixels the flying-pixel filter dropped (finite in `before`, NaN in `after`, both [H, W]
     mm) that lie on one side of the edge rather than in between: at least `min_support` of their 8 neighbours
     kept a depth in `after` within `footprints` pixel footprints of theirs, and `confidence_of(map)` (a map [H, W]
@@ -221,17 +230,19 @@ def readmit_edge_pixels(before: np.ndarray, after: np.ndarray, camera, footprint
     one on the background, which a Gray code decoder keeps. A pixel the field bent toward the other surface is
     over the limit from its own neighbours and stays dropped; a mixed pixel's codes blend two projector columns
     and fail the confidence. The bars are the options edge_readmit_support and edge_readmit_confidence (0.9: at
-    the surface term's 0.8 the readmitted rod edges cost the vertical rig's MAE target, config.py's tuned)."""
-    b = np.asarray(before, np.float64)
-    dropped = np.isfinite(b) & ~np.isfinite(after)
+    the surface term's 0.8 the readmitted rod edges cost the vertical rig's MAE target, config.py's tuned).
+    The neighbour counts by torch on `device` (default the CPU; numpy's took 0.13 s of a GPU extraction)."""
+    dropped = np.isfinite(before) & ~np.isfinite(after)
     if not dropped.any():
         return dropped
+    b = torch.as_tensor(np.asarray(before, np.float64), device=device)
     limit = footprints * b / min(camera.fx, camera.fy)
-    near = np.abs(neighbour_stack(after) - b) <= limit  # NaN neighbours compare False
-    candidates = dropped & (near.sum(0) >= min_support)
+    a = torch.as_tensor(np.asarray(after, np.float64), device=device)
+    support = (torch.abs(neighbour_stack(a) - b) <= limit).sum(0)  # NaN neighbours compare False
+    candidates = dropped & (support >= min_support).cpu().numpy()
     if not candidates.any():
         return candidates
-    confidence = np.asarray(confidence_of(np.where(candidates, b, np.nan).astype(np.float32)))
+    confidence = np.asarray(confidence_of(np.where(candidates, before, np.nan).astype(np.float32)))
     return candidates & (np.nan_to_num(confidence, nan=0.0) >= min_confidence)
 
 
