@@ -460,7 +460,8 @@ def main(argv=None) -> int:
     for fs in frame_sets:
         if fs not in ("random6", "gray7") and not (fs.startswith("design") and fs[6:].isdigit() and args.designs):
             ap.error(f"--neural-frames {fs!r}: random6, gray7 or design<K> (design<K> needs --designs)")
-    several = len(frame_sets) > 1
+    # runs are named by their set when there are several, or a design (bench.designed_patterns reads them so)
+    several = len(frame_sets) > 1 or any(fs.startswith("design") for fs in frame_sets)
     from slwarp.sim.simulate import CAMERA_MODELS
 
     if args.camera not in CAMERA_MODELS:

@@ -30,8 +30,10 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 
-def design_one(rig: str, count: int, folder: str, iterations: int, device: str, seed: int, pixels: int = 4096) -> dict:
-    """Design `count` patterns for `rig` into folder (reused when its design.json says the same options)."""
+def design_one(rig: str, count: int, folder: str, iterations: int, device: str, seed: int, pixels: int = 4096,
+               window: int = 0) -> dict:
+    """Design `count` patterns for `rig` into folder (reused when its design.json says the same options); window:
+    DesignOptions.window (the depth search's window the objective scores; 0: each pixel alone)."""
     import torch
 
     from slwarp.cli.design import write_design
@@ -40,13 +42,14 @@ def design_one(rig: str, count: int, folder: str, iterations: int, device: str, 
 
     out = Path(folder)
     done = out / "design.json"
-    key = {"rig": rig, "count": count, "iterations": iterations, "seed": seed, "pixels": pixels}
+    key = {"rig": rig, "count": count, "iterations": iterations, "seed": seed, "pixels": pixels,
+           **({"window": window} if window else {})}
     if done.is_file():
         prev = json.loads(done.read_text())
         if prev.get("key") == key:
             return prev
     camera, projector = make_rig(rig)
-    opts = DesignOptions(count=count, iterations=iterations, seed=seed, pixels=pixels)
+    opts = DesignOptions(count=count, iterations=iterations, seed=seed, pixels=pixels, window=window)
     if device.startswith("cuda"):
         torch.cuda.set_device(torch.device(device))
     res = design_patterns(camera, projector, DEPTH_RANGE_MM, opts, device=device, baselines=())
@@ -63,6 +66,9 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", default=None, help="comma-separated scenes (default: every built-in scene)")
     ap.add_argument("--iterations", type=int, default=1500, help="descent steps per design (default 1500)")
     ap.add_argument("--pixels", type=int, default=4096, help="camera pixels per design step (default 4096)")
+    ap.add_argument("--window", type=int, default=0,
+                    help="design for the depth search's windows: their radius in camera px (2), 0: each pixel alone")
+    ap.add_argument("--without-random6", action="store_true", help="no neural runs on random 6 (the designs and Gray code only)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--designs", default=None, help="folder of the designs (default <out>/designs)")
     ap.add_argument("--workers-per-gpu", type=int, default=4)
@@ -92,7 +98,7 @@ def main(argv=None) -> int:
     workers = min(len(todo), 6 if cuda else (args.workers or 1))
     with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
         futs = {(r, k): pool.submit(design_one, r, k, str(designs / r / f"design{k}"), args.iterations, dev, args.seed,
-                                          args.pixels)
+                                          args.pixels, args.window)
                 for r, k in todo}
         made = {}
         for (r, k), f in futs.items():
@@ -103,7 +109,7 @@ def main(argv=None) -> int:
     design_wall = time.perf_counter() - t0
     stem = args.stem or f"designed-patterns-{'cuda' if cuda else 'cpu'}"
     sweep_argv = ["--presets", args.presets, "--designs", str(designs), "--seed", str(args.seed),
-                  "--neural-frames", ",".join(["random6"] + [f"design{k}" for k in counts]),
+                  "--neural-frames", ",".join(([] if args.without_random6 else ["random6"]) + [f"design{k}" for k in counts]),
                   "--out", str(out), "--stem", f"{stem}-sweep", "--state", str(out / f"{stem}-state")]
     sweep_argv += ["--rigs", ",".join(args.rigs.split(","))] if args.rigs else []
     sweep_argv += ["--small"] if args.small else []

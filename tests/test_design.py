@@ -33,7 +33,7 @@ def test_hypotheses_follow_the_epipolar_line(model):
     # the hypothesis nearest the truth is within one hypothesis spacing (0.5 px) of it, on every pixel
     assert float(b.dist.min(1).values.max()) <= 0.5 + 1e-3
     # the true pixels are on the projector image (unlit ones were dropped)
-    assert bool(((b.uv_true[:, 0] > -0.5) & (b.uv_true[:, 0] < PROJECTOR.width - 0.5)).all())
+    assert bool(((b.uv_true[:, 0, 0] > -0.5) & (b.uv_true[:, 0, 0] < PROJECTOR.width - 0.5)).all())
 
 
 def test_objective_gradient_warp_matches_twin(model):
@@ -51,6 +51,51 @@ def test_objective_gradient_warp_matches_twin(model):
     assert losses[0] == pytest.approx(losses[1], rel=1e-4)
     assert float(grads[1].abs().max()) > 0
     assert torch.allclose(grads[0], grads[1], rtol=1e-3, atol=1e-3 * float(grads[1].abs().max()))
+
+
+def test_a_window_batch_holds_each_pixels_neighbours_at_its_depth(model):
+    """window 1: each pixel with its 3 x 3 camera neighbours; the centre is the pixel a window-0 batch of the same
+    draws holds, with the same hypotheses, and the neighbours' true points lie on the centre's depth (their
+    projector pixels a few px from the centre's)."""
+    g0, g1 = torch.Generator(), torch.Generator()
+    g0.manual_seed(4)
+    g1.manual_seed(4)
+    alone, win = model.batch(48, 3, g0), model.batch(48, 3, g1, window=1)
+    M, Hn = alone.dist.shape
+    assert win.uv_true.shape == (M, 9, 2) and win.uv_hyp.shape == (M, 9, Hn, 2) and win.lit.shape == (M, 9)
+    assert win.noise.shape == (M, 9, 3) and win.lit[:, 4].all()
+    assert torch.allclose(win.uv_true[:, 4], alone.uv_true[:, 0]) and torch.allclose(win.dist, alone.dist)
+    assert torch.allclose(win.uv_hyp[:, 4], alone.uv_hyp[:, 0])
+    step = torch.linalg.norm(win.uv_true - win.uv_true[:, 4:5], dim=-1)[win.lit]
+    assert float(step.max()) < 4.0 and float(step.max()) > 0.5  # one camera px is a projector px or two
+
+
+def test_windowed_objective_gradient_warp_matches_twin_and_sees_more(model):
+    """With windows the Warp reprojection's gradient matches its twin's; and a window tells depths apart that a
+    pixel's 3 values alone confuse: the same smooth random codes miss less."""
+    g = torch.Generator()
+    g.manual_seed(5)
+    batch = model.batch(48, 3, g, window=1)
+    theta = torch.randn(3, model.code_length, generator=g)
+    grads, losses = [], []
+    for backend in ("warp", "torch"):
+        th = theta.clone().requires_grad_(True)
+        loss = miss_loss(code_image(normalised_codes(th), model.coords), batch, model.noise, backend=backend)
+        loss.backward()
+        grads.append(th.grad)
+        losses.append(float(loss.detach()))
+    assert losses[0] == pytest.approx(losses[1], rel=1e-4)
+    assert torch.allclose(grads[0], grads[1], rtol=1e-3, atol=1e-3 * float(grads[1].abs().max()))
+    from slwarp.design.optimise import _smooth_start
+
+    g.manual_seed(6)
+    pats = code_image(normalised_codes(_smooth_start(3, model.code_length, 3.0, g, "cpu")), model.coords)
+    rates = []
+    for window in (0, 2):
+        g.manual_seed(7)
+        b = model.batch(2048 // (2 * window + 1) ** 2, 3, g, window=window)
+        rates.append(miss_loss(pats, b, model.noise, backend="torch", details=True)[1]["miss_rate"])
+    assert rates[1] < 0.5 * rates[0], rates
 
 
 def test_codes_span_zero_to_one_at_every_pixel():
@@ -88,6 +133,16 @@ def test_a_short_design_lowers_its_objective():
     # 8-bit values, each pixel's code spanning 0..1
     assert np.allclose(p * 255, np.rint(p * 255), atol=1e-4)
     assert np.allclose(p.max(0), 1.0) and np.allclose(p.min(0), 0.0)
+
+
+def test_a_short_windowed_design_lowers_its_objective():
+    opts = DesignOptions(count=3, iterations=20, pixels=2048, validation_pixels=4096, report_every=10, seed=3, window=1)
+    res = design_patterns(CAMERA, PROJECTOR, DEPTH_RANGE_MM, opts, baselines=("random6",))
+    h = res.history
+    assert min(h["loss"][1:]) < h["loss"][0]
+    assert res.options.window == 1 and 0.0 <= res.baselines["random6"]["miss_rate"] <= 1.0
+    with pytest.raises(ValueError, match="window"):
+        DesignOptions(window=-1)
 
 
 def test_a_binary_design_sharpens_during_the_descent():

@@ -39,7 +39,7 @@ def cmd_design(args) -> int:
         steps = steps if args.iterations is None else args.iterations
         opts = DesignOptions(count=args.count, iterations=steps, pixels=args.pixels or pixels, lr=args.lr,
                              tol_px=args.tol_px, binary=args.binary, seed=args.seed, noise=noise,
-                             report_every=max(1, min(100, steps // 10 or 1)))
+                             window=args.window, report_every=max(1, min(100, steps // 10 or 1)))
     except ValueError as e:
         raise UserError(f"design-patterns: {e}") from None
     axis_baselines = _baselines_for(camera, projector, depth_range)
@@ -166,6 +166,9 @@ def _add_design(p):
     p.add_argument("--lr", type=float, default=0.05, help="step size (default 0.05)")
     p.add_argument("--tol-px", type=float, default=2.0,
                    help="a code comparison misses when it picks a depth farther than this along the line (projector px; default 2)")
+    p.add_argument("--window", type=int, default=0,
+                   help="score each pixel with the (2 W + 1)^2 camera pixels around it at one depth, as the depth "
+                        "search matches them (its windows: 2); default 0, each pixel alone")
     p.add_argument("--binary", action="store_true", help="black and white patterns (DLP projectors): sharpened during the descent, rounded at the end")
     p.add_argument("--blur-px", type=float, default=1.0, help="the camera's view of the pattern: Gaussian sigma in projector px (default 1)")
     p.add_argument("--ambient", type=float, default=0.08, help="ambient offset up to this, full scale (default 0.08)")

@@ -108,12 +108,15 @@ def code_image(codes: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
 
 @dataclass
 class Batch:
-    """One batch of M pixels: uv_true [M, 2] and uv_hyp [M, Hn, 2] projector px, hit [M, Hn] (the hypothesis lands on
-    the projector image), dist [M, Hn] (projector px from the true pixel), offset a [M], modulation b [M],
-    noise [M, K] (standard normal draws, scaled by the noise model in `miss_loss`)."""
+    """One batch of M pixels, each with the Wn pixels of its window (Wn = 1 without one: the pixel alone): uv_true
+    [M, Wn, 2] and uv_hyp [M, Wn, Hn, 2] projector px (a hypothesis off the projector image far outside it), lit
+    [M, Wn] (the window pixel's true point lands on the projector image), dist [M, Hn] (projector px from the centre's
+    true pixel), offset a [M], modulation b [M], noise [M, Wn, K] (standard normal draws, scaled by the noise model in
+    `miss_loss`)."""
 
     uv_true: torch.Tensor
     uv_hyp: torch.Tensor
+    lit: torch.Tensor
     dist: torch.Tensor
     offset: torch.Tensor
     modulation: torch.Tensor
@@ -155,53 +158,67 @@ class CodeModel:
         ok = ok & (uv[..., 0] > -0.5) & (uv[..., 0] < W - 0.5) & (uv[..., 1] > -0.5) & (uv[..., 1] < H - 0.5)
         return uv, ok
 
-    def batch(self, pixels: int, K: int, generator: torch.Generator) -> Batch:
+    def batch(self, pixels: int, K: int, generator: torch.Generator, window: int = 0) -> Batch:
         """A batch of up to `pixels` camera pixels whose true point lands on the projector image (the others are
-        unlit: no code to design)."""
+        unlit: no code to design), each with the (2 window + 1)^2 camera pixels around it (window 0: itself only) at
+        its depth, as the depth search's window sums them (`start.search.search_depth`: one hypothesis depth for
+        the whole window)."""
         dev = self.device
         g = generator
         cam = self.camera
         uvc = torch.rand(pixels, 2, generator=g, device=dev, dtype=torch.float64)
         uvc = uvc * torch.tensor([cam.width - 1.0, cam.height - 1.0], dtype=torch.float64, device=dev)
-        rays = cam.pixel_to_ray(uvc).to(torch.float32)
         near, far = self.depth_range
         t = torch.rand(pixels, generator=g, device=dev)
         z_true = 1.0 / (1.0 / near + t * (1.0 / far - 1.0 / near))
-        uv_true, lit = self._project(rays, z_true)
-        keep = lit.nonzero()[:, 0]
-        rays, uv_true = rays[keep], uv_true[keep]
+        r = torch.arange(-window, window + 1, dtype=torch.float64, device=dev)
+        offsets = torch.stack(torch.meshgrid(r, r, indexing="xy"), -1).reshape(-1, 2)  # [Wn, 2], the centre in the middle
+        Wn = offsets.shape[0]
+        hi = torch.tensor([cam.width - 1.0, cam.height - 1.0], dtype=torch.float64, device=dev)
+        uvw = torch.minimum(torch.clamp(uvc[:, None, :] + offsets[None], min=0.0), hi)  # [P, Wn, 2], kept on the image
+        rays = cam.pixel_to_ray(uvw.reshape(-1, 2)).to(torch.float32).reshape(pixels, Wn, 3)
+        uv_true, lit = self._project(rays.reshape(-1, 3), z_true.repeat_interleave(Wn))
+        uv_true, lit = uv_true.reshape(pixels, Wn, 2), lit.reshape(pixels, Wn)
+        keep = lit[:, Wn // 2].nonzero()[:, 0]
+        rays, uv_true, lit = rays[keep], uv_true[keep], lit[keep]
         M = rays.shape[0]
-        uv_hyp, hit = self._project(rays, self.z_hyp.expand(M, -1))
-        dist = torch.linalg.norm(uv_hyp - uv_true[:, None, :], dim=-1)
+        uv_hyp, hit = self._project(rays.reshape(-1, 3), self.z_hyp.expand(M * Wn, -1))
+        uv_hyp, hit = uv_hyp.reshape(M, Wn, -1, 2), hit.reshape(M, Wn, -1)
+        dist = torch.linalg.norm(uv_hyp[:, Wn // 2] - uv_true[:, Wn // 2, None, :], dim=-1)
         # a hypothesis off the projector image sees no code; it stays a rival (its code is 0), as in the search
         lo, hi = self.noise.modulation
         b = lo + (hi - lo) * torch.rand(M, generator=g, device=dev)
         a = self.noise.ambient * torch.rand(M, generator=g, device=dev)
-        return Batch(uv_true, torch.where(hit[..., None], uv_hyp, torch.full_like(uv_hyp, -1.0e6)), dist, a, b,
-                     torch.randn(M, K, generator=g, device=dev))
+        return Batch(uv_true, torch.where(hit[..., None], uv_hyp, torch.full_like(uv_hyp, -1.0e6)), lit, dist, a, b,
+                     torch.randn(M, Wn, K, generator=g, device=dev))
 
 
 def miss_loss(patterns: torch.Tensor, batch: Batch, noise: NoiseModel, *, tol_px: float = 2.0,
               softness: float = 1.0, backend: str = "warp", details: bool = False):
     """The expected miss (see the module docstring) of patterns [K, Hp, Wp] in [0, 1] (already blurred as the camera
-    sees them) on one batch: a 0-d tensor, differentiable in the patterns. details=True also returns
-    {"miss_rate": share of pixels whose most probable hypothesis is > tol_px away, "pixels": M}."""
+    sees them) on one batch: a 0-d tensor, differentiable in the patterns. With windows (batch.uv_true [M, Wn, 2],
+    Wn > 1) each hypothesis' distance sums over the window's lit pixels, each normalised by its own min and max, as
+    the depth search's cost. details=True also returns {"miss_rate": share of pixels whose most probable hypothesis
+    is > tol_px away, "pixels": M}."""
     from ..neural.ops import reproject_patterns
 
     K = patterns.shape[0]
     M, Hn = batch.dist.shape
-    code_true = reproject_patterns(patterns, batch.uv_true, backend=backend)  # [M, K]
-    clean = batch.offset[:, None] + batch.modulation[:, None] * code_true
+    Wn = batch.uv_true.shape[1]
+    code_true = reproject_patterns(patterns, batch.uv_true.reshape(-1, 2), backend=backend).reshape(M, Wn, K)
+    clean = batch.offset[:, None, None] + batch.modulation[:, None, None] * code_true
     # the virtual scanner's noise: read noise and shot noise of the clean intensity, clipped to the sensor's range
     sd = torch.sqrt(noise.read_noise ** 2 + clean.detach().clamp_min(0.0) / noise.full_well)
     obs = (clean + sd * batch.noise).clamp(0.0, 1.0)
-    lo = obs.min(1, keepdim=True).values
-    span = obs.max(1, keepdim=True).values - lo
-    obs_n = (obs - lo) / span.clamp_min(1.0e-3)
-    # the noise in normalised units: what a pixel's code can be trusted to
-    s = softness * sd.detach().mean(1, keepdim=True) / span.detach().clamp_min(0.02) * math.sqrt(2.0)
-    codes = reproject_patterns(patterns, batch.uv_hyp.reshape(-1, 2), backend=backend).reshape(M, Hn, K)
-    d2 = ((codes - obs_n[:, None, :]) ** 2).sum(-1)  # [M, Hn]
+    lo = obs.min(2, keepdim=True).values
+    span = obs.max(2, keepdim=True).values - lo
+    obs_n = (obs - lo) / span.clamp_min(1.0e-3)  # [M, Wn, K]
+    # the noise in normalised units (the window's centre's): what a pixel's code can be trusted to
+    c = Wn // 2
+    s = softness * sd[:, c].detach().mean(1, keepdim=True) / span[:, c].detach().clamp_min(0.02) * math.sqrt(2.0)
+    codes = reproject_patterns(patterns, batch.uv_hyp.reshape(-1, 2), backend=backend).reshape(M, Wn, Hn, K)
+    lit = batch.lit.to(codes.dtype)[:, :, None]  # window pixels whose point is off the projector image count nothing
+    d2 = (((codes - obs_n[:, :, None, :]) ** 2).sum(-1) * lit).sum(1)  # [M, Hn]
     logp = torch.log_softmax(-d2 / (s * s), dim=1)
     miss = (batch.dist / tol_px).clamp(max=1.0)
     loss = (logp.exp() * miss).sum(1).mean()

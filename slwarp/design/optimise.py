@@ -44,7 +44,9 @@ class DesignOptions:
     depth hypotheses along the line (projector px); softness: scales the posterior's noise; init_scale_px: smoothness
     of the start (projector px); binary: sharpened towards 0/1 over the descent's last two thirds (BINARY_START),
     scored as rounded, rounded at the end; seed: every random draw; validation_pixels: the fixed batch that picks
-    the best patterns; report_every: steps between validations; backend: "warp" (the
+    the best patterns; report_every: steps between validations; window: the radius (camera px) of the window whose
+    pixels share a depth hypothesis, as the depth search's (2), 0: each pixel alone (a window of (2 window + 1)^2
+    pixels costs as many reprojections, so each batch then holds that many times fewer windows); backend: "warp" (the
     reprojection's Warp kernels), "torch" (its twin) or "auto": Warp on CUDA, the twin on the CPU (Warp's CPU kernels run
     on one core, torch's on all of them: 3x faster on 2 cores)."""
 
@@ -60,6 +62,7 @@ class DesignOptions:
     seed: int = 0
     validation_pixels: int = 8192
     report_every: int = 100
+    window: int = 0
     backend: str = "auto"
     noise: NoiseModel = field(default_factory=NoiseModel)
 
@@ -70,6 +73,12 @@ class DesignOptions:
             raise ValueError("iterations must be >= 0; pixels, validation pixels and report_every >= 1")
         if not (self.lr > 0 and self.tol_px > 0 and self.step_px > 0 and self.softness > 0):
             raise ValueError("lr, tol_px, step_px and softness must be > 0")
+        if self.window < 0:
+            raise ValueError(f"the window's radius must be >= 0 camera px, got --window {self.window}")
+
+    def windows(self, pixels: int) -> int:
+        """How many windows a batch of `pixels` camera pixels' worth of reprojections holds."""
+        return max(1, pixels // (2 * self.window + 1) ** 2)
 
 
 @dataclass
@@ -170,11 +179,11 @@ def design_patterns(camera, projector, depth_range, opts: DesignOptions, *, devi
     # the validation batch: fixed, drawn from its own seed so that it does not depend on the training draws
     gv = torch.Generator(device=device)
     gv.manual_seed(opts.seed + 7919)
-    val = model.batch(opts.validation_pixels, K, gv)
+    val = model.batch(opts.windows(opts.validation_pixels), K, gv, opts.window)
     base = {}
     for name in baselines:
         pset = named_set(name, W, H)
-        pv = model.batch(opts.validation_pixels, len(pset), _seeded(device, opts.seed + 7919))
+        pv = model.batch(opts.windows(opts.validation_pixels), len(pset), _seeded(device, opts.seed + 7919), opts.window)
         base[name] = evaluate_patterns(model, torch.as_tensor(pset.patterns, device=device), pv, opts)
     theta = _smooth_start(K, model.code_length, opts.init_scale_px, g, device).requires_grad_(True)
 
@@ -206,7 +215,7 @@ def design_patterns(camera, projector, depth_range, opts: DesignOptions, *, devi
     try:
         validate(0)
         for it in range(1, opts.iterations + 1):
-            batch = model.batch(opts.pixels, K, g)
+            batch = model.batch(opts.windows(opts.pixels), K, g, opts.window)
             pats = patterns_of(theta)
             beta = _sharpness(it, opts.iterations) if opts.binary else 0.0
             if beta > 0.0:
