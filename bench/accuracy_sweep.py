@@ -420,7 +420,8 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=None, help="processes on the CPU (default 1)")
     ap.add_argument("--state", default=None, help="folder of finished runs (default <out>/accuracy-state)")
     ap.add_argument("--max-minutes", type=float, default=None,
-                    help="stop submitting runs after this many minutes (finished runs are kept; run again to go on)")
+                    help="stop starting runs after this many minutes (the runs under way finish; every finished run is kept: "
+                         "run again to go on)")
     ap.add_argument("--out", default=str(REPO / "bench" / "results"))
     ap.add_argument("--keep", default=None, help="folder for each run's absolute error map (PNG, 0-5 mm) and its "
                     "signed error and pixel fates (npz, for study elsewhere)")
@@ -508,7 +509,10 @@ def main(argv=None) -> int:
         kept_before = len(results)
         try:
             futures = {pool.submit(run_job, j): j for j in todo}
+            stopping = False
             for i, fut in enumerate(as_completed(futures), 1):
+                if fut.cancelled():  # not started before --max-minutes
+                    continue
                 res = fut.result()
                 key = job_key(res["job"])
                 results.append(res)
@@ -520,11 +524,14 @@ def main(argv=None) -> int:
                                  for lab, m in res["methods"].items())
                 print(f"[{i}/{len(todo)}] {key} ({res['wall_s']:.0f} s, {time.perf_counter() - t0:.0f} s so far): "
                       f"{line}", flush=True)
-                if args.max_minutes and time.perf_counter() - t0 > 60 * args.max_minutes:
-                    print(f"--max-minutes {args.max_minutes} reached: cancelling the runs not started", flush=True)
+                if not stopping and args.max_minutes and time.perf_counter() - t0 > 60 * args.max_minutes:
+                    # the runs under way finish and are kept like the others (they were lost before: waited for by
+                    # the pool's shutdown, never saved)
+                    print(f"--max-minutes {args.max_minutes} reached: cancelling the runs not started, keeping those "
+                          "under way", flush=True)
                     for f in futures:
                         f.cancel()
-                    break
+                    stopping = True
         except KeyboardInterrupt:
             _stop_workers(pool)
             print(f"interrupted: the {len(results) - kept_before} runs this call finished are kept in {state}; the "

@@ -174,3 +174,20 @@ def test_sigterm_stops_the_workers_and_keeps_what_finished(tmp_path):
         except ProcessLookupError:
             pass
     assert not alive, f"worker processes still running after the sweep ended: {alive}"
+
+
+def test_max_minutes_keeps_the_runs_under_way(tmp_path):
+    """--max-minutes stops starting runs once a run finishes after it; the runs under way then finish and are kept in
+    the state folder like every other (each printed run has its file), and the runs not started are not."""
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "bench.accuracy_sweep", "--small", "--presets", "tiny", "--set", "iters=20,init_iters=10",
+           "--rigs", "default", "--workers", "2", "--max-minutes", "0.0001", "--out", str(tmp_path)]
+    res = subprocess.run(cmd, cwd=accuracy_sweep.REPO, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "--max-minutes 0.0001 reached" in res.stdout
+    printed = [line.split()[1] for line in res.stdout.splitlines() if line.startswith("[")]
+    saved = sorted(f.stem for f in (tmp_path / "accuracy-state").glob("*.json"))
+    assert sorted(printed) == saved
+    assert 2 <= len(saved) < 16, saved  # the run beside the first one finished too; most of the 16 never started
