@@ -36,11 +36,8 @@ def test_hypotheses_follow_the_epipolar_line(model):
     assert bool(((b.uv_true[:, 0, 0] > -0.5) & (b.uv_true[:, 0, 0] < PROJECTOR.width - 0.5)).all())
 
 
-def test_objective_gradient_warp_matches_twin(model):
-    g = torch.Generator()
-    g.manual_seed(1)
-    batch = model.batch(96, 3, g)
-    theta = torch.randn(3, model.code_length, generator=g)
+def _assert_warp_matches_twin(model, batch, theta):
+    """The objective and its gradient in theta, through the Warp reprojection and through its torch twin, agree."""
     grads, losses = [], []
     for backend in ("warp", "torch"):
         th = theta.clone().requires_grad_(True)
@@ -51,6 +48,13 @@ def test_objective_gradient_warp_matches_twin(model):
     assert losses[0] == pytest.approx(losses[1], rel=1e-4)
     assert float(grads[1].abs().max()) > 0
     assert torch.allclose(grads[0], grads[1], rtol=1e-3, atol=1e-3 * float(grads[1].abs().max()))
+
+
+def test_objective_gradient_warp_matches_twin(model):
+    g = torch.Generator()
+    g.manual_seed(1)
+    batch = model.batch(96, 3, g)
+    _assert_warp_matches_twin(model, batch, torch.randn(3, model.code_length, generator=g))
 
 
 def test_a_window_batch_holds_each_pixels_neighbours_at_its_depth(model):
@@ -76,16 +80,7 @@ def test_windowed_objective_gradient_warp_matches_twin_and_sees_more(model):
     g = torch.Generator()
     g.manual_seed(5)
     batch = model.batch(48, 3, g, window=1)
-    theta = torch.randn(3, model.code_length, generator=g)
-    grads, losses = [], []
-    for backend in ("warp", "torch"):
-        th = theta.clone().requires_grad_(True)
-        loss = miss_loss(code_image(normalised_codes(th), model.coords), batch, model.noise, backend=backend)
-        loss.backward()
-        grads.append(th.grad)
-        losses.append(float(loss.detach()))
-    assert losses[0] == pytest.approx(losses[1], rel=1e-4)
-    assert torch.allclose(grads[0], grads[1], rtol=1e-3, atol=1e-3 * float(grads[1].abs().max()))
+    _assert_warp_matches_twin(model, batch, torch.randn(3, model.code_length, generator=g))
     from slwarp.design.optimise import _smooth_start
 
     g.manual_seed(6)

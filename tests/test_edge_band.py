@@ -101,23 +101,23 @@ def test_the_stage_drops_exactly_the_weak_depths_in_the_band():
 
 
 def test_the_far_side_takes_its_own_width_and_bar():
-    """edge_band_sides gives the square's rim (in front) and the wall around it (behind) each with its own radius;
+    """edge_band_masks gives the square's rim (in front) and the wall around it (behind) each with its own radius;
     the stage holds the wall's band to edge_band_far_confidence over edge_band_far_radius pixels, the rim to the
     common bar."""
     from types import SimpleNamespace
 
     from slwarp.neural.extraction.runner import build_stages, run_stages
     from slwarp.neural.extraction.state import State
-    from slwarp.neural.extraction.surface import edge_band_sides
+    from slwarp.neural.extraction.surface import edge_band_masks
 
     field = _disc_before_a_wall()
-    near, far = edge_band_sides(field, CAMERA, 2, 4, 10.0)
+    near, far = edge_band_masks(field, CAMERA, 2, 4, 10.0)
     np.testing.assert_array_equal(near | edge_band_pixels(field, CAMERA, 2, 10.0, "far"),
                                   edge_band_pixels(field, CAMERA, 2, 10.0, "both"))
     wide = np.zeros(field.shape, bool)
     wide[6:24, 11:29] = True  # the square grown by 4 pixels
     np.testing.assert_array_equal(far, wide & (field > 600))
-    assert not edge_band_sides(field, CAMERA, 0, 0, 10.0)[0].any()
+    assert not edge_band_masks(field, CAMERA, 0, 0, 10.0)[0].any()
 
     confidence = np.full(field.shape, 0.85, np.float32)  # over the common bar, under the far one
     inputs = SimpleNamespace(camera=CAMERA, device="cpu", valid=None)

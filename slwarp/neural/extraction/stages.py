@@ -26,7 +26,7 @@ from .edges import settle_edge_sides
 from .fill import fill_uniform_codes
 from .repair import doubt_by_search, grow_repair, repair_by_search, scaled_min_component
 from .state import FATE, State, evaluating, register_fate
-from .surface import (denoise_depth, extract_mesh, edge_band_sides, fill_pinholes, flying_pixel_filter, mesh_depth,
+from .surface import (denoise_depth, extract_mesh, edge_band_masks, fill_pinholes, flying_pixel_filter, mesh_depth,
                       readmit_edge_pixels, sphere_trace_depth)
 
 # the stages by name: every subclass of Stage with a name, as it is defined
@@ -357,7 +357,7 @@ class HoleFill(Stage):
 class EdgeBand(Stage):
     """Last: the depths within edge_band_radius pixels of a depth edge of the field (a jump above edge_filter pixel
     footprints in state.field_depth; behind it, or with edge_band_sides "both" on either side:
-    surface.edge_band_sides) kept only with a confidence of at least edge_band_confidence; behind an edge, within
+    surface.edge_band_masks) kept only with a confidence of at least edge_band_confidence; behind an edge, within
     edge_band_far_radius pixels with edge_band_far_confidence where those are set (0: as in front). Fills and
     interpolations included, which is why it runs after them. Does nothing without edge_filter. info
     edge_band_dropped."""
@@ -376,7 +376,7 @@ class EdgeBand(Stage):
         if self.edge_filter <= 0 or state.field_depth is None:
             return state.replace(info={"edge_band_dropped": 0})
         near_radius = self.edge_band_radius if self.edge_band_sides == "both" else 0
-        near, far = edge_band_sides(state.field_depth, state.inputs.camera, near_radius,
+        near, far = edge_band_masks(state.field_depth, state.inputs.camera, near_radius,
                                     self.edge_band_far_radius or self.edge_band_radius, self.edge_filter,
                                     device=state.inputs.device)
         confidence = state.confidence
