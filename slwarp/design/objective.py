@@ -20,6 +20,11 @@ than `tol_px` away. The search needs to land within a few px (the neural SDF ref
 px costs as much as one of `tol_px`. Gradients reach the pattern pixels through the bilinear reprojection
 (`slwarp.neural.ops.reproject_patterns`: Warp kernels with a backward into the pattern image, or its torch twin).
 
+With a window (`CodeModel.batch(..., window=R)`), each pixel comes with the (2R + 1)^2 camera pixels around it at its
+depth, and a hypothesis' distance sums over them, each normalised by its own min and max: the depth search's cost,
+which sums a window at one depth hypothesis (`start.search.search_depth`, R = 2). A window sees the code's shape along
+the line, so 3 patterns can tell depths apart that one pixel's 3 values (one degree of freedom once normalised) cannot.
+
 `CodeModel` holds what is fixed for a rig (rays, hypotheses); `miss_loss` evaluates one batch.
 """
 from __future__ import annotations
