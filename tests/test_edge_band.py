@@ -1,13 +1,19 @@
-"""The edge band at extraction (slwarp.neural.extraction.surface.edge_band_pixels and its stage, edge_band): the
+"""The edge band at extraction (slwarp.neural.extraction.surface.edge_band_masks and its stage, edge_band): the
 depths within a few pixels of a depth edge of the field stay only where the codes fit them well."""
 import numpy as np
 import pytest
 
 from slwarp.neural.config import ConfigError, preset
-from slwarp.neural.extraction.surface import edge_band_pixels
+from slwarp.neural.extraction.surface import edge_band_masks
 from slwarp.scans.scanner import Camera
 
 CAMERA = Camera(width=40, height=30, K=np.array([[500.0, 0, 19.5], [0, 500.0, 14.5], [0, 0, 1]]))
+
+
+def edge_band_pixels(depth, camera, radius, footprints, sides):
+    """The band as the stage draws it with one radius: behind the edges, and in front of them too with sides "both"."""
+    near, far = edge_band_masks(depth, camera, radius if sides == "both" else 0, radius, footprints)
+    return near | far
 
 
 def _disc_before_a_wall(H=30, W=40):
@@ -108,8 +114,6 @@ def test_the_far_side_takes_its_own_width_and_bar():
 
     from slwarp.neural.extraction.runner import build_stages, run_stages
     from slwarp.neural.extraction.state import State
-    from slwarp.neural.extraction.surface import edge_band_masks
-
     field = _disc_before_a_wall()
     near, far = edge_band_masks(field, CAMERA, 2, 4, 10.0)
     np.testing.assert_array_equal(near | edge_band_pixels(field, CAMERA, 2, 10.0, "far"),

@@ -171,16 +171,15 @@ class CodeModel:
         dev = self.device
         g = generator
         cam = self.camera
-        uvc = torch.rand(pixels, 2, generator=g, device=dev, dtype=torch.float64)
-        uvc = uvc * torch.tensor([cam.width - 1.0, cam.height - 1.0], dtype=torch.float64, device=dev)
+        last = torch.tensor([cam.width - 1.0, cam.height - 1.0], dtype=torch.float64, device=dev)  # the last pixel
+        uvc = torch.rand(pixels, 2, generator=g, device=dev, dtype=torch.float64) * last
         near, far = self.depth_range
         t = torch.rand(pixels, generator=g, device=dev)
         z_true = 1.0 / (1.0 / near + t * (1.0 / far - 1.0 / near))
         r = torch.arange(-window, window + 1, dtype=torch.float64, device=dev)
         offsets = torch.stack(torch.meshgrid(r, r, indexing="xy"), -1).reshape(-1, 2)  # [Wn, 2], the centre in the middle
         Wn = offsets.shape[0]
-        hi = torch.tensor([cam.width - 1.0, cam.height - 1.0], dtype=torch.float64, device=dev)
-        uvw = torch.minimum(torch.clamp(uvc[:, None, :] + offsets[None], min=0.0), hi)  # [P, Wn, 2], kept on the image
+        uvw = torch.minimum(torch.clamp(uvc[:, None, :] + offsets[None], min=0.0), last)  # [P, Wn, 2], on the image
         rays = cam.pixel_to_ray(uvw.reshape(-1, 2)).to(torch.float32).reshape(pixels, Wn, 3)
         uv_true, lit = self._project(rays.reshape(-1, 3), z_true.repeat_interleave(Wn))
         uv_true, lit = uv_true.reshape(pixels, Wn, 2), lit.reshape(pixels, Wn)

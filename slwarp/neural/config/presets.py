@@ -82,7 +82,7 @@ _EDGE_BAND = dict(edge_band_radius=3, edge_band_sides="both", edge_band_confiden
 # 0.278 / 0.262 / 0.216 / 0.288 mm, RMSE 2.29 / 1.70 / 1.64 / 1.68 -> 1.90 / 1.64 / 1.35 / 1.67 mm, no scene's MAE
 # worse, completeness 0.09-0.12 points lower; real captures 0-2 the same plate RMS, 0.0-0.4 points fewer pixels with
 # depth (one H100, 2026-11-28, real-captures-cuda-cpu-default-edge-band.md)
-_CPU_EDGE_BAND = dict(edge_band_radius=2, edge_band_sides="both", edge_band_confidence=0.8)
+_CPU_EDGE_BAND = {**_EDGE_BAND, "edge_band_radius": 2}
 # what the hash-grid presets share
 _HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, grid_table_lr_factor=10.0)
 

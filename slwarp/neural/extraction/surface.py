@@ -7,8 +7,7 @@
   depth = camera z of the first hit (or the first K hits), NaN where no hit.
 - `flying_pixel_filter`: removes the pixels on depth edges, where a smooth SDF bends from the foreground
   to the background over a few pixels.
-- `edge_band_pixels`, `edge_band_masks`: the pixels a few pixels from a depth edge of the field (in front of it and
-  behind it), where an outline it drew a pixel or two off leaves them with the other surface's depth.
+- `edge_band_masks`: the pixels a few pixels from a depth edge of the field (in front of it and behind it), where an outline it drew a pixel or two off leaves them with the other surface's depth.
 - `denoise_depth`: an edge-aware local plane fit of the final depth map (the field's fine-scale noise).
 - `sphere_trace_depth`: the alternative without a mesh: march each ray with steps of the SDF value,
   then refine the first sign change by the secant method.
@@ -183,29 +182,19 @@ def flying_pixel_filter(depth: np.ndarray, camera, footprints: float = 10.0, dev
     return out.float().cpu().numpy()
 
 
-def edge_band_pixels(field_depth: np.ndarray, camera, radius: int, footprints: float = 10.0, sides: str = "both",
-                     device=None) -> np.ndarray:
-    """[H, W] bool: the pixels of `field_depth` ([H, W] mm, NaN: none) within `radius` pixels of a depth edge: some
-    depth of their (2 radius + 1)^2 window lies nearer or farther than theirs (sides "both"; "far": nearer only, the
-    pixels behind the edge) by more than `footprints` pixel footprints (z / f mm each, z their own depth).
-    The union of `edge_band_masks`' two masks with one radius.
-
-    Why: a smooth field draws an outline a pixel or two off. Where it draws a silhouette too small, the outline's
-    pixels carry the background's depth (fast, default rig, H200: the spheres' gross errors lay 2 pixels from the
-    field's edge, 18 of 24); where it draws a thin part too thick, the background beside it carries the part's
-    depth (rods, steps: 2 pixels on the near side). The flying-pixel filter drops only the pixel beside the edge,
-    so those one or two further out keep the wrong depth wherever the codes fit it by chance."""
-    near, far = edge_band_masks(field_depth, camera, radius if sides == "both" else 0, radius, footprints, device)
-    return near | far
-
-
 def edge_band_masks(field_depth: np.ndarray, camera, near_radius: int, far_radius: int, footprints: float = 10.0,
                     device=None) -> tuple[np.ndarray, np.ndarray]:
     """(near [H, W] bool, far [H, W] bool): the pixels of `field_depth` ([H, W] mm, NaN: none) in front of a depth edge
     (some depth of their (2 near_radius + 1)^2 window lies farther than theirs by more than `footprints` pixel
     footprints, z / f mm each, z their own depth) and behind one (a depth of their (2 far_radius + 1)^2 window lies
-    nearer by that much). A radius of 0: that side's mask is empty. Computed by torch on `device` (window extremes:
-    max-pools)."""
+    nearer by that much). A radius of 0: that side's mask is empty.
+
+    Why: a smooth field draws an outline a pixel or two off. Where it draws a silhouette too small, the outline's
+    pixels carry the background's depth (fast, default rig, H200: the spheres' gross errors lay 2 pixels from the
+    field's edge, 18 of 24): they are behind the field's edge. Where it draws a thin part too thick, the background
+    beside it carries the part's depth (rods, steps: 2 pixels on the near side). The flying-pixel filter drops only the
+    pixel beside the edge, so those one or two further out keep the wrong depth wherever the codes fit it by chance.
+    Computed by torch on `device` (window extremes: max-pools)."""
     d = torch.as_tensor(np.asarray(field_depth, np.float32), device=device)
     has = torch.isfinite(d)
     limit = footprints * d / min(camera.fx, camera.fy)
