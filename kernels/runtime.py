@@ -42,14 +42,14 @@ def init():
 
 @contextlib.contextmanager
 def torch_capture(torch_stream):
-    """Tell Warp that `torch_stream` is capturing a CUDA graph that torch began (torch.cuda.graph), for the
-    capture's duration. Why: Warp frees an array's memory when Python drops it, and a free while a stream captures
-    in global mode invalidates the capture (Warp CUDA error 900 in release_now), e.g. a simulation's arrays that the
+    """Tell Warp that `torch_stream` is capturing a CUDA graph that torch began (torch.cuda.graph, thread-local
+    mode), for the capture's duration. Why: Warp frees an array's memory when Python drops it, and a free in the
+    capturing thread invalidates the capture (Warp CUDA error 900 in release_now), e.g. a simulation's arrays that the
     garbage collector reaches during a warm process's next capture. Told of the capture, Warp defers those frees
     until it ends (H100: a capture with a Warp array dropped inside failed without this and succeeded with it)."""
     wp = init()
     stream = wp.stream_from_torch(torch_stream)
-    mode = getattr(getattr(wp, "CaptureMode", None), "GLOBAL", None)  # torch.cuda.graph's default mode
+    mode = getattr(getattr(wp, "CaptureMode", None), "THREAD_LOCAL", None)  # the mode training.graph_step captures in
     if mode is None:
         wp.capture_begin(stream=stream, external=True)
     else:

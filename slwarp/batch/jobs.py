@@ -33,7 +33,9 @@ class BatchOptions:
     progress (training progress of each scan; only when one process runs the batch), log (per-scan start and
     end lines), outside_paths (files outside a scan's folder: see `load_scan`), patterns (a pattern-set file,
     slwarp.scans.pattern_files, whose patterns replace those of each scan's frames of the same names:
-    `Scan.with_patterns`; a path, read per scan, so that the options stay small to send to worker processes)."""
+    `Scan.with_patterns`; a path, read per scan, so that the options stay small to send to worker processes),
+    overlap (a scan's extraction and files made in a thread while the next scan trains, `run_scans`; None: on a GPU,
+    where the training leaves the host idle)."""
 
     frames: str | None = None
     depth_range: tuple[float, float] | None = None
@@ -44,6 +46,7 @@ class BatchOptions:
     log: bool = True
     outside_paths: bool | None = None
     patterns: str | None = None
+    overlap: bool | None = None
 
 
 @dataclass(frozen=True)
@@ -158,6 +161,9 @@ def run_scans(jobs: Iterable[ScanJob], config, options: BatchOptions = BatchOpti
     thread while the scan before it trains, and its files written in a thread while the next one trains
     (reconstruct's write_in_background; a scan whose files fail is marked failed when they do). Why: a `fast` scan
     after the first took 3.6-3.9 s in a batch on an H100, of which loading was about 0.3 s and the files 0.4 s.
+    With options.overlap (default: on a GPU) a scan's extraction, metrics and files are made in a thread while the
+    next scan sets up and trains (reconstruct_in_background; one such thread at a time, in order): the extraction is
+    mostly host work (0.75 s of a `fast` scan's 3.3 s on an H100) and the training mostly waits on the GPU.
     A row's `seconds` ends when its depth map and metrics are known; the batch's wall time counts everything.
 
     jobs: any iterable, drawn one ahead (the next job is taken once the current scan is in memory: a worker of a
@@ -193,6 +199,8 @@ def run_scans(jobs: Iterable[ScanJob], config, options: BatchOptions = BatchOpti
     thread.start()
     todo = iter(jobs)
     rows: list[ScanResult] = []
+    overlap = options.overlap if options.overlap is not None else _on_gpu(config)
+    previous = [None]  # the Finishing of the scan before, when it extracts in a thread (overlap)
     try:
         job = next(todo, None)
         ahead = load(job) if job is not None else None
@@ -206,10 +214,12 @@ def run_scans(jobs: Iterable[ScanJob], config, options: BatchOptions = BatchOpti
 
             writing: list = []
             row = run_scan(job, config, options, worker, log, loaded=current, on_loaded=load_next, writing=writing,
-                           device_name=device_name)
+                           device_name=device_name, overlap=overlap, after=previous[0])
+            if writing and len(writing[0]) > 2:  # the next scan's extraction waits for this one's
+                previous[0] = writing[0][2]
             rows.append(row)
             timeline.mark(f"scan {len(rows)}")
-            finals.put(writing[0] if writing else (row, None))
+            finals.put(writing[0][:2] if writing else (row, None))
             job = following[0]
     finally:
         finals.put(None)
@@ -227,22 +237,33 @@ def _settle_written(row: ScanResult, wait: Callable[[], None]) -> None:
         row.status, row.error, row.traceback = "failed", error_line(e), traceback.format_exc()
 
 
+def _on_gpu(config) -> bool:
+    """Whether a run of `config` trains on a CUDA device."""
+    from ..devices import torch_device
+
+    try:
+        return torch_device(config.runtime.device).type == "cuda"
+    except Exception:  # noqa: BLE001 - a bad device is each scan's own error, reported in its line
+        return False
+
+
 def run_scan(job: ScanJob, config, options: BatchOptions = BatchOptions(), worker: str = "main",
              log: Callable[[str], None] = print, loaded=None, on_loaded: Callable[[], None] | None = None,
-             writing: list | None = None, device_name: str | None = None) -> ScanResult:
+             writing: list | None = None, device_name: str | None = None, overlap: bool = False,
+             after=None) -> ScanResult:
     """Reconstruct one scan into job.out_dir with `config` (whose runtime.device it runs on) and return its
     summary line; any error of the scan (loading, training, writing) is caught and reported in the line; a stop
     asked for (KeyboardInterrupt, SystemExit, TrainingInterrupted: Ctrl-C or SIGTERM during training, after its
     checkpoint) passes, so that the batch stops instead of going on with the next scan. loaded: a ScanPrefetch of
     job.source (else it is loaded here); on_loaded: called once the scan is in memory (run_scans loads the next);
     writing: a list to which (row, wait) is appended when the files are being written in the background (else they
-    are written before this returns). device_name: how the row and the log lines name the device (default: the
-    config's)."""
-    from ..neural.reconstruct import reconstruct
+    are written before this returns). overlap (with writing): return once the field is trained, the extraction and
+    files made in a thread (reconstruct_in_background) that first waits for `after` (the Finishing of the scan before,
+    or None); then (row, wait, finishing) is appended and wait() completes the row. device_name: how the row and the
+    log lines name the device (default: the config's)."""
+    from ..neural.reconstruct import reconstruct, reconstruct_in_background
     from ..neural.training import TrainingInterrupted
     from ..scans.scan import load_scan
-
-    import numpy as np
 
     device = device_name or config.runtime.device
     row = ScanResult(job.name, job.source, job.out_dir, "failed", worker=worker, device=device)
@@ -260,36 +281,72 @@ def run_scan(job: ScanJob, config, options: BatchOptions = BatchOptions(), worke
         _fit_compiled(scan, config)
         resume = options.resume and (Path(job.out_dir) / CHECKPOINT).is_file()
         say(f"[{worker} {device}] {job.name}: {'resuming' if resume else 'starting'} ({len(scan)} frames) -> {job.out_dir}")
-        res = reconstruct(scan, config, out_dir=job.out_dir, resume=resume, depth_range=options.depth_range,
-                          use_mask=options.use_mask, progress=options.progress, overwrite=options.overwrite and not resume,
-                          write_in_background=writing is not None)
+        kwargs = dict(resume=resume, depth_range=options.depth_range, use_mask=options.use_mask,
+                      progress=options.progress, overwrite=options.overwrite and not resume)
+        if overlap and writing is not None:
+            started = time.perf_counter() - t0  # loading, until the reconstruction begins
+            finishing = reconstruct_in_background(scan, config, job.out_dir,
+                                                  after=after.wait if after is not None else None, **kwargs)
+            tag = f"[{worker} {device}] {job.name}"
+
+            def complete() -> None:
+                try:
+                    res = finishing.result()
+                except Exception as e:
+                    row.seconds = time.perf_counter() - t0
+                    _say_outcome(row, say, tag, failed=e)
+                    raise
+                _record(row, res, say, tag)
+                row.seconds = started + res.timings["total_s"]  # until its depth map and metrics were known
+                _say_outcome(row, say, tag)
+
+            row.status = "done"
+            writing.append((row, complete, finishing))
+            del scan
+            _release_memory()
+            return row
+        res = reconstruct(scan, config, out_dir=job.out_dir, write_in_background=writing is not None, **kwargs)
         if writing is not None:
             writing.append((row, res.wait_written))
-        row.status = "done"
-        if res.timings.get("surface_lost"):  # its files are written, for a look; the scan counts as failed
-            from ..neural.reconstruct import lost_surface_message
-
-            row.status, row.error = "failed", lost_surface_message(res.timings["surface_lost"], res.trainer.depth_range)
-        if res.timings.get("range_missed"):  # not failed: a range kept narrow on purpose leaves the rest out
-            from ..neural.reconstruct import range_missed_message
-
-            say(f"[{worker} {device}] {job.name}: warning: "
-                f"{range_missed_message(res.timings['range_missed'], res.trainer.depth_range)}")
-        row.iterations = res.timings.get("iterations")
-        row.valid_share = float(np.isfinite(res.depth).mean())
-        if res.metrics is not None:
-            row.mae, row.completeness = res.metrics.get("mae"), res.metrics.get("completeness")
+        _record(row, res, say, f"[{worker} {device}] {job.name}")
         del res, scan
     except TrainingInterrupted:
         raise
     except Exception as e:  # one scan's failure, whatever it is, must not stop the others
+        row.status = "failed"
         row.error, row.traceback = error_line(e), traceback.format_exc()
     row.seconds = time.perf_counter() - t0
     _release_memory()
-    if row.status == "done":
-        say(f"[{worker} {device}] {job.name}: done in {row.seconds:.1f} s, valid {row.valid_share:.1%}"
+    _say_outcome(row, say, f"[{worker} {device}] {job.name}")
+    return row
+
+
+def _record(row: ScanResult, res, say: Callable[[str], None], tag: str) -> None:
+    """A finished Reconstruction's figures in its row: done, or failed where the field lost the surface."""
+    import numpy as np
+
+    row.status = "done"
+    if res.timings.get("surface_lost"):  # its files are written, for a look; the scan counts as failed
+        from ..neural.reconstruct import lost_surface_message
+
+        row.status, row.error = "failed", lost_surface_message(res.timings["surface_lost"], res.trainer.depth_range)
+    if res.timings.get("range_missed"):  # not failed: a range kept narrow on purpose leaves the rest out
+        from ..neural.reconstruct import range_missed_message
+
+        say(f"{tag}: warning: {range_missed_message(res.timings['range_missed'], res.trainer.depth_range)}")
+    row.iterations = res.timings.get("iterations")
+    row.valid_share = float(np.isfinite(res.depth).mean())
+    if res.metrics is not None:
+        row.mae, row.completeness = res.metrics.get("mae"), res.metrics.get("completeness")
+
+
+def _say_outcome(row: ScanResult, say: Callable[[str], None], tag: str, failed: BaseException | None = None) -> None:
+    """The row's log line: done in its seconds, or failed (`failed`: the error that ends a row being completed)."""
+    if failed is not None:
+        say(f"{tag}: failed after {row.seconds:.1f} s: {error_line(failed)}")
+    elif row.status == "done":
+        say(f"{tag}: done in {row.seconds:.1f} s, valid {row.valid_share:.1%}"
             + (f", MAE {row.mae:.3f} mm" if row.mae is not None and math.isfinite(row.mae) else ""))
     else:
-        say(f"[{worker} {device}] {job.name}: failed after {row.seconds:.1f} s: {row.error}")
-    return row
+        say(f"{tag}: failed after {row.seconds:.1f} s: {row.error}")
 

@@ -192,6 +192,70 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
     return res
 
 
+class Finishing:
+    """A reconstruction whose field is trained and whose depth map, metrics and files are being made in a thread
+    (reconstruct_in_background). result() waits for it: the Reconstruction, its files written (and its checkpoint),
+    or the error that stopped it, in which case none of its files appeared."""
+
+    def __init__(self, work):
+        self._res, self._error = None, None
+
+        def run():
+            try:
+                self._res = work()
+            except BaseException as e:  # noqa: BLE001 - raised by result(), in the caller's thread
+                self._error = e
+
+        self._thread = threading.Thread(target=run, name="slwarp-finish")  # not a daemon: the files get written
+        self._thread.start()
+
+    def wait(self) -> None:
+        """Wait for the thread to end, whatever its outcome (result() tells it)."""
+        self._thread.join()
+
+    def result(self) -> Reconstruction:
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._res
+
+
+def reconstruct_in_background(scan, config: TrainConfig, out_dir, resume: bool = False, depth_range=None,
+                              use_mask: bool = False, progress: bool = True, log_every_s: float | None = None,
+                              overwrite: bool = False, after=None) -> Finishing:
+    """reconstruct(...) into out_dir, returning as soon as the field is trained (here, on this thread): the depth map
+    is extracted, measured and written into out_dir by a thread of its own (Finishing.result() waits for it). Why:
+    on a GPU the extraction is mostly host work while the training keeps the GPU busy and the host idle, so a batch
+    trains its next scan beside it. after: called first by that thread (a batch: the scan before has finished, so
+    that one extraction at most runs beside a training). Errors of the training are raised here, the others by
+    result()."""
+    out = check_output_folder(out_dir)
+    outputs = staged_outputs(out)
+    staging = outputs.__enter__()
+    try:
+        trained = _train(scan, config, out, resume, depth_range, use_mask, progress, log_every_s, overwrite, staging)
+    except BaseException:
+        outputs.__exit__(*sys.exc_info())  # removes the staging folder (and re-raises a wrapped OSError)
+        raise
+
+    def work() -> Reconstruction:
+        try:
+            if after is not None:
+                after()
+            res, jobs = _finish(trained)
+            _write_files(res, jobs)
+        except BaseException as e:
+            try:
+                outputs.__exit__(type(e), e, e.__traceback__)  # removes the staging folder, re-raises (wrapped)
+            except BaseException as wrapped:  # noqa: BLE001
+                raise wrapped from None
+            raise
+        outputs.__exit__(None, None, None)
+        return res
+
+    return Finishing(work)
+
+
 def _import_in_background(*modules) -> None:
     """Import these modules (None: skipped) in a daemon thread: scikit-image's marching cubes, which the CPU's
     extraction needs, while the CPU trains (on a GPU host trimesh imported so beside the training slowed its first
@@ -216,8 +280,34 @@ def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log
     without a staging folder); the final checkpoint goes to out/train in a thread (Trainer.wait_checkpoint). Where
     the field lost the surface (lost_surface) and config.runtime.retry_lost_surface, it trains once more from the
     start with the next seed and returns that run, its timings' "lost_surface_retry" saying what the first found."""
-    from ..evaluation.metrics import depth_metrics
+    return _finish(_train(scan, config, out, resume, depth_range, use_mask, progress, log_every_s, overwrite, staging,
+                          retry))
 
+
+@dataclass
+class _Trained:
+    """A trained field before its extraction (_train's result, _finish's input): the run's arguments, its stages
+    and its clock (t0 start, t1 set up, t2 trained; perf_counter seconds)."""
+
+    scan: object
+    config: TrainConfig
+    out: object
+    depth_range: object
+    use_mask: bool
+    progress: bool
+    log_every_s: float | None
+    staging: object
+    retry: bool
+    trainer: Trainer
+    stages: list
+    t0: float
+    t1: float
+    t2: float
+
+
+def _train(scan, config, out, resume, depth_range, use_mask, progress, log_every_s, overwrite, staging=None,
+           retry=True) -> _Trained:
+    """The first half of _reconstruct: the trainer set up and trained, on this thread."""
     t0 = time.perf_counter()
     stages = build_stages(config.extraction)  # a stage list that cannot run fails before training
     rays_ahead(scan.camera)  # the depth search's ray grid, computed while the trainer sets up
@@ -229,15 +319,25 @@ def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log
         _import_in_background("skimage.measure")
     trainer.checkpoint_in_background = True  # the final checkpoint is written beside the extraction
     trainer.train()
-    if trainer.device.type == "cuda":
-        torch.cuda.synchronize(trainer.device)
-    t2 = time.perf_counter()
+    if trainer.device.type == "cuda":  # this thread's stream: the training's work (another thread may extract)
+        torch.cuda.current_stream(trainer.device).synchronize()
+    return _Trained(scan, config, out, depth_range, use_mask, progress, log_every_s, staging, retry, trainer, stages,
+                    t0, t1, time.perf_counter())
+
+
+def _finish(trained: _Trained):
+    """The second half of _reconstruct: the depth map extracted from the trained field, its metrics and the jobs that
+    write its files (or, where the field lost the surface, the retry's); on any thread."""
+    from ..evaluation.metrics import depth_metrics
+
+    scan, config, trainer, use_mask = trained.scan, trained.config, trained.trainer, trained.use_mask
+    t0, t1, t2 = trained.t0, trained.t1, trained.t2
     valid = trainer.renderer.valid_map.cpu().numpy()
     if use_mask and scan.mask is not None:
         valid &= scan.mask
     try:
         depth, confidence, mesh, ext_t, fate = extract_depth(
-            trainer, valid, progress=progress, stages=stages,
+            trainer, valid, progress=trained.progress, stages=trained.stages,
             region=scan.mask if use_mask and scan.mask is not None else None)
     except BaseException:
         _settle_checkpoint(trainer)
@@ -257,16 +357,17 @@ def _reconstruct(scan, config, out, resume, depth_range, use_mask, progress, log
     timings["graph_captured"] = trainer.graph_captured
     timings["surface_lost"] = shares if surface_is_lost(shares) else None
     timings["range_missed"] = range_missed(timings["pixels"], shares, int(np.isfinite(depth).sum()))
-    if timings["surface_lost"] and retry and config.runtime.retry_lost_surface:
+    if timings["surface_lost"] and trained.retry and config.runtime.retry_lost_surface:
         _settle_checkpoint(trainer)  # the next run replaces it
         seed = config.runtime.seed
-        res, jobs = _reconstruct(scan, config.with_options(seed=seed + 1), out, False, depth_range, use_mask, progress,
-                                 log_every_s, True, staging, retry=False)
+        res, jobs = _reconstruct(scan, config.with_options(seed=seed + 1), trained.out, False, trained.depth_range,
+                                 use_mask, trained.progress, trained.log_every_s, True, trained.staging, retry=False)
         res.timings["lost_surface_retry"] = {"seed": seed, **timings["surface_lost"], "total_s": timings["total_s"]}
         return res, jobs
     jobs = None
-    if staging is not None:
-        jobs = _output_jobs(staging, scan, config, trainer, depth, confidence, mesh, points, metrics, fate, timings)
+    if trained.staging is not None:
+        jobs = _output_jobs(trained.staging, scan, config, trainer, depth, confidence, mesh, points, metrics, fate,
+                            timings)
     return Reconstruction(depth, mesh, points, metrics, timings, trainer, confidence, fate), jobs
 
 

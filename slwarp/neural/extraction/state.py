@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
+import threading
 from typing import NamedTuple
 
 import numpy as np
@@ -86,21 +87,26 @@ FATE = {name: i for i, name in enumerate(PIXEL_FATES)}
 _FATES = list(PIXEL_FATES)
 
 
+_FATES_LOCK = threading.Lock()  # extractions of a batch may run in two threads at once
+
+
 def register_fate(name: str) -> int:
     """The index of fate `name` in the fate maps, a new one appended after PIXEL_FATES the first time."""
-    if name not in _FATES:
-        if len(_FATES) == 256:
-            raise ValueError(f"fate {name!r}: a fate map (uint8) holds 256 fates, all taken")
-        _FATES.append(name)
-    return _FATES.index(name)
+    with _FATES_LOCK:
+        if name not in _FATES:
+            if len(_FATES) == 256:
+                raise ValueError(f"fate {name!r}: a fate map (uint8) holds 256 fates, all taken")
+            _FATES.append(name)
+        return _FATES.index(name)
 
 
 def forget_fate(name: str) -> None:
     """Drop a fate that register_fate appended (PIXEL_FATES stay); the ones after it move down by one."""
     if name in PIXEL_FATES:
         raise ValueError(f"fate {name!r} is one of PIXEL_FATES")
-    if name in _FATES:
-        _FATES.remove(name)
+    with _FATES_LOCK:
+        if name in _FATES:
+            _FATES.remove(name)
 
 
 def pixel_fates() -> tuple[str, ...]:

@@ -14,7 +14,6 @@
 """
 from __future__ import annotations
 
-import contextlib
 
 import numpy as np
 import torch
@@ -134,11 +133,12 @@ def _marching_cubes_warp(values: torch.Tensor, origin: np.ndarray, h: float) -> 
     hi = tuple(float(x) for x in np.asarray(origin) + h * (n - 1))
     device = warp_device(values.device)
     with wp.ScopedDevice(device):
-        # on torch's stream: after the field's evaluation of the grid, with no host synchronisation between them
-        stream = wp.ScopedStream(wp.stream_from_torch(values.device)) if values.is_cuda else contextlib.nullcontext()
-        with stream:
-            verts, tris = IsoSurfaceMarchingCubes.extract(wp.from_torch(values.contiguous()), 0.0, lower=lo, upper=hi)
-            return verts.numpy().astype(np.float64), tris.numpy().reshape(-1, 3).astype(np.int64)
+        # after the field's evaluation of the grid on torch's stream, with no host synchronisation between them: Warp's
+        # stream waits for torch's (not a ScopedStream, which would switch the device's stream for every thread)
+        if values.is_cuda:
+            wp.get_stream(device).wait_stream(wp.stream_from_torch(values.device))
+        verts, tris = IsoSurfaceMarchingCubes.extract(wp.from_torch(values.contiguous()), 0.0, lower=lo, upper=hi)
+        return verts.numpy().astype(np.float64), tris.numpy().reshape(-1, 3).astype(np.int64)
 
 
 def mesh_depth(mesh, camera, device=None, hits: int = 1, eps_mm: float = 1.0) -> np.ndarray:

@@ -8,6 +8,8 @@ current stream without host synchronisation, so that a whole training step can b
 """
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import torch
 
@@ -22,7 +24,9 @@ desc = runtime.array_desc
 struct = runtime.struct_value
 
 _PARAMS_CACHE: dict = {}
-_LAUNCHERS: dict = {}
+# each thread its own recorded launches: a launch rewrites its command's parameters before launching it, and a batch
+# extracts one scan in a thread while the next trains in another, both through the same kernels
+_LAUNCHERS = threading.local()
 _STREAMS: dict = {}
 
 
@@ -70,10 +74,13 @@ def vec3(values):
 
 def launch(kernel, dim, inputs, device: torch.device):
     """Launch on torch's current stream of `device` (asynchronous: no host synchronisation)."""
-    launcher = _LAUNCHERS.get(kernel)
+    launchers = getattr(_LAUNCHERS, "by_kernel", None)
+    if launchers is None:
+        launchers = _LAUNCHERS.by_kernel = {}
+    launcher = launchers.get(kernel)
     if launcher is None:
         # 64-thread blocks: one thread per ray leaves few warps per SM, so spread them over more blocks
-        launcher = _LAUNCHERS[kernel] = runtime.CachedLaunch(kernel, block_dim=64)
+        launcher = launchers[kernel] = runtime.CachedLaunch(kernel, block_dim=64)
     if device.type == "cuda":
         wp = runtime.init()
         torch_stream = torch.cuda.current_stream(device)

@@ -194,7 +194,9 @@ class GraphedStep:
         current = torch.cuda.current_stream(dev)
         self.stream.wait_stream(current)
         try:
-            with torch.cuda.graph(g["graph"], stream=self.stream), runtime.torch_capture(self.stream):
+            # thread-local: another thread's CUDA work (a batch's extraction of the scan before) may go on meanwhile
+            with (torch.cuda.graph(g["graph"], stream=self.stream, capture_error_mode="thread_local"),
+                  runtime.torch_capture(self.stream)):
                 g["out"] = self.body(g["pick"], g["jitter"], {"warmup": g["warmup"], "lambda_sc": g["lambda_sc"]})
         except Exception as e:  # noqa: BLE001 - any capture failure leaves plain launches, which always work
             torch.cuda.set_stream(current)

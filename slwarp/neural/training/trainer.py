@@ -135,6 +135,9 @@ class _SetupClock:
         self._last = now
 
 
+_SETUP_LOCK = threading.Lock()
+
+
 class Trainer:
     """Trains the config's field (make_field: NeuS's MLP or the hash grid) or a given SDF module on a scan with
     the structured-light renderer.
@@ -150,6 +153,14 @@ class Trainer:
     def __init__(self, scan, config: TrainConfig, out_dir: str | os.PathLike | None = None, resume: bool = False,
                  sdf: torch.nn.Module | None = None, depth_range=None, progress: bool = True, init_depth=None,
                  progress_interval_s: float | None = None, overwrite: bool = False):
+        # one set-up at a time in a process: it seeds torch's global generator, from which the field draws its
+        # initial values (a batch's retry of a lost surface sets up in the thread that extracts, beside the next scan)
+        with _SETUP_LOCK:
+            self._set_up(scan, config, out_dir, resume, sdf, depth_range, progress, init_depth, progress_interval_s,
+                         overwrite)
+
+    def _set_up(self, scan, config, out_dir, resume, sdf, depth_range, progress, init_depth, progress_interval_s,
+                overwrite):
         # declared_cfg: the run as asked for (its identity, its checkpoints); cfg: as it trains, which a lens with a
         # halo may change (TrainConfig.through_lens, applied once the halo is known)
         self.cfg = self.declared_cfg = config = config.validate()
