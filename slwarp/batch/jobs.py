@@ -185,11 +185,14 @@ def run_scans(jobs: Iterable[ScanJob], config, options: BatchOptions = BatchOpti
     errors: list[BaseException] = []
 
     def reporter() -> None:
+        final = 0
         while (item := finals.get()) is not None:
             row, wait = item
             try:
                 if wait is not None:
                     _settle_written(row, wait)
+                final += 1
+                timeline.mark(f"scan {final}")  # the row is final: its depth map and files are there
                 if on_row is not None:
                     on_row(row)
             except BaseException as e:  # noqa: BLE001 - raised in the caller's thread once all are reported
@@ -218,7 +221,7 @@ def run_scans(jobs: Iterable[ScanJob], config, options: BatchOptions = BatchOpti
             if writing and len(writing[0]) > 2:  # the next scan's extraction waits for this one's
                 previous[0] = writing[0][2]
             rows.append(row)
-            timeline.mark(f"scan {len(rows)}")
+            timeline.mark(f"scan {len(rows)} trained")
             finals.put(writing[0][:2] if writing else (row, None))
             job = following[0]
     finally:
