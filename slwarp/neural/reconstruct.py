@@ -241,7 +241,9 @@ def reconstruct_in_background(scan, config: TrainConfig, out_dir, resume: bool =
     def work() -> Reconstruction:
         try:
             if after is not None:
+                t = time.perf_counter()
                 after()
+                trained.waited = time.perf_counter() - t
             res, jobs = _finish(trained)
             _write_files(res, jobs)
         except BaseException as e:
@@ -303,6 +305,7 @@ class _Trained:
     t0: float
     t1: float
     t2: float
+    waited: float = 0.0  # seconds between t2 and the extraction's start spent waiting (for a batch's scan before)
 
 
 def _train(scan, config, out, resume, depth_range, use_mask, progress, log_every_s, overwrite, staging=None,
@@ -347,11 +350,14 @@ def _finish(trained: _Trained):
     metrics = None
     if scan.gt_depth is not None:
         metrics = depth_metrics(depth, scan.gt_depth, scan.mask)
-    timings = {"setup_s": t1 - t0, "train_s": t2 - t1, "depth_map_s": t3 - t0, "train_wall_s_total": trainer.elapsed,
+    waited = trained.waited  # not this scan's work: left out of its depth map's and its total time
+    timings = {"setup_s": t1 - t0, "train_s": t2 - t1, "depth_map_s": t3 - t0 - waited,
+               "train_wall_s_total": trainer.elapsed,
                "iterations": trainer.iteration, "setup_phases_s": trainer.setup_phases,
                "first_steps_s": trainer.first_steps, "pattern_halo": trainer.halo_share,
                "pattern_halo_fit": trainer.halo_fit, "lens_schedule": trainer.lens_schedule, **ext_t,
-               "pixels": fate_counts(fate), "total_s": time.perf_counter() - t0}
+               "pixels": fate_counts(fate), "total_s": time.perf_counter() - t0 - waited,
+               "waited_before_extraction_s": waited}
     # what the lost-surface rule read, and whether the step ran as a CUDA graph (both for study: bench.accuracy_sweep)
     shares = timings["surface_shares"] = surface_shares(timings["pixels"], trainer.init_depth)
     timings["graph_captured"] = trainer.graph_captured
