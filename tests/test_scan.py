@@ -170,33 +170,6 @@ def test_corrupt_image(native, capsys):
     assert "002_gc_col_b2.png" in msg
 
 
-def test_read_errors_in_frame_order(native, capsys, monkeypatch):
-    """The files decode in threads, but a scan with two bad files names the first in frame order, as a sequential
-    read would: here the earlier file's decode is held back until the later one has failed."""
-    import threading
-
-    from slwarp.scans import images
-
-    monkeypatch.setattr(images, "READ_THREADS", 4)
-    (native / "images/000_gc_col_b0.png").write_bytes(b"\x89PNG\r\n garbage")
-    (native / "images/002_gc_col_b2.png").unlink()
-    later_failed = threading.Event()
-    read = images.read_image
-
-    def slow_first(path, what="image"):
-        if path.name == "000_gc_col_b0.png":
-            later_failed.wait(5)
-        try:
-            return read(path, what)
-        except ScanError:
-            later_failed.set()
-            raise
-
-    monkeypatch.setattr(images, "read_image", slow_first)
-    msg = expect_error(native, "unreadable or corrupt", capsys)
-    assert "000_gc_col_b0.png" in msg and later_failed.is_set()
-
-
 def test_image_count_differs_from_pattern_count(tmp_path, capsys):
     scan = tiny_scan()
     write_ness(tmp_path / "n", scan)

@@ -9,12 +9,7 @@ import numpy as np
 
 from .errors import ScanError
 
-__all__ = ["IMAGE_SIGNATURES", "read_image", "write_image", "read_depth", "read_mask", "read_image_stack", "stack_reads",
-           "read_in_threads"]
-
-# the threads that decode a scan's files at once: OpenCV's PNG decoder and numpy's conversion leave the interpreter
-# lock free, so the files of a 1280 x 1024 scan decode side by side
-READ_THREADS = min(8, os.cpu_count() or 1)
+__all__ = ["IMAGE_SIGNATURES", "read_image", "write_image", "read_depth", "read_mask", "read_image_stack"]
 
 # the first bytes of the image files slwarp reads: PNG, TIFF and BigTIFF (either byte order)
 IMAGE_SIGNATURES = (b"\x89PNG", b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
@@ -111,39 +106,14 @@ def read_mask(path: Path) -> np.ndarray:
     return read_image(path, "mask") > 0.5
 
 
-def read_in_threads(calls: list) -> list:
-    """[call() for call in calls], run in up to READ_THREADS threads; the first failure in list order is raised (as
-    reading them one after another would report it)."""
-    if len(calls) <= 1 or READ_THREADS <= 1:
-        return [call() for call in calls]
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(min(READ_THREADS, len(calls)), thread_name_prefix="slwarp-read") as pool:
-        futures = [pool.submit(call) for call in calls]
-        return [f.result() for f in futures]
-
-
-def stack_reads(files: list[tuple[Path, str]], shape: tuple[int, int], kind: str,
-                size_name: str) -> tuple[np.ndarray, list]:
-    """An [N, H, W] float32 array for these images (path, what) and the calls that read each into its slot, checking
-    its size against `shape` (height, width): run them with read_in_threads, with a scan's other reads."""
-    out = np.empty((len(files), *shape), np.float32)
-
-    def reader(i: int, f: Path, what: str):
-        def read():
-            img = read_image(f, what)
-            if img.shape != shape:
-                raise ScanError(
-                    f"{kind} size {img.shape[1]}x{img.shape[0]} != {size_name} size {shape[1]}x{shape[0]}: {f}"
-                )
-            out[i] = img
-        return read
-
-    return out, [reader(i, f, what) for i, (f, what) in enumerate(files)]
-
-
 def read_image_stack(files: list[tuple[Path, str]], shape: tuple[int, int], kind: str, size_name: str) -> np.ndarray:
-    """Read images of one kind ([N, H, W] float32) and check their size against `shape` (height, width)."""
-    out, calls = stack_reads(files, shape, kind, size_name)
-    read_in_threads(calls)
+    """Read images of one kind and check their size against `shape` (height, width)."""
+    out = np.empty((len(files), *shape), np.float32)
+    for i, (f, what) in enumerate(files):
+        img = read_image(f, what)
+        if img.shape != shape:
+            raise ScanError(
+                f"{kind} size {img.shape[1]}x{img.shape[0]} != {size_name} size {shape[1]}x{shape[0]}: {f}"
+            )
+        out[i] = img
     return out

@@ -13,7 +13,7 @@ import numpy as np
 
 from .confinement import ConfinedFiles
 from .errors import ScanError, calibration_from
-from .images import read_depth, read_image, read_in_threads, read_mask, stack_reads
+from .images import read_depth, read_image, read_image_stack, read_mask
 from .roles import FrameRole, RoleError, parse_role
 from .scanner import Camera, Projector, check_rotation
 
@@ -121,14 +121,12 @@ def read_ness(folder: Path, files: ConfinedFiles) -> dict:
     if missing:
         raise ScanError(f"{folder / 'img'}: image count != pattern count: no img_<tag>.png for tags {missing}")
     tags = sorted(pats, key=ness_order_key)
+    images = read_image_stack([(imgs[t], f"image img_{t}") for t in tags], (img_h, img_w), "image", "camera")
+    patterns = read_image_stack([(pats[t], f"pattern pat_{t}") for t in tags], (pat_h, pat_w), "pattern", "projector")
     gt_file = files.path("ground truth", "gt/depth.png") if (folder / "gt" / "depth.png").is_file() else None
     mask_file = files.path("mask", "gt/mask_occ.png") if (folder / "gt" / "mask_occ.png").is_file() else None
-    images, image_reads = stack_reads([(imgs[t], f"image img_{t}") for t in tags], (img_h, img_w), "image", "camera")
-    patterns, pattern_reads = stack_reads([(pats[t], f"pattern pat_{t}") for t in tags], (pat_h, pat_w), "pattern",
-                                          "projector")
-    gt, mask = read_in_threads([*image_reads, *pattern_reads,  # every file at once, errors in this order
-                                lambda: read_depth(gt_file, "gt/depth.png") if gt_file is not None else None,
-                                lambda: read_mask(mask_file) if mask_file is not None else None])[-2:]
+    gt = read_depth(gt_file, "gt/depth.png") if gt_file is not None else None
+    mask = read_mask(mask_file) if mask_file is not None else None
     return dict(camera=camera, projector=projector, images=images, patterns=patterns, names=tags,
                 depth_range=tuple(zr) if zr is not None else None, gt_depth=gt, mask=mask, source=str(folder),
                 declared_roles={t: r for t in tags if (r := ness_role(t)) is not None})
@@ -215,8 +213,6 @@ def _read_procam_with(folder: Path, capture, xml: Path, calib: dict, files: Conf
     names = _procam_names(projector.width, projector.height)
     if len(names) != len(pat_files):
         names = [f"frame{i:02d}" for i in range(len(pat_files))]  # not OpenCV's Gray code order: keep generic names
-    images, image_reads = stack_reads([(f, "image") for f in img_files], (camera.height, camera.width), "image", "camera")
-    patterns, pattern_reads = stack_reads([(f, "pattern") for f in pat_files], (projector.height, projector.width),
-                                          "pattern", "projector")
-    read_in_threads([*image_reads, *pattern_reads])
+    images = read_image_stack([(f, "image") for f in img_files], (camera.height, camera.width), "image", "camera")
+    patterns = read_image_stack([(f, "pattern") for f in pat_files], (projector.height, projector.width), "pattern", "projector")
     return dict(camera=camera, projector=projector, images=images, patterns=patterns, names=names, source=str(cap))

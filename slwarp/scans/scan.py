@@ -32,7 +32,7 @@ import numpy as np
 from ..evaluation.outputs import write_depth_png
 from .confinement import ConfinedFiles, inside_folder
 from .errors import ScanError, calibration_from
-from .images import read_depth, read_image, read_in_threads, read_mask, stack_reads, write_image
+from .images import read_depth, read_image, read_image_stack, read_mask, write_image
 from .importers import read_ness, read_procam
 from .roles import RoleError, parse_selector, resolve_roles, role_groups
 from .scanner import Camera, Projector
@@ -441,15 +441,14 @@ def _load_native(folder: Path, outside_paths: bool | None = None) -> Scan:
             if fr["role"] is None:
                 raise ScanError(f"{f}: frame {i} ({names[-1]!r}) has an empty role (give a role or leave the key out)")
             declared[names[-1]] = fr["role"]
+    images = read_image_stack(img_files, (camera.height, camera.width), "image", "camera")
+    patterns = read_image_stack(pat_files, (projector.height, projector.width), "pattern", "projector")
     gt_file = files.path("gt_depth", doc["gt_depth"]) if doc.get("gt_depth") else None
     mask_file = files.path("mask", doc["mask"]) if doc.get("mask") else None
-    images, image_reads = stack_reads(img_files, (camera.height, camera.width), "image", "camera")
-    patterns, pattern_reads = stack_reads(pat_files, (projector.height, projector.width), "pattern", "projector")
-    gt, mask = read_in_threads([*image_reads, *pattern_reads,  # every file at once, errors in this order
-                                lambda: read_depth(gt_file, "gt_depth") if gt_file is not None else None,
-                                lambda: read_mask(mask_file) if mask_file is not None else None])[-2:]
+    gt = read_depth(gt_file, "gt_depth") if gt_file is not None else None
     if gt is not None and gt.shape != (camera.height, camera.width):
         raise ScanError(f"gt_depth size {gt.shape[1]}x{gt.shape[0]} != camera size {camera.width}x{camera.height}: {gt_file}")
+    mask = read_mask(mask_file) if mask_file is not None else None
     if mask is not None and mask.shape != (camera.height, camera.width):
         raise ScanError(f"mask size {mask.shape[1]}x{mask.shape[0]} != camera size: {mask_file}")
     dr = doc.get("depth_range")
