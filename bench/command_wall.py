@@ -70,6 +70,19 @@ def breakdown(spawn: float, end: float, marks: dict, timings: dict) -> dict:
             "to_depth_map": start + timings["depth_map_s"] - spawn}
 
 
+def process_env(work: Path, empty: bool, smoke: bool) -> tuple[Path, dict]:
+    """(the caches folder <work>/caches, emptied first when `empty`; the environment of a fresh process that keeps
+    its caches there: Warp's kernels but with `smoke`, Inductor's and Triton's)."""
+    caches = work / "caches"
+    if empty:
+        shutil.rmtree(caches, ignore_errors=True)
+    caches.mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", **compile_cache_env(caches)}
+    if not smoke:  # the CPU's Warp kernels compile for minutes: the smoke test keeps the user's kernel cache
+        env["SLWARP_KERNEL_CACHE"] = str(caches / "warp")
+    return caches, env
+
+
 def run_command(cmd: list[str], env: dict, out: Path) -> dict:
     """One fresh process of `cmd`: its wall time from spawn to exit and, when it succeeded, its breakdown."""
     tl = out.parent / f"{out.name}.timeline.jsonl"
@@ -178,13 +191,7 @@ def main(argv=None) -> None:
     args.rig = args.rig or ("default" if cuda else "small")
     flags = option_flags(args.set)
     work = Path(args.work)
-    caches = work / "caches"
-    if args.cold:
-        shutil.rmtree(caches, ignore_errors=True)
-    caches.mkdir(parents=True, exist_ok=True)
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", **compile_cache_env(caches)}
-    if not args.smoke:  # the CPU's Warp kernels compile for minutes: the smoke test keeps the user's kernel cache
-        env["SLWARP_KERNEL_CACHE"] = str(caches / "warp")
+    caches, env = process_env(work, args.cold, args.smoke)
     bytecode_s = None
     if args.bytecode == "warm":
         env["PYTHONPYCACHEPREFIX"] = str(work / "pycache")

@@ -23,15 +23,13 @@ T_START = time.perf_counter()  # the child's clock starts before its imports
 import argparse  # noqa: E402
 import datetime  # noqa: E402
 import json  # noqa: E402
-import os  # noqa: E402
-import shutil  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 from bench import scan_on_disk, write_study  # noqa: E402
-from bench.batch_throughput import compile_cache_env  # noqa: E402  (where a station keeps torch.compile's caches)
+from bench.command_wall import process_env  # noqa: E402  (a fresh process's caches, as a station keeps them)
 
 SMOKE_SET = ["iters=3", "init_iters=2", "mc_resolution=32", "rays=64"]
 STAGES = ("setup_s", "train_s", "depth_map_s")
@@ -158,13 +156,7 @@ def main(argv=None) -> None:
     parse_set(args.set)  # a bad option stops here, not in each child
     args.rig = args.rig or ("default" if cuda else "small")
     work = Path(args.work)
-    caches = work / "caches"
-    if args.fresh:
-        shutil.rmtree(caches, ignore_errors=True)
-    caches.mkdir(parents=True, exist_ok=True)
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", **compile_cache_env(caches)}
-    if not args.smoke:  # the CPU's Warp kernels compile for minutes: the smoke test keeps the user's kernel cache
-        env["SLWARP_KERNEL_CACHE"] = str(caches / "warp")
+    caches, env = process_env(work, args.fresh, args.smoke)
     if args.scan:
         (args.scan, args.scene), args.rig = scan_on_disk(args.scan), "its own"
     else:

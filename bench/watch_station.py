@@ -22,8 +22,7 @@ import time
 from pathlib import Path
 
 from bench import write_study
-from bench.batch_throughput import compile_cache_env
-from bench.command_wall import option_flags
+from bench.command_wall import compile_bytecode, option_flags, process_env
 
 REPO = Path(__file__).resolve().parents[1]
 SCENES = ("bunny", "vase", "spheres", "torus")
@@ -96,6 +95,9 @@ def main(argv=None) -> None:
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="options given to the command as flags")
     p.add_argument("--runs", type=int, default=2, help="fresh station processes, one after another")
     p.add_argument("--cold", action="store_true", help="empty the caches before the first run")
+    p.add_argument("--bytecode", choices=["as-is", "warm"], default="as-is",
+                   help="warm: Python's bytecode compiled into <work>/pycache first, as a user's machine keeps it "
+                        "(bench.command_wall)")
     p.add_argument("--work", default="/tmp/slwarp-watch-station", help="the inbox, the caches and the outputs")
     p.add_argument("--smoke", action="store_true", help="CPU, small rig, tiny preset, 3 scans, a few iterations")
     p.add_argument("--stem", default=None)
@@ -111,13 +113,10 @@ def main(argv=None) -> None:
     args.preset = args.preset or "fast"
     args.rig = args.rig or ("default" if cuda else "small")
     work = Path(args.work)
-    caches = work / "caches"
-    if args.cold:
-        shutil.rmtree(caches, ignore_errors=True)
-    caches.mkdir(parents=True, exist_ok=True)
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", **compile_cache_env(caches)}
-    if not args.smoke:  # the CPU's Warp kernels compile for minutes: the smoke test keeps the user's kernel cache
-        env["SLWARP_KERNEL_CACHE"] = str(caches / "warp")
+    caches, env = process_env(work, args.cold, args.smoke)
+    if args.bytecode == "warm":
+        env["PYTHONPYCACHEPREFIX"] = str(work / "pycache")
+        compile_bytecode(work / "pycache")
     inbox = work / f"inbox-{args.rig}"
     make_inbox(inbox, args.scans, args.rig, {**os.environ, "SLWARP_KERNEL_CACHE": str(work / "simulator-kernels")}
                if not args.smoke else env)
