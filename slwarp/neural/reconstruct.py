@@ -128,17 +128,14 @@ class Reconstruction:
     trainer: Trainer | None = None
     confidence: np.ndarray | None = None
     fate: np.ndarray | None = None
-    writer: threading.Thread | None = field(default=None, repr=False)  # write_in_background's, until wait_written
-    _write_errors: list = field(default_factory=list, repr=False)
+    writer: "Finishing | None" = field(default=None, repr=False)  # write_in_background's, until wait_written
 
     def wait_written(self) -> None:
         """Wait for the output files being written in the background (reconstruct(write_in_background=True)); the
         write's error (OSError) when it failed, in which case none of this run's files appeared."""
         writer, self.writer = self.writer, None
         if writer is not None:
-            writer.join()
-        if self._write_errors:
-            raise self._write_errors[0]
+            writer.result()
 
 
 def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, depth_range=None,
@@ -167,35 +164,16 @@ def reconstruct(scan, config: TrainConfig, out_dir=None, resume: bool = False, d
             res, jobs = _reconstruct(*args, staging)
             _write_files(res, jobs)
         return res
-    outputs = staged_outputs(out)
-    staging = outputs.__enter__()
-    try:
-        res, jobs = _reconstruct(*args, staging)
-    except BaseException:
-        outputs.__exit__(*sys.exc_info())  # removes the staging folder (and re-raises a wrapped OSError)
-        raise
-
-    def finish():
-        try:
-            _write_files(res, jobs)
-        except BaseException as e:  # noqa: BLE001 - re-raised by wait_written, in the caller's thread
-            try:
-                outputs.__exit__(type(e), e, e.__traceback__)  # removes the staging folder, re-raises (wrapped)
-            except BaseException as wrapped:  # noqa: BLE001
-                e = wrapped
-            res._write_errors.append(e)
-        else:
-            outputs.__exit__(None, None, None)
-
-    res.writer = threading.Thread(target=finish, name="slwarp-outputs")
-    res.writer.start()
+    (res, jobs), res.writer = _staged_in_background(out, lambda staging: _reconstruct(*args, staging),
+                                                    lambda done: _write_files(*done))
     return res
 
 
 class Finishing:
-    """A reconstruction whose field is trained and whose depth map, metrics and files are being made in a thread
-    (reconstruct_in_background). result() waits for it: the Reconstruction, its files written (and its checkpoint),
-    or the error that stopped it, in which case none of its files appeared."""
+    """The rest of a reconstruction, going on in a thread: its depth map, metrics and files (reconstruct_in_background)
+    or its files alone (reconstruct(write_in_background=True)). result() waits for it: what it returns (the
+    Reconstruction, its files written, and its checkpoint), or the error that stopped it, in which case none of its
+    files appeared."""
 
     def __init__(self, work):
         self._res, self._error = None, None
@@ -213,7 +191,7 @@ class Finishing:
         """Wait for the thread to end, whatever its outcome (result() tells it)."""
         self._thread.join()
 
-    def result(self) -> Reconstruction:
+    def result(self):
         self._thread.join()
         if self._error is not None:
             raise self._error
@@ -229,23 +207,34 @@ def reconstruct_in_background(scan, config: TrainConfig, out_dir, resume: bool =
     trains its next scan beside it. after: called first by that thread (a batch: the scan before has finished, so
     that one extraction at most runs beside a training). Errors of the training are raised here, the others by
     result()."""
-    out = check_output_folder(out_dir)
+    def finish(trained: _Trained) -> Reconstruction:
+        if after is not None:
+            t = time.perf_counter()
+            after()
+            trained.waited = time.perf_counter() - t
+        res, jobs = _finish(trained)
+        _write_files(res, jobs)
+        return res
+
+    args = (scan, config, check_output_folder(out_dir), resume, depth_range, use_mask, progress, log_every_s, overwrite)
+    return _staged_in_background(args[2], lambda staging: _train(*args, staging), finish)[1]
+
+
+def _staged_in_background(out, first, rest):
+    """(first(staging), a Finishing of rest(that)): `first` runs here and `rest` in a thread, inside out's staged
+    outputs (evaluation.outputs.staged_outputs), which appear once `rest` has returned; when either fails the staging
+    folder goes (first's error raised here, rest's by Finishing.result())."""
     outputs = staged_outputs(out)
     staging = outputs.__enter__()
     try:
-        trained = _train(scan, config, out, resume, depth_range, use_mask, progress, log_every_s, overwrite, staging)
+        done = first(staging)
     except BaseException:
         outputs.__exit__(*sys.exc_info())  # removes the staging folder (and re-raises a wrapped OSError)
         raise
 
-    def work() -> Reconstruction:
+    def work():
         try:
-            if after is not None:
-                t = time.perf_counter()
-                after()
-                trained.waited = time.perf_counter() - t
-            res, jobs = _finish(trained)
-            _write_files(res, jobs)
+            value = rest(done)
         except BaseException as e:
             try:
                 outputs.__exit__(type(e), e, e.__traceback__)  # removes the staging folder, re-raises (wrapped)
@@ -253,9 +242,9 @@ def reconstruct_in_background(scan, config: TrainConfig, out_dir, resume: bool =
                 raise wrapped from None
             raise
         outputs.__exit__(None, None, None)
-        return res
+        return value
 
-    return Finishing(work)
+    return done, Finishing(work)
 
 
 def _import_in_background(*modules) -> None:
