@@ -8,9 +8,9 @@
 The process keeps what a process pays once (imports, the device's start, kernel modules, compiled graphs of
 the scans' size), so each scan after the first costs its reconstruction alone. As in a batch (slwarp.batch.run_scans),
 a scan that is ready loads while the one before trains and, on a GPU, its depth map is extracted and its files written
-while the next one trains (a `fast` scan every 2.7 s on an H100 instead of 3.6; bench/watch_station.py); its line is
-printed as soon as its files are complete. A scan folder is taken once it is
-complete: its scan.yaml parses and every file it names (frames' images and patterns, gt_depth, mask) is present,
+while the next one trains (a `fast` scan every 2.7 s on an H100, bench/watch_station.py; a batch there took 3.6 s a
+scan before it overlapped them); its line is printed as soon as its files are complete. A scan folder is taken once it
+is complete: its scan.yaml parses and every file it names (frames' images and patterns, gt_depth, mask) is present,
 and no file of the folder has changed size or time for `settle_s` (a scanner still copying frames is waited for).
 A scan's files are read from inside its folder only (slwarp.scans.scan.load_scan with outside_paths=False).
 Other layouts (NeSS config.ini, procam calibration_result.xml) are taken once their folder has settled. OUT/NAME
