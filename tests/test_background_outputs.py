@@ -94,3 +94,15 @@ def test_overlapped_batch_gives_the_same_results_in_order(scan, tmp_path, monkey
             np.testing.assert_array_equal(np.load(tmp_path / "out-False" / n / "depth.npy"),
                                           np.load(tmp_path / "out-True" / n / "depth.npy"))
     assert rows[True][1].error.startswith("ScanError:")
+
+
+def test_overlap_flag_of_reconstruct_and_watch():
+    """--overlap / --no-overlap reach the batch's options (absent: None, on a GPU only)."""
+    from slwarp.cli import build_parser
+    from slwarp.cli.neural import _batch_options
+
+    for flags, want in (([], None), (["--no-overlap"], False), (["--overlap"], True)):
+        argv = ["reconstruct", "a", "b", "--out", "o", *flags]
+        assert _batch_options(build_parser(argv).parse_args(argv), progress=False).overlap is want
+        argv = ["watch", "inbox", "--out", "o", *flags]
+        assert build_parser(argv).parse_args(argv).overlap is want

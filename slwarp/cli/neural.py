@@ -80,7 +80,7 @@ def _batch_options(args, progress: bool):
 
     return BatchOptions(frames=args.frames, depth_range=_parse_range(args.depth_range), use_mask=args.use_mask,
                         resume=args.resume, overwrite=args.overwrite, progress=progress, log=not args.quiet,
-                        outside_paths=args.allow_outside_paths, patterns=args.patterns)
+                        outside_paths=args.allow_outside_paths, patterns=args.patterns, overlap=args.overlap)
 
 
 def _reconstruct(args, pool) -> int:
@@ -177,6 +177,17 @@ def _pattern_set(path):
     return read_pattern_set(path)
 
 
+OVERLAP_HELP = ("on a GPU each scan's depth map is extracted and its files written while the next scan trains "
+                "(two scans' state in GPU memory at once); --no-overlap: one after the other, --overlap: on the CPU "
+                "too (default: on a GPU only)")
+
+
+def _add_overlap(p) -> None:
+    import argparse
+
+    p.add_argument("--overlap", action=argparse.BooleanOptionalAction, default=None, help=OVERLAP_HELP)
+
+
 PATTERNS_HELP = ("a pattern-set file (PATH/patterns.yaml or its folder, e.g. from `slwarp design-patterns`): its "
                  "patterns and roles replace those of the scan's frames of the same names")
 
@@ -231,6 +242,7 @@ def _add_reconstruct(p, argv=None):
     p.add_argument("--use-mask", action="store_true",
                    help="also restrict the depth map to the scan's mask").help_section = "reconstruct"
     p.add_argument("--quiet", action="store_true", help="no progress output")
+    _add_overlap(p)
     _add_outside_paths(p)
     _add_config_options(p, name, argv=argv)
     p.set_defaults(func=cmd_reconstruct)
@@ -245,7 +257,7 @@ def cmd_watch(args) -> int:
     _name, cfg, _dev = _config_from_args(args)
     _pattern_set(args.patterns)  # a bad file is reported before the station starts
     options = BatchOptions(frames=args.frames, depth_range=_parse_range(args.depth_range), use_mask=args.use_mask,
-                           patterns=args.patterns)
+                           patterns=args.patterns, overlap=args.overlap)
     return watch(args.inbox, args.out, cfg, options, poll_s=args.poll, settle_s=args.settle, max_scans=args.max_scans,
                  until_idle=args.until_idle, say=lambda text: print(text, flush=True))
 
@@ -269,6 +281,7 @@ def _add_watch(p, argv=None):
                    help="a scan folder is taken once no file in it changed for S seconds (default 1)")
     p.add_argument("--max-scans", type=_positive_int, metavar="N", help="stop after N scans")
     p.add_argument("--until-idle", action="store_true", help="stop once every scan in DIR is done or failed")
+    _add_overlap(p)
     _add_config_options(p, name, argv=argv)
     p.set_defaults(func=cmd_watch)
 
