@@ -177,9 +177,7 @@ def _pattern_set(path):
     return read_pattern_set(path)
 
 
-OVERLAP_HELP = ("on a GPU each scan's depth map is extracted and its files written while the next scan trains "
-                "(two scans' state in GPU memory at once); --no-overlap: one after the other, --overlap: on the CPU "
-                "too (default: on a GPU only)")
+OVERLAP_HELP = "batches: extract each scan while the next one trains (default: on a GPU)"
 
 
 def _add_overlap(p) -> None:
