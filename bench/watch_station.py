@@ -3,7 +3,7 @@ in its inbox, as fresh processes, each output line timed from the command's star
 lines after the first is what each later scan costs a station (its files written: a line comes once they are).
 
     python -m bench.watch_station --preset fast --scans 8 --runs 2     # CUDA: default rig; run 1 fills the caches
-    python -m bench.watch_station --smoke                              # CPU: 3 small scans, tiny settings (a smoke test)
+    python -m bench.watch_station --smoke                              # CPU: 3 small scans, tiny settings
 
 The scans (scenes in turn, a noise seed per round) are made once into <work>/inbox; each run writes into its own
 <work>/out-K. The caches a machine keeps (Warp's kernels, Inductor's and Triton's) live in <work>/caches, empty
@@ -69,7 +69,8 @@ def markdown(doc: dict) -> str:
     out = [f"# `slwarp watch`: {s['scans']} `{s['preset']}` scans in the inbox, {doc['device']}, {doc['date']}", "",
            f"`{doc['bench_command']}`", "",
            f"Each run: `{' '.join(doc['command'])}` as a fresh process, the scans ({s['rig']} rig, random 6, scenes "
-           f"{', '.join(SCENES)} in turn, a noise seed per round) in the inbox before it starts, each output line timed "
+           f"{', '.join(SCENES)} in turn, a noise seed per round) in the inbox before it starts, each output line "
+           "timed "
            "from its spawn. A later scan: the mean time between the scans' lines after the first (each line comes "
            "once the scan's files are written).", "",
            "| run | caches | scans done | command s | first scan's line s | each later scan s | between lines s |",

@@ -82,8 +82,10 @@ def test_overlapped_batch_gives_the_same_results_in_order(scan, tmp_path, monkey
     for overlap in (False, True):
         jobs = [ScanJob(n, str(tmp_path / "scans" / n), str(tmp_path / f"out-{overlap}" / n)) for n in names]
         reported = []
-        got = run_scans(jobs, cfg(), BatchOptions(log=False, overlap=overlap),
-                        on_row=lambda r: reported.append((r.name, r.status, (Path(r.out_dir) / "config.yaml").is_file())))
+        def report(r):
+            reported.append((r.name, r.status, (Path(r.out_dir) / "config.yaml").is_file()))
+
+        got = run_scans(jobs, cfg(), BatchOptions(log=False, overlap=overlap), on_row=report)
         assert reported == [("a", "done", True), ("broken", "failed", False), ("b", "done", True)], overlap
         rows[overlap] = got
     for n, plain, overlapped in zip(names, rows[False], rows[True]):

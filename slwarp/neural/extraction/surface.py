@@ -7,13 +7,13 @@
   depth = camera z of the first hit (or the first K hits), NaN where no hit.
 - `flying_pixel_filter`: removes the pixels on depth edges, where a smooth SDF bends from the foreground
   to the background over a few pixels.
-- `edge_band_masks`: the pixels a few pixels from a depth edge of the field (in front of it and behind it), where an outline it drew a pixel or two off leaves them with the other surface's depth.
+- `edge_band_masks`: the pixels a few pixels from a depth edge of the field (in front of it and behind it), where
+  an outline it drew a pixel or two off leaves them with the other surface's depth.
 - `denoise_depth`: an edge-aware local plane fit of the final depth map (the field's fine-scale noise).
 - `sphere_trace_depth`: the alternative without a mesh: march each ray with steps of the SDF value,
   then refine the first sign change by the secant method.
 """
 from __future__ import annotations
-
 
 import numpy as np
 import torch
