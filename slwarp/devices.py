@@ -12,7 +12,8 @@ import torch
 
 from .neural.config import DEVICE_PATTERN  # the device names a user may give: the config checks them too
 
-__all__ = ["DeviceError", "torch_device", "with_index", "warp_device", "start_runtimes", "DEVICE_PATTERN"]
+__all__ = ["DeviceError", "torch_device", "with_index", "warp_device", "start_runtimes", "runtimes_started",
+           "DEVICE_PATTERN"]
 
 
 class DeviceError(ValueError):
@@ -86,4 +87,16 @@ def start_runtimes(device: torch.device) -> threading.Thread:
 
     thread = threading.Thread(target=run, name="slwarp-runtimes", daemon=True)
     thread.start()
+    _STARTING.append(thread)
     return thread
+
+
+_STARTING: list[threading.Thread] = []  # start_runtimes' threads
+
+
+def runtimes_started(timeout: float = 30.0) -> None:
+    """Wait (at most `timeout` s) for start_runtimes' threads. The command calls this before its process ends: on a
+    machine without CUDA, Warp's start holds back stderr (kernels.runtime), and a line written meanwhile, e.g. an
+    error about the scan, is only written out when the start is over."""
+    while _STARTING:
+        _STARTING.pop().join(timeout)

@@ -37,6 +37,7 @@ timeline.mark("started")  # the interpreter has started and imported the command
 # the commands, imported after the mark, which times the interpreter's start (they import nothing heavy at the top)
 from .design import _add_design, cmd_design  # noqa: E402
 from .decode import _add_decode, _add_evaluate, cmd_decode, cmd_evaluate  # noqa: E402
+from . import loader  # noqa: E402
 from .errors import _VALUE_ERRORS_ARE_USER_ERRORS, UserError, _interrupted, _report, _user_errors  # noqa: E402
 from .neural import _add_demo, _add_reconstruct, _add_watch, cmd_demo, cmd_reconstruct, cmd_watch  # noqa: E402
 from .options import COMMON_OPTIONS, _Parser, _Version, version_text  # noqa: E402
@@ -115,9 +116,13 @@ def entry() -> None:
     flushed. Why not a plain return: the interpreter's teardown (torch's, Warp's and CUDA's exit handlers, every
     module's objects freed) ran for seconds after the last output file was closed, while the user waited on the
     prompt; every file a command writes is closed (or renamed into place) before `main` returns."""
+    loader.allow_fork()  # a single scan's `reconstruct` loads it in a process of its own (cli.loader)
     code = main()
+    if "slwarp.devices" in sys.modules:  # imported by the command: a line held back by a runtime's start written out
+        sys.modules["slwarp.devices"].runtimes_started()
     timeline.mark("exit")
     timeline.write()
     sys.stdout.flush()
     sys.stderr.flush()
+    loader.report_exit(code)  # a split command's parent exits now, with this status
     os._exit(code)

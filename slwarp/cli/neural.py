@@ -7,6 +7,7 @@ import sys
 
 from .. import timeline
 from .errors import UserError
+from .loader import load_beside
 from .options import (_add_config_options, _add_outside_paths, _chosen_preset, _config_from_args, _parse_range,
                       _positive_int)
 from .scans import _warn_problems
@@ -18,9 +19,10 @@ def cmd_reconstruct(args) -> int:
     from ..batch.launch import pin_torchrun_rank
 
     pin_torchrun_rank(_requested_device(args))  # a torchrun rank sees only its own GPU, before CUDA starts here
+    ahead = load_beside(args)  # one scan: loaded in a process of its own while this one imports (cli.loader)
     pool = _early_pool(args)  # --per-device: the workers start before this process imports torch
     try:
-        return _reconstruct(args, pool)
+        return _reconstruct(args, pool, ahead)
     finally:
         if pool is not None:
             pool.close()
@@ -83,7 +85,7 @@ def _batch_options(args, progress: bool):
                         outside_paths=args.allow_outside_paths, patterns=args.patterns, overlap=args.overlap)
 
 
-def _reconstruct(args, pool) -> int:
+def _reconstruct(args, pool, ahead=None) -> int:
     import numpy as np
     import torch
 
@@ -104,8 +106,11 @@ def _reconstruct(args, pool) -> int:
     if not found.single or args.per_device is not None or launched_by_torchrun():
         return _reconstruct_batch(args, found, name, cfg, dev, pool)
     scan_path = args.scans[0]
-    start_runtimes(dev)  # beside the scan's loading
-    scan = load_scan(scan_path, frames=args.frames, outside_paths=args.allow_outside_paths, patterns=pset)
+    start_runtimes(dev)  # beside the scan's loading (or its receiving from the process that loaded it)
+    if ahead is not None:
+        scan = ahead.scan()
+    else:
+        scan = load_scan(scan_path, frames=args.frames, outside_paths=args.allow_outside_paths, patterns=pset)
     timeline.mark("scan loaded")
     _warn_problems(scan)
     depth_range = _parse_range(args.depth_range)

@@ -341,6 +341,16 @@ def camera_rays(camera: Camera, uv: np.ndarray | None = None) -> np.ndarray:
         return bounded_cache(_RAYS_CACHE, camera.cache_key, lambda: _read_only(_ray_grid(camera)))
 
 
+def cache_rays(camera: Camera, rays: np.ndarray) -> None:
+    """Hold `rays` [H, W, 3] (float64, as camera_rays computes them, e.g. in another process) as the camera's ray
+    grid in camera_rays' cache."""
+    rays = np.asarray(rays, np.float64)
+    if rays.shape != (camera.height, camera.width, 3):
+        raise ValueError(f"cache_rays: a ray grid of shape {rays.shape} for a {camera.width}x{camera.height} camera")
+    with _RAYS_LOCK:
+        bounded_cache(_RAYS_CACHE, camera.cache_key, lambda: _read_only(rays))
+
+
 # the threads (bands of rows) a camera's ray grid is undistorted in, at most (and no more than the CPU count)
 RAY_BANDS = 8
 

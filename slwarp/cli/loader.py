@@ -1,0 +1,256 @@
+"""`slwarp reconstruct SCAN` as two processes: the scan is loaded beside the command's imports, and the command
+returns once its files are written, not once the GPU's runtimes are torn down.
+
+    ahead = load_beside(args)    # in the command's process: forks; None where it does not (see `splits`)
+    ...                          # here only the child goes on: imports torch, Warp, the reconstruction
+    scan = ahead.scan()          # the Scan the parent loaded (its camera's ray grid cached too), or its error
+    ...
+    report_exit(code)            # entry(): the parent, waiting on the user's prompt, exits with `code` now
+
+The process the user started forks before it imports anything heavy. The child runs the command as always; the
+parent loads the scan (decoding its PNG frames) and undistorts the camera's ray grid meanwhile, on other cores
+and under its own interpreter lock (loading it in a thread of the importing process made both slower: imports 2.0
+-> 2.4-3.2 s, H100 host), and sends both through a pipe that a thread of the child drains during its imports (a
+pipe's read leaves the lock free). Then the parent waits: when the child has written and flushed every file it
+reports its exit status and the parent exits with it, while the child's runtimes (CUDA's context, Warp, torch)
+tear down after the prompt is back (0.2-0.3 s of a fresh command on an H100 host). A pipe reading the command's
+output sees its end at the same moment: the child hands its standard streams back first.
+
+Ctrl-C reaches both processes (one process group): the child stops as it would alone (a checkpoint kept, status
+130) and the parent exits with the child's status. A SIGTERM sent to the parent alone is passed on to the child.
+Where the child dies without a status (a crash, SIGKILL), the parent exits with the status the child's end gives.
+"""
+from __future__ import annotations
+
+import os
+import pickle
+import signal
+import struct
+import sys
+import threading
+
+# the pipe's messages: a header (meta bytes, buffer count) then the pickle's out-of-band buffers, each with its size
+_HEADER = struct.Struct("<QQ")
+_SIZE = struct.Struct("<Q")
+_STATUS = struct.Struct("<i")
+
+_may_fork = False  # set by entry(): only the `slwarp` command forks, never a caller of main() (tests, the API)
+_report_fd: int | None = None  # the child's end of the pipe its exit status goes through
+
+
+def allow_fork() -> None:
+    """Let this process's single-scan `reconstruct` split into the two processes (entry() calls this)."""
+    global _may_fork
+    _may_fork = True
+
+
+def splits(args) -> bool:
+    """Whether `reconstruct` with these arguments loads its scan in a process of its own: the `slwarp` command
+    (allow_fork), a POSIX system, one scan folder (not a batch), no --per-device, not a torchrun rank, and
+    $SLWARP_LOADER not 0."""
+    from ..batch.discovery import find_scans
+    from ..batch.launch import launched_by_torchrun
+
+    if not _may_fork or not hasattr(os, "fork") or os.environ.get("SLWARP_LOADER", "1") == "0":
+        return False
+    if args.per_device is not None or launched_by_torchrun():
+        return False
+    try:
+        return find_scans(args.scans).single
+    except Exception:  # noqa: BLE001 - the command reports a bad scan word itself, in its order
+        return False
+
+
+def load_beside(args):
+    """Fork when `splits(args)`: returns a ScanAhead in the child (the process that goes on with the command) and
+    never returns in the parent, which loads the scan, sends it and exits with the child's status. None where the
+    command does not split."""
+    if not splits(args):
+        return None
+    scan_r, scan_w = os.pipe()
+    status_r, status_w = os.pipe()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    pid = os.fork()
+    if pid == 0:  # the child: the command goes on here
+        os.close(scan_w)
+        os.close(status_r)
+        global _report_fd
+        _report_fd = status_w
+        return ScanAhead(scan_r)
+    os.close(scan_r)
+    os.close(status_w)
+    code = 1
+    try:
+        code = _parent(args, pid, scan_w, status_r)
+    finally:
+        os._exit(code)
+
+
+def _parent(args, child: int, scan_w: int, status_r: int) -> int:
+    """Load and send the scan, then wait for the child's status; returns the status to exit with."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the child too, which stops and reports
+    signal.signal(signal.SIGTERM, lambda signum, frame: _pass_on(child, signum))
+    if hasattr(signal, "SIGHUP"):
+        signal.signal(signal.SIGHUP, lambda signum, frame: _pass_on(child, signum))
+    try:
+        message = ("scan", _load(args))
+    except BaseException as e:  # noqa: BLE001 - raised in the child, where the command reports it
+        message = ("error", _picklable(e))
+    try:
+        _send(scan_w, message)
+    except OSError:
+        pass  # the child ended before reading (e.g. a bad option): its status says why
+    finally:
+        os.close(scan_w)
+    data = _read_exactly(status_r, _STATUS.size)
+    if len(data) == _STATUS.size:
+        return _STATUS.unpack(data)[0]
+    return _status_of(child)  # no status reported: how the child ended
+
+
+def _load(args):
+    """(the scan as the command loads it, its camera's ray grid)."""
+    from ..scans.scan import load_scan
+    from ..scans.scanner import camera_rays
+    from .neural import _pattern_set
+
+    scan = load_scan(args.scans[0], frames=args.frames, outside_paths=args.allow_outside_paths,
+                     patterns=_pattern_set(args.patterns))
+    return scan, camera_rays(scan.camera)
+
+
+def _picklable(e: BaseException) -> BaseException:
+    """`e` if it survives pickling, else a RuntimeError with its type and message."""
+    try:
+        pickle.loads(pickle.dumps(e))
+        return e
+    except Exception:  # noqa: BLE001
+        return RuntimeError(f"{type(e).__name__}: {e}")
+
+
+def _pass_on(child: int, signum: int) -> None:
+    try:
+        os.kill(child, signum)
+    except ProcessLookupError:
+        pass
+
+
+def _status_of(child: int) -> int:
+    """The exit status of the ended child (a signal's as the shell gives it: 128 + the signal)."""
+    while True:
+        try:
+            _, status = os.waitpid(child, 0)
+            break
+        except InterruptedError:
+            continue
+        except ChildProcessError:
+            return 1
+    if os.WIFSIGNALED(status):
+        return 128 + os.WTERMSIG(status)
+    return os.WEXITSTATUS(status) if os.WIFEXITED(status) else 1
+
+
+def _send(fd: int, message) -> None:
+    """`message` pickled (protocol 5: numpy's arrays as out-of-band buffers, written as they are)."""
+    buffers: list[pickle.PickleBuffer] = []
+    meta = pickle.dumps(message, protocol=5, buffer_callback=buffers.append)
+    raws = [b.raw() for b in buffers]
+    _write_all(fd, _HEADER.pack(len(meta), len(raws)) + meta)
+    for raw in raws:
+        _write_all(fd, _SIZE.pack(raw.nbytes))
+        _write_all(fd, raw)
+
+
+def _write_all(fd: int, data) -> None:
+    view = memoryview(data).cast("B")
+    while view:
+        n = os.write(fd, view)
+        view = view[n:]
+
+
+def _read_exactly(fd: int, n: int) -> bytes:
+    """Up to n bytes (fewer only at the pipe's end)."""
+    out = bytearray(n)
+    return bytes(out[: _read_into(fd, memoryview(out))])
+
+
+def _read_into(fd: int, view: memoryview) -> int:
+    """Fill `view` from the pipe (os.readv leaves the interpreter lock free); the bytes read (fewer than the view's
+    only at the pipe's end)."""
+    got = 0
+    while got < len(view):
+        n = os.readv(fd, [view[got:]])
+        if n == 0:
+            break
+        got += n
+    return got
+
+
+class ScanAhead:
+    """The child's side: a daemon thread reads the parent's message while the command imports; scan() waits for
+    it."""
+
+    def __init__(self, fd: int):
+        self._fd = fd
+        self._message, self._error = None, None
+        self._thread = threading.Thread(target=self._receive, name="slwarp-scan-receiver", daemon=True)
+        self._thread.start()
+
+    def _receive(self) -> None:
+        try:
+            meta_size, count = _HEADER.unpack(self._read(_HEADER.size))
+            meta = self._read(meta_size)
+            buffers = [self._read(_SIZE.unpack(self._read(_SIZE.size))[0]) for _ in range(count)]
+            self._message = pickle.loads(meta, buffers=buffers)
+        except BaseException as e:  # noqa: BLE001 - raised where the command asks for the scan
+            self._error = e
+        finally:
+            os.close(self._fd)
+
+    def _read(self, n: int) -> bytearray:
+        out = bytearray(n)
+        if _read_into(self._fd, memoryview(out)) < n:
+            raise EOFError("the scan's loader ended before it had sent the scan")
+        return out
+
+    def scan(self):
+        """The loaded Scan, its camera's ray grid placed in camera_rays' cache; the parent's error raised here (a
+        ScanError for a bad scan, reported by the command as it would report its own)."""
+        self._thread.join()
+        if self._error is not None:
+            raise RuntimeError(f"the scan could not be received from its loader: {self._error}") from self._error
+        kind, value = self._message
+        if kind == "error":
+            raise value
+        scan, rays = value
+        from ..scans.scanner import cache_rays
+
+        cache_rays(scan.camera, rays)
+        return scan
+
+
+def report_exit(code: int) -> None:
+    """In the child of a split command: its standard streams handed back (a pipe reading them sees their end) and
+    `code` sent to the parent, which exits with it. Elsewhere nothing."""
+    global _report_fd
+    if _report_fd is None:
+        return
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    try:
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, 1)
+        os.dup2(null, 2)
+        os.close(null)
+    except OSError:
+        pass
+    try:
+        os.write(_report_fd, _STATUS.pack(int(code)))
+        os.close(_report_fd)
+    except OSError:
+        pass
+    _report_fd = None
