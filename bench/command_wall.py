@@ -14,7 +14,9 @@ as the machine has it (some hosts run with PYTHONDONTWRITEBYTECODE and compile e
 process); `--bytecode warm` compiles the installed packages into <work>/pycache first (PYTHONPYCACHEPREFIX), as a
 user's machine, which keeps its bytecode caches, has them.
 
-The breakdown comes from the command's own marks ($SLWARP_TIMELINE, slwarp.timeline) and its timings.json:
+A single scan's command forks (slwarp.cli.loader): the scan is loaded by the parent beside the child's imports, so
+"scan load" is the child's wait for it (and for the runtimes' start), and "exit" ends when the parent returns, before
+the child's CUDA teardown. The breakdown comes from the command's own marks ($SLWARP_TIMELINE, slwarp.timeline) and its timings.json:
 the interpreter's start, imports, scan load, until the reconstruction starts (device start, config), setup (depth search, blur
 fit), training, extraction, outputs, the report, and the interpreter's exit. Writes <out>/<stem>.json and .md.
 """
