@@ -77,6 +77,7 @@ def load_beside(args):
         os.close(status_r)
         global _report_fd
         _report_fd = status_w
+        _start_driver(args)
         return ScanAhead(scan_r)
     os.close(scan_r)
     os.close(status_w)
@@ -85,6 +86,27 @@ def load_beside(args):
         code = _parent(args, pid, scan_w, status_r)
     finally:
         os._exit(code)
+
+
+def _start_driver(args) -> None:
+    """The CUDA driver initialised (cuInit) in a thread while the child imports, unless the command asks for the CPU.
+    Why: torch's first CUDA call (`torch.cuda.is_available()` as the configuration resolves the device) ran cuInit
+    holding the interpreter lock, 0.19 s of a fresh `fast` command on an H100 host (a stack sampler); called through
+    ctypes it leaves the lock free, and torch's and Warp's calls then find the driver initialised."""
+    from .neural import _requested_device
+
+    if _requested_device(args) == "cpu" or not sys.platform.startswith("linux"):
+        return
+
+    def run():
+        try:
+            import ctypes
+
+            ctypes.CDLL("libcuda.so.1").cuInit(0)
+        except (OSError, AttributeError):  # no driver: the command runs on the CPU and says so
+            pass
+
+    threading.Thread(target=run, name="slwarp-cuda-driver", daemon=True).start()
 
 
 def _parent(args, child: int, scan_w: int, status_r: int) -> int:

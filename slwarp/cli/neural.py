@@ -116,6 +116,8 @@ def _reconstruct(args, pool, ahead=None) -> int:
     depth_range = _parse_range(args.depth_range)
     if depth_range is None and scan.depth_range is None:
         raise UserError(f"{scan_path}: the scan declares no depth range: pass --depth-range NEAR,FAR (mm)")
+    if dev.type == "cuda":  # CUDA's start now (needed next anyway): the device's name then comes without NVML's start
+        torch.cuda.init()
     print(f"reconstructing {scan.source} ({len(scan)} frames: {', '.join(scan.names)}) with preset '{name}'"
           + (f" + {args.config}" if args.config else "")
           + f" ({describe(cfg)}) on {dev}" + (f" ({torch.cuda.get_device_name(dev)})" if dev.type == "cuda" else ""))
