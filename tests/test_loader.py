@@ -130,6 +130,7 @@ def _args(scans, per_device=None):
     return argparse.Namespace(scans=[str(s) for s in scans], per_device=per_device)
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the command splits on Linux only")
 def test_only_the_console_command_with_one_scan_splits(scan_dir, tmp_path, monkeypatch):
     monkeypatch.setattr(loader, "_may_fork", False)
     assert not loader.splits(_args([scan_dir]))  # main() called by a program or a test never forks

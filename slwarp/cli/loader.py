@@ -46,12 +46,12 @@ def allow_fork() -> None:
 
 def splits(args) -> bool:
     """Whether `reconstruct` with these arguments loads its scan in a process of its own: the `slwarp` command
-    (allow_fork), a POSIX system, one scan folder (not a batch), no --per-device, not a torchrun rank, and
-    $SLWARP_LOADER not 0."""
+    (allow_fork), Linux (where the GPUs are; macOS's system libraries are not safe to fork), one scan folder (not a
+    batch), no --per-device, not a torchrun rank, and $SLWARP_LOADER not 0."""
     from ..batch.discovery import find_scans
     from ..batch.launch import launched_by_torchrun
 
-    if not _may_fork or not hasattr(os, "fork") or os.environ.get("SLWARP_LOADER", "1") == "0":
+    if not _may_fork or not sys.platform.startswith("linux") or os.environ.get("SLWARP_LOADER", "1") == "0":
         return False
     if args.per_device is not None or launched_by_torchrun():
         return False
