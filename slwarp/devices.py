@@ -71,9 +71,9 @@ def warp_device(device: str | torch.device | None = "auto") -> str:
 
 def start_runtimes(device: torch.device) -> threading.Thread:
     """Start the runtimes a run on `device` needs, in a daemon thread: Warp (its library, the CUDA driver, the
-    device list) and, on a GPU, torch's CUDA context there. The command line starts them before it loads the scan,
-    whose PNG decoding leaves the interpreter lock free; the trainer's first CUDA call waits for a context being made
-    (torch's lazy-init lock, slwarp.kernels.runtime's lock) instead of making another."""
+    device list) and, on a GPU, torch's CUDA context and cuBLAS there. The command line starts them before it waits
+    for the scan; the trainer's first CUDA call waits for a context being made (torch's lazy-init lock,
+    slwarp.kernels.runtime's lock) instead of making another."""
     def run():
         try:
             from slwarp.kernels import runtime
@@ -82,6 +82,11 @@ def start_runtimes(device: torch.device) -> threading.Thread:
             if device.type == "cuda":
                 torch.cuda.init()
                 torch.empty(1, device=device)  # the context and the caching allocator's first block
+                # cuBLAS's and cuBLASLt's handles (pooled: the trainer's thread takes them over) and first kernels,
+                # which the first training step made: training 2.21 -> 2.09 s of a fresh `fast` command (one H100, 6
+                # runs each, interleaved; bench/results/command-wall-cuda-h100-fast-blas-*.md)
+                a = torch.ones(64, 64, device=device)
+                (torch.nn.functional.linear(a, a) @ a).sum().item()
         except Exception:  # noqa: BLE001 - the run's own first use reports it, where it happens
             pass
 
