@@ -125,6 +125,7 @@ def _parent(args, child: int, scan_w: int, status_r: int) -> int:
         pass  # the child ended before reading (e.g. a bad option): its status says why
     finally:
         os.close(scan_w)
+        del message  # the scan's memory back while the child runs
     data = _read_exactly(status_r, _STATUS.size)
     if len(data) == _STATUS.size:
         return _STATUS.unpack(data)[0]
