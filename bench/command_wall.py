@@ -4,6 +4,7 @@ on disk, with caches empty (a new machine) and filled (the run before filled the
     python -m bench.command_wall --preset fast --runs 3 --cold          # CUDA: bunny, default rig; run 1 on empty caches
     python -m bench.command_wall --preset fast --bytecode warm          # Python's bytecode compiled first, as a user's
     python -m bench.command_wall --smoke                                # CPU: small rig, tiny settings (a smoke test)
+    python -m bench.command_wall --preset fast --bytecode warm --sample # each run under bench.stack_sampler
     python -m bench.command_wall --scan data/real/capture_0/scan --preset accurate   # a scan on disk (a real capture)
 
 One simulated scan (made once into the work folder), or the scan --scan names. Then --runs fresh processes, one
@@ -85,10 +86,15 @@ def process_env(work: Path, empty: bool, smoke: bool) -> tuple[Path, dict]:
     return caches, env
 
 
-def run_command(cmd: list[str], env: dict, out: Path) -> dict:
-    """One fresh process of `cmd`: its wall time from spawn to exit and, when it succeeded, its breakdown."""
+def run_command(cmd: list[str], env: dict, out: Path, samples: Path | None = None) -> dict:
+    """One fresh process of `cmd` (`python -m MODULE ...`): its wall time from spawn to exit and, when it succeeded,
+    its breakdown; with `samples` (a folder) run under bench.stack_sampler, and the report of the process that
+    reconstructed (row["sampled"])."""
     tl = out.parent / f"{out.name}.timeline.jsonl"
     tl.unlink(missing_ok=True)
+    if samples is not None:
+        shutil.rmtree(samples, ignore_errors=True)
+        cmd = [cmd[0], "-m", "bench.stack_sampler", str(samples), *cmd[1:]]
     spawn = time.time()
     p = subprocess.run(cmd, cwd=REPO, env={**env, "SLWARP_TIMELINE": str(tl)}, capture_output=True, text=True)
     end = time.time()
@@ -96,13 +102,19 @@ def run_command(cmd: list[str], env: dict, out: Path) -> dict:
     if p.returncode:
         row["error"] = (p.stdout + p.stderr).strip()[-1500:]
         return row
-    marks = {}
+    marks, pid = {}, None
     for line in tl.read_text().splitlines():
-        marks.update({k: v for k, v in json.loads(line)["marks"]})
+        doc = json.loads(line)
+        marks.update({k: v for k, v in doc["marks"]})
+        pid = doc["pid"]
     timings = json.loads((out / "timings.json").read_text())
     row.update(breakdown(spawn, end, marks, timings))
     row["setup_phases"] = timings.get("setup_phases_s", {})
     row["first_steps"] = timings.get("first_steps_s", [])
+    if samples is not None:
+        from bench import stack_sampler
+
+        row["sampled"] = stack_sampler.report(stack_sampler.load(samples, pid), marks, timings)
     return row
 
 
@@ -143,7 +155,21 @@ def markdown(doc: dict) -> str:
             continue
         lines.append(f"| {i} | {r['caches']} | {r['wall_s']:.2f} | {r['to_depth_map']:.2f} | "
                      + " | ".join(f"{r[k]:.2f}" for k, _ in PHASES) + " |")
-    return "\n".join(lines + setup_table(doc["runs"]))
+    return "\n".join(lines + setup_table(doc["runs"]) + sampled_sections(doc["runs"]))
+
+
+def sampled_sections(runs: list[dict]) -> list[str]:
+    """With --sample: each run's report of bench.stack_sampler."""
+    from bench import stack_sampler
+
+    lines = []
+    for i, r in enumerate(runs, 1):
+        if r.get("sampled"):
+            lines += [""] + stack_sampler.markdown(r["sampled"], f"Run {i} ({r['caches']} caches), sampled every "
+                                                   f"{os.environ.get('SLWARP_SAMPLE_MS', '2')} ms")
+    if lines:
+        lines = ["", "## Where the main thread was (bench.stack_sampler; the sampler slows a run by a few per cent)"] + lines
+    return lines
 
 
 def setup_table(runs: list[dict]) -> list[str]:
@@ -177,6 +203,8 @@ def main(argv=None) -> None:
     p.add_argument("--bytecode", choices=["as-is", "warm"], default="as-is")
     p.add_argument("--work", default="/tmp/slwarp-command-wall", help="the scan, the caches and the outputs")
     p.add_argument("--smoke", action="store_true", help="CPU, small rig, tiny preset and a few iterations")
+    p.add_argument("--sample", action="store_true", help="run each command under bench.stack_sampler and report where "
+                   "its main thread was, per phase")
     p.add_argument("--stem", default=None)
     p.add_argument("--out", default=str(REPO / "bench" / "results"))
     args = p.parse_args(argv)
@@ -219,7 +247,8 @@ def main(argv=None) -> None:
         warm = any(f.is_file() for f in caches.rglob("*"))  # files: the cache folders exist before anything is in them
         out = work / f"out-{i + 1}"
         row = {"caches": "filled" if warm else "empty",
-               **run_command([sys.executable, *[str(out) if c == "OUT" else c for c in command[1:]]], env, out)}
+               **run_command([sys.executable, *[str(out) if c == "OUT" else c for c in command[1:]]], env, out,
+                             samples=work / f"samples-{i + 1}" if args.sample else None)}
         runs.append(row)
         print(f"run {i + 1} ({row['caches']} caches): " + (f"{row['wall_s']:.2f} s, depth map at {row['to_depth_map']:.2f} s"
                                                             if "error" not in row else f"failed:\n{row['error']}"), flush=True)
@@ -230,7 +259,8 @@ def main(argv=None) -> None:
     doc = {"device": device, "date": str(datetime.date.today()), "command": command, "bytecode_s": bytecode_s,
            "bench_command": "python -m bench.command_wall " + " ".join(argv if argv is not None else sys.argv[1:]),
            "setup": {"preset": args.preset, "scene": args.scene, "rig": args.rig, "scan": args.scan, "set": args.set,
-                     "cold": args.cold, "bytecode": args.bytecode, "smoke": args.smoke}, "runs": runs}
+                     "cold": args.cold, "bytecode": args.bytecode, "smoke": args.smoke, "sample": args.sample},
+           "runs": runs}
     stem = args.stem or f"command-wall-{'cuda' if cuda else 'cpu'}-{args.preset}"
     write_study(Path(args.out) / stem, doc, lambda d: markdown(d) + "\n")
 
