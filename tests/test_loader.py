@@ -172,3 +172,24 @@ def test_the_pipe_carries_the_scan_its_rays_and_errors(scan_dir, monkeypatch):
     os.close(w)
     with pytest.raises(RuntimeError, match="could not be received"):
         loader.ScanAhead(r).scan()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="Linux's parent-death signal")
+def test_a_command_killed_outright_stops_its_child_with_a_checkpoint(scan_dir, tmp_path):
+    out = tmp_path / "out"
+    p = command(["reconstruct", scan_dir, "--out", out, "--preset", "tiny", "--device", "cpu", "--init", "sphere",
+                 "--iters", "100000", "--rays", "64", "--checkpoint-every", "10", "--quiet"])
+    try:
+        child = _child_of(p.pid)
+        deadline = time.time() + 500
+        while not (out / "train" / "checkpoint.pt").exists() and p.poll() is None and time.time() < deadline:
+            time.sleep(0.2)
+        p.kill()  # SIGKILL: the command can pass nothing on
+        p.communicate(timeout=60)
+        deadline = time.time() + 120
+        while _alive(child) and time.time() < deadline:
+            time.sleep(0.1)
+    finally:
+        p.kill()
+    assert not _alive(child)  # it got SIGTERM and stopped as on any SIGTERM
+    assert (out / "train" / "checkpoint.pt").exists() and not (out / "depth.npy").exists()

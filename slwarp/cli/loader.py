@@ -17,8 +17,9 @@ tear down after the prompt is back (0.2-0.3 s of a fresh command on an H100 host
 output sees its end at the same moment: the child hands its standard streams back first.
 
 Ctrl-C reaches both processes (one process group): the child stops as it would alone (a checkpoint kept, status
-130) and the parent exits with the child's status. A SIGTERM sent to the parent alone is passed on to the child.
-Where the child dies without a status (a crash, SIGKILL), the parent exits with the status the child's end gives.
+130) and the parent exits with the child's status. A SIGTERM sent to the parent alone is passed on to the child, and
+a parent killed outright (SIGKILL) leaves the child a SIGTERM. Where the child dies without a status (a crash,
+SIGKILL), the parent exits with the status the child's end gives.
 """
 from __future__ import annotations
 
@@ -71,12 +72,14 @@ def load_beside(args):
     status_r, status_w = os.pipe()
     sys.stdout.flush()
     sys.stderr.flush()
+    parent = os.getpid()
     pid = os.fork()
     if pid == 0:  # the child: the command goes on here
         os.close(scan_w)
         os.close(status_r)
         global _report_fd
         _report_fd = status_w
+        _end_with_parent(parent)
         _start_driver(args)
         return ScanAhead(scan_r)
     os.close(scan_r)
@@ -86,6 +89,20 @@ def load_beside(args):
         code = _parent(args, pid, scan_w, status_r)
     finally:
         os._exit(code)
+
+
+def _end_with_parent(parent: int) -> None:
+    """A SIGTERM for this child when the command's process ends before it (Linux's parent-death signal): a command
+    killed outright (SIGKILL from a job scheduler, `kill -9`) must not leave its GPU work running; the child stops
+    as on any SIGTERM, its checkpoint kept."""
+    import ctypes
+
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:  # the parent ended before the signal was asked for
+        os.kill(os.getpid(), signal.SIGTERM)
 
 
 def _start_driver(args) -> None:
