@@ -91,17 +91,18 @@ def load_beside(args):
         os._exit(code)
 
 
-def _end_with_parent(parent: int) -> None:
+def _end_with_parent(parent: int | None) -> None:
     """A SIGTERM for this child when the command's process ends before it (Linux's parent-death signal): a command
     killed outright (SIGKILL from a job scheduler, `kill -9`) must not leave its GPU work running; the child stops
-    as on any SIGTERM, its checkpoint kept."""
+    as on any SIGTERM, its checkpoint kept. parent None: no such signal any more (the work is done, and the parent
+    exits as soon as it has the status)."""
     import ctypes
 
     try:
-        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
+        ctypes.CDLL(None, use_errno=True).prctl(1, 0 if parent is None else int(signal.SIGTERM))  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         return
-    if os.getppid() != parent:  # the parent ended before the signal was asked for
+    if parent is not None and os.getppid() != parent:  # the parent ended before the signal was asked for
         os.kill(os.getpid(), signal.SIGTERM)
 
 
@@ -288,6 +289,7 @@ def report_exit(code: int) -> None:
         os.close(null)
     except OSError:
         pass
+    _end_with_parent(None)  # what is left, the runtimes' teardown, ends on its own
     try:
         os.write(_report_fd, _STATUS.pack(int(code)))
         os.close(_report_fd)
