@@ -17,9 +17,10 @@ user's machine, which keeps its bytecode caches, has them.
 
 A single scan's command forks (slwarp.cli.loader): the scan is loaded by the parent beside the child's imports, so
 "scan load" is the child's wait for it (and for the runtimes' start), and "exit" ends when the parent returns, before
-the child's CUDA teardown. The breakdown comes from the command's own marks ($SLWARP_TIMELINE, slwarp.timeline) and its timings.json:
-the interpreter's start, imports, scan load, until the reconstruction starts (device start, config), setup (depth search, blur
-fit), training, extraction, outputs, the report, and the interpreter's exit. Writes <out>/<stem>.json and .md.
+the child's CUDA teardown. The breakdown comes from the command's own marks ($SLWARP_TIMELINE, slwarp.timeline) and
+its timings.json: the interpreter's start, imports, scan load, until the reconstruction starts (device start, config),
+setup (depth search, blur fit), training, extraction, outputs, the report, and the interpreter's exit. Writes
+<out>/<stem>.json and .md.
 """
 from __future__ import annotations
 
@@ -168,7 +169,7 @@ def sampled_sections(runs: list[dict]) -> list[str]:
             lines += [""] + stack_sampler.markdown(r["sampled"], f"Run {i} ({r['caches']} caches), sampled every "
                                                    f"{os.environ.get('SLWARP_SAMPLE_MS', '2')} ms")
     if lines:
-        lines = ["", "## Where the main thread was (bench.stack_sampler; the sampler slows a run by a few per cent)"] + lines
+        lines = ["", "## Where the main thread was (bench.stack_sampler; it slows a run by a few per cent)", *lines]
     return lines
 
 

@@ -35,8 +35,8 @@ def scan_dir(tmp_path_factory):
 def command(args, env=None, **kw):
     """`python -m slwarp ARGS` (the console command's entry(), which may fork) as a subprocess."""
     return subprocess.Popen([sys.executable, "-m", "slwarp", *map(str, args)], cwd=REPO,
-                            env={**os.environ, **(env or {})}, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            **kw)
+                            env={**os.environ, **(env or {})}, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, **kw)
 
 
 def test_two_processes_give_the_depth_map_of_one(scan_dir, tmp_path):
