@@ -89,16 +89,31 @@ def _alive(pid: int) -> bool:
     return stat.rsplit(")", 1)[1].split()[0] != "Z"
 
 
+def _training(scan_dir, out, checkpointed: bool = True):
+    """(the command, its child): a long tiny-preset training, once its first checkpoint is written when
+    `checkpointed`."""
+    p = command(["reconstruct", scan_dir, "--out", out, "--preset", "tiny", "--device", "cpu", "--init", "sphere",
+                 "--iters", "100000", "--rays", "64", "--checkpoint-every", "10", "--quiet"])
+    child = _child_of(p.pid)
+    deadline = time.time() + 500
+    while checkpointed and not (out / "train" / "checkpoint.pt").exists() and p.poll() is None \
+            and time.time() < deadline:
+        time.sleep(0.2)
+    return p, child
+
+
+def _gone(pid: int, timeout: float) -> bool:
+    deadline = time.time() + timeout
+    while _alive(pid) and time.time() < deadline:
+        time.sleep(0.1)
+    return not _alive(pid)
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the child process through /proc")
 def test_sigterm_to_the_command_reaches_the_child_which_keeps_a_checkpoint(scan_dir, tmp_path):
     out = tmp_path / "out"
-    p = command(["reconstruct", scan_dir, "--out", out, "--preset", "tiny", "--device", "cpu", "--init", "sphere",
-                 "--iters", "100000", "--rays", "64", "--checkpoint-every", "10", "--quiet"])
+    p, child = _training(scan_dir, out)
     try:
-        child = _child_of(p.pid)
-        deadline = time.time() + 500
-        while not (out / "train" / "checkpoint.pt").exists() and p.poll() is None and time.time() < deadline:
-            time.sleep(0.2)
         p.send_signal(signal.SIGTERM)  # to the command alone, as `kill PID` or a job scheduler sends it
         stderr = p.communicate(timeout=300)[1]
     finally:
@@ -106,18 +121,13 @@ def test_sigterm_to_the_command_reaches_the_child_which_keeps_a_checkpoint(scan_
     assert p.returncode == 143, stderr
     assert "interrupted by SIGTERM" in stderr and "continue with --resume" in stderr
     assert (out / "train" / "checkpoint.pt").exists()
-    deadline = time.time() + 60
-    while _alive(child) and time.time() < deadline:
-        time.sleep(0.1)
-    assert not _alive(child)
+    assert _gone(child, 60)
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the child process through /proc")
 def test_a_child_killed_without_a_status_gives_the_signals_status(scan_dir, tmp_path):
-    p = command(["reconstruct", scan_dir, "--out", tmp_path / "out", "--preset", "tiny", "--device", "cpu",
-                 "--init", "sphere", "--iters", "100000", "--rays", "64", "--quiet"])
+    p, child = _training(scan_dir, tmp_path / "out", checkpointed=False)
     try:
-        child = _child_of(p.pid)
         time.sleep(1.0)
         os.kill(child, signal.SIGKILL)
         p.communicate(timeout=120)
@@ -133,16 +143,16 @@ def _args(scans, per_device=None):
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the command splits on Linux only")
 def test_only_the_console_command_with_one_scan_splits(scan_dir, tmp_path, monkeypatch):
     monkeypatch.setattr(loader, "_may_fork", False)
-    assert not loader.splits(_args([scan_dir]))  # main() called by a program or a test never forks
+    assert loader.splits(_args([scan_dir])) is None  # main() called by a program or a test never forks
     monkeypatch.setattr(loader, "_may_fork", True)
     monkeypatch.delenv("SLWARP_LOADER", raising=False)
     monkeypatch.delenv("WORLD_SIZE", raising=False)
-    assert loader.splits(_args([scan_dir]))
-    assert not loader.splits(_args([scan_dir], per_device=1))
-    assert not loader.splits(_args([scan_dir.parent]))  # a folder of scans: a batch
-    assert not loader.splits(_args([tmp_path / "missing"]))  # reported by the command itself
+    assert loader.splits(_args([scan_dir])).single
+    assert loader.splits(_args([scan_dir], per_device=1)) is None
+    assert loader.splits(_args([scan_dir.parent])) is None  # a folder of scans: a batch
+    assert loader.splits(_args([tmp_path / "missing"])) is None  # reported by the command itself
     monkeypatch.setenv("SLWARP_LOADER", "0")
-    assert not loader.splits(_args([scan_dir]))
+    assert loader.splits(_args([scan_dir])) is None
 
 
 def test_the_pipe_carries_the_scan_its_rays_and_errors(scan_dir, monkeypatch):
@@ -177,19 +187,11 @@ def test_the_pipe_carries_the_scan_its_rays_and_errors(scan_dir, monkeypatch):
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="Linux's parent-death signal")
 def test_a_command_killed_outright_stops_its_child_with_a_checkpoint(scan_dir, tmp_path):
     out = tmp_path / "out"
-    p = command(["reconstruct", scan_dir, "--out", out, "--preset", "tiny", "--device", "cpu", "--init", "sphere",
-                 "--iters", "100000", "--rays", "64", "--checkpoint-every", "10", "--quiet"])
+    p, child = _training(scan_dir, out)
     try:
-        child = _child_of(p.pid)
-        deadline = time.time() + 500
-        while not (out / "train" / "checkpoint.pt").exists() and p.poll() is None and time.time() < deadline:
-            time.sleep(0.2)
         p.kill()  # SIGKILL: the command can pass nothing on
         p.communicate(timeout=60)
-        deadline = time.time() + 120
-        while _alive(child) and time.time() < deadline:
-            time.sleep(0.1)
     finally:
         p.kill()
-    assert not _alive(child)  # it got SIGTERM and stopped as on any SIGTERM
+    assert _gone(child, 120)  # it got SIGTERM and stopped as on any SIGTERM
     assert (out / "train" / "checkpoint.pt").exists() and not (out / "depth.npy").exists()

@@ -45,28 +45,31 @@ def allow_fork() -> None:
     _may_fork = True
 
 
-def splits(args) -> bool:
-    """Whether `reconstruct` with these arguments loads its scan in a process of its own: the `slwarp` command
-    (allow_fork), Linux (where the GPUs are; macOS's system libraries are not safe to fork), one scan folder (not a
-    batch), no --per-device, not a torchrun rank, and $SLWARP_LOADER not 0."""
+def splits(args):
+    """The scans found (batch.find_scans' Discovery) when `reconstruct` with these arguments loads its scan in a
+    process of its own, else None: the `slwarp` command (allow_fork), Linux (where the GPUs are; macOS's system
+    libraries are not safe to fork), one scan folder (not a batch), no --per-device, not a torchrun rank, and
+    $SLWARP_LOADER not 0."""
     from ..batch.discovery import find_scans
     from ..batch.launch import launched_by_torchrun
 
     if not _may_fork or not sys.platform.startswith("linux") or os.environ.get("SLWARP_LOADER", "1") == "0":
-        return False
+        return None
     if args.per_device is not None or launched_by_torchrun():
-        return False
+        return None
     try:
-        return find_scans(args.scans).single
+        found = find_scans(args.scans)
     except Exception:  # noqa: BLE001 - the command reports a bad scan word itself, in its order
-        return False
+        return None
+    return found if found.single else None
 
 
 def load_beside(args):
     """Fork when `splits(args)`: returns a ScanAhead in the child (the process that goes on with the command) and
     never returns in the parent, which loads the scan, sends it and exits with the child's status. None where the
     command does not split."""
-    if not splits(args):
+    found = splits(args)
+    if found is None:
         return None
     scan_r, scan_w = os.pipe()
     status_r, status_w = os.pipe()
@@ -81,7 +84,7 @@ def load_beside(args):
         _report_fd = status_w
         _end_with_parent(parent)
         _start_driver(args)
-        return ScanAhead(scan_r)
+        return ScanAhead(scan_r, found)
     os.close(scan_r)
     os.close(status_w)
     code = 1
@@ -230,9 +233,10 @@ def _read_into(fd: int, view: memoryview) -> int:
 
 class ScanAhead:
     """The child's side: a daemon thread reads the parent's message while the command imports; scan() waits for
-    it."""
+    it. `found`: the scans the command named (batch.find_scans' Discovery, made before the fork)."""
 
-    def __init__(self, fd: int):
+    def __init__(self, fd: int, found=None):
+        self.found = found
         self._fd = fd
         self._message, self._error = None, None
         self._thread = threading.Thread(target=self._receive, name="slwarp-scan-receiver", daemon=True)

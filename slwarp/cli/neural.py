@@ -101,8 +101,9 @@ def _reconstruct(args, pool, ahead=None) -> int:
     if args.per_device is not None and launched_by_torchrun():
         raise UserError("--per-device starts its own worker processes: under torchrun use --nproc-per-node "
                         "(K x GPUs for K scans per GPU) instead")
-    found = find_scans(args.scans)
-    pset = _pattern_set(args.patterns)  # a bad file is reported before any scan runs
+    found = find_scans(args.scans) if ahead is None else ahead.found
+    # a bad file is reported before any scan runs (with a loader process, by it, which reads the file for the scan)
+    pset = _pattern_set(args.patterns) if ahead is None else None
     if not found.single or args.per_device is not None or launched_by_torchrun():
         return _reconstruct_batch(args, found, name, cfg, dev, pool)
     scan_path = args.scans[0]
