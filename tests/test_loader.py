@@ -57,6 +57,23 @@ def test_two_processes_give_the_depth_map_of_one(scan_dir, tmp_path):
     assert {"imports", "scan loaded", "reconstructed", "exit"} <= set(marks)
 
 
+def test_the_scans_problems_found_by_the_loader_are_the_warnings_of_one_process(scan_dir, tmp_path):
+    import cv2
+
+    broken = tmp_path / "scan"
+    shutil.copytree(scan_dir, broken)
+    first = sorted((broken / "images").iterdir())[0]
+    cv2.imwrite(str(first), np.zeros_like(cv2.imread(str(first), cv2.IMREAD_UNCHANGED)))  # a black frame
+    warnings = {}
+    for split in ("1", "0"):
+        p = command(["reconstruct", broken, "--out", tmp_path / f"out{split}", *TINY], env={"SLWARP_LOADER": split})
+        _, stderr = p.communicate(timeout=600)
+        assert p.returncode == 0, stderr
+        warnings[split] = [line for line in stderr.splitlines() if line.startswith("warning:")]
+    assert any("black" in line for line in warnings["0"])
+    assert warnings["1"] == warnings["0"]
+
+
 def test_a_scan_the_loader_cannot_read_is_a_one_line_error(scan_dir, tmp_path):
     broken = tmp_path / "broken"
     shutil.copytree(scan_dir, broken)
@@ -160,7 +177,8 @@ def test_the_pipe_carries_the_scan_its_rays_and_errors(scan_dir, monkeypatch):
 
     scan = load_scan(scan_dir)
     rays = camera_rays(scan.camera) + 0.0  # a copy: cache_rays must place this one
-    for message in [("scan", (scan, rays)), ("error", loader._picklable(ScanError(f"{scan_dir}: broken")))]:
+    problems = ["2 of 6 frames are black"]
+    for message in [("scan", (scan, rays, problems)), ("error", loader._picklable(ScanError(f"{scan_dir}: broken")))]:
         r, w = os.pipe()
         ahead = loader.ScanAhead(r)
         sender = threading.Thread(target=lambda: (loader._send(w, message), os.close(w)))
@@ -175,6 +193,7 @@ def test_the_pipe_carries_the_scan_its_rays_and_errors(scan_dir, monkeypatch):
             np.testing.assert_array_equal(got.images, scan.images)
             assert got.names == scan.names
             np.testing.assert_array_equal(camera_rays(got.camera), rays)
+            assert ahead.problems == problems
         sender.join()
         monkeypatch.undo()
     # a loader that ends without sending: a clear error where the scan is asked for

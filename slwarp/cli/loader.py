@@ -110,10 +110,12 @@ def _end_with_parent(parent: int | None) -> None:
 
 
 def _start_driver(args) -> None:
-    """The CUDA driver initialised (cuInit) in a thread while the child imports, unless the command asks for the CPU.
-    Why: torch's first CUDA call (`torch.cuda.is_available()` as the configuration resolves the device) ran cuInit
-    holding the interpreter lock, 0.19 s of a fresh `fast` command on an H100 host (a stack sampler); called through
-    ctypes it leaves the lock free, and torch's and Warp's calls then find the driver initialised."""
+    """The CUDA driver (cuInit) and NVML initialised in a thread while the child imports, unless the command asks for
+    the CPU. Why: torch's first CUDA call (`torch.cuda.is_available()` as the configuration resolves the device) ran
+    cuInit holding the interpreter lock, 0.19 s of a fresh `fast` command on an H100 host (a stack sampler), and
+    torch's CUDA start counts the devices through NVML, whose start held it for 0.015 s on an H200 host; called
+    through ctypes both leave the lock free, and torch's and Warp's calls then find them initialised (both count
+    their starts: a later start is a count up)."""
     from .neural import _requested_device
 
     if _requested_device(args) == "cpu" or not sys.platform.startswith("linux"):
@@ -123,7 +125,8 @@ def _start_driver(args) -> None:
         try:
             import ctypes
 
-            ctypes.CDLL("libcuda.so.1").cuInit(0)
+            if ctypes.CDLL("libcuda.so.1").cuInit(0) == 0:  # else no usable GPU: the command runs on the CPU
+                ctypes.CDLL("libnvidia-ml.so.1").nvmlInit_v2()
         except (OSError, AttributeError):  # no driver: the command runs on the CPU and says so
             pass
 
@@ -154,14 +157,15 @@ def _parent(args, child: int, scan_w: int, status_r: int) -> int:
 
 
 def _load(args):
-    """(the scan as the command loads it, its camera's ray grid)."""
+    """(the scan as the command loads it, its camera's ray grid, its problems: Scan.problems, 0.04 s of the child's
+    time for a default-rig scan)."""
     from ..scans.scan import load_scan
     from ..scans.scanner import camera_rays
     from .neural import _pattern_set
 
     scan = load_scan(args.scans[0], frames=args.frames, outside_paths=args.allow_outside_paths,
                      patterns=_pattern_set(args.patterns))
-    return scan, camera_rays(scan.camera)
+    return scan, camera_rays(scan.camera), scan.problems()
 
 
 def _picklable(e: BaseException) -> BaseException:
@@ -237,6 +241,7 @@ class ScanAhead:
 
     def __init__(self, fd: int, found=None):
         self.found = found
+        self.problems: list[str] | None = None  # the scan's problems (Scan.problems), once scan() has returned
         self._fd = fd
         self._message, self._error = None, None
         self._thread = threading.Thread(target=self._receive, name="slwarp-scan-receiver", daemon=True)
@@ -268,7 +273,7 @@ class ScanAhead:
         kind, value = self._message
         if kind == "error":
             raise value
-        scan, rays = value
+        scan, rays, self.problems = value
         from ..scans.scanner import cache_rays
 
         cache_rays(scan.camera, rays)

@@ -113,7 +113,7 @@ def _reconstruct(args, pool, ahead=None) -> int:
     else:
         scan = load_scan(scan_path, frames=args.frames, outside_paths=args.allow_outside_paths, patterns=pset)
     timeline.mark("scan loaded")
-    _warn_problems(scan)
+    _warn_problems(scan, problems=None if ahead is None else ahead.problems)
     depth_range = _parse_range(args.depth_range)
     if depth_range is None and scan.depth_range is None:
         raise UserError(f"{scan_path}: the scan declares no depth range: pass --depth-range NEAR,FAR (mm)")

@@ -18,9 +18,10 @@ def cmd_info(args) -> int:
     return 0
 
 
-def _warn_problems(scan, stream=None) -> None:
-    """One 'warning:' line per problem of the scan (Scan.problems: too few frames, black, saturated, no contrast)."""
-    for problem in scan.problems():
+def _warn_problems(scan, stream=None, problems: list[str] | None = None) -> None:
+    """One 'warning:' line per problem of the scan (Scan.problems: too few frames, black, saturated, no contrast;
+    `problems` when they were found already)."""
+    for problem in scan.problems() if problems is None else problems:
         print(f"warning: {problem}", file=stream or sys.stderr)
 
 
