@@ -12,6 +12,9 @@ processes, one after another, each: the imports, the device's first tensor, the 
 kernel caches (Warp's kernel cache, Inductor's and Triton's) live in <work>/caches, shared by the runs as a
 station's are between commands: with --fresh the first run finds them empty, the next ones warm. `bench/train_speed.py`
 times its warm-up inside a process that has already run its microbenchmark; this is the cost a user sees per command.
+A second table puts each part of the two scans side by side (the set-up's phases, the first training step, each
+extraction stage): what a fresh process pays once shows as the first scan's excess (on CUDA mostly the first launch
+of each of torch's kernels, which loads its module: CUDA's lazy loading).
 Writes <out>/<stem>.json and .md (stem default first-scan-<cuda|cpu>[-<preset>]) and prints the table.
 """
 from __future__ import annotations
@@ -33,6 +36,19 @@ from bench.command_wall import process_env  # noqa: E402  (a fresh process's cac
 
 SMOKE_SET = ["iters=3", "init_iters=2", "mc_resolution=32", "rays=64"]
 STAGES = ("setup_s", "train_s", "depth_map_s")
+# timings.json entries in seconds that are not one extraction stage's
+NOT_STAGES = {"setup_s", "train_s", "depth_map_s", "total_s", "train_wall_s_total", "waited_before_extraction_s"}
+
+
+def parts(timings: dict) -> dict:
+    """{part: s} of one reconstruction's timings: "setup: <phase>" (Trainer.setup_phases), "step 1" (the first
+    training step), "extract: <stage>" (each extraction stage)."""
+    out = {f"setup: {k}": v for k, v in (timings.get("setup_phases_s") or {}).items()}
+    if timings.get("first_steps_s"):
+        out["step 1"] = timings["first_steps_s"][0]
+    out.update({f"extract: {k[:-2]}": v for k, v in timings.items()
+                if k.endswith("_s") and k not in NOT_STAGES and isinstance(v, (int, float))})
+    return out
 
 
 def child(args) -> None:
@@ -66,7 +82,7 @@ def child(args) -> None:
         first = first or time.perf_counter() - T_START
         scans.append({"wall_s": time.perf_counter() - t, **{k: r.timings[k] for k in STAGES},
                       "extract_s": r.timings["depth_map_s"] - r.timings["setup_s"] - r.timings["train_s"],
-                      "mae": None if r.metrics is None else r.metrics["mae"]})
+                      "mae": None if r.metrics is None else r.metrics["mae"], "parts": parts(r.timings)})
     name = torch.cuda.get_device_name() if args.device.startswith("cuda") else "CPU"
     print(json.dumps({"device": name, "imports_s": imports, "device_start_s": device_start, "load_s": load,
                       "to_first_depth_map_s": first, "scans": scans}))
@@ -119,7 +135,24 @@ def markdown(doc: dict) -> str:
                      f"{a['setup_s']:.2f} / {a['train_s']:.2f} / {a['extract_s']:.2f} | "
                      f"{b['setup_s']:.2f} / {b['train_s']:.2f} / {b['extract_s']:.2f} | "
                      f"{a['depth_map_s']:.2f} / {b['depth_map_s']:.2f} | {a['depth_map_s'] - b['depth_map_s']:.2f} |")
-    return "\n".join(lines)
+    return "\n".join(lines + parts_table(doc["runs"]))
+
+
+def parts_table(runs: list[dict], floor_s: float = 0.005) -> list[str]:
+    """Each part of the first and the second scan (`parts`), means over the runs that finished, the parts that took
+    floor_s or more in either; the first scan's excess last."""
+    done = [r["scans"] for r in runs if not r.get("error") and "parts" in r["scans"][0]]
+    if not done:
+        return []
+    names = list(dict.fromkeys(k for first, _ in done for k in first["parts"]))
+    lines = ["", f"Each part of the two scans, mean of {len(done)} run(s) (s; parts of {floor_s} s or more):", "",
+             "| part | first scan | second scan | first - second |", "|---|---:|---:|---:|"]
+    for name in names:
+        a = sum(first["parts"].get(name, 0.0) for first, _ in done) / len(done)
+        b = sum(second["parts"].get(name, 0.0) for _, second in done) / len(done)
+        if max(a, b) >= floor_s:
+            lines.append(f"| {name} | {a:.3f} | {b:.3f} | {a - b:+.3f} |")
+    return lines
 
 
 def main(argv=None) -> None:

@@ -17,7 +17,12 @@ def test_first_scan_smoke_on_cpu(tmp_path):
     assert abs(first["setup_s"] + first["train_s"] + first["extract_s"] - first["depth_map_s"]) < 1e-6
     assert first["mae"] is not None and second["mae"] is not None  # the simulated scan has ground truth
     assert (tmp_path / "work" / "scan-spheres-small" / "scan.yaml").is_file()
-    assert "| 1 | empty |" in (tmp_path / "first-scan-cpu-tiny.md").read_text()
+    md = (tmp_path / "first-scan-cpu-tiny.md").read_text()
+    assert "| 1 | empty |" in md
+    # each part of both scans side by side: the set-up's phases, the first step, the extraction's stages
+    assert {"step 1", "extract: marching_cubes", "extract: depth"} <= set(first["parts"]) == set(second["parts"])
+    assert any(k.startswith("setup: ") for k in first["parts"])
+    assert "| part | first scan | second scan | first - second |" in md and "| extract: " in md
     # --scan: a scan on disk (here the one simulated above), nothing simulated; a missing folder is refused
     scan = tmp_path / "work" / "scan-spheres-small"
     first_scan.main(["--smoke", "--runs", "1", "--scan", str(scan), "--work", str(tmp_path / "work2"), "--out",
