@@ -33,6 +33,7 @@ import argparse
 import datetime
 import json
 import re
+import sys
 import time
 from pathlib import Path
 
@@ -252,6 +253,8 @@ def markdown(doc: dict) -> str:
     nan = float("nan")
     opts = f" with {' '.join(doc['options'])}" if doc.get("options") else ""
     lines = [f"# Training speed, preset `{doc['preset']}`{opts}, {doc['scene']} ({doc['rig']} rig), {doc['device']}, {doc['date']}", ""]
+    if doc.get("bench_command"):
+        lines += [f"`{doc['bench_command'].strip()}`", ""]
     if doc["rows"]:
         lines += [f"Per iteration ({doc['iters']} timed after {doc['warmup']} untimed ones, at the end of the schedule "
                   f"with every hash-grid level on, start `{doc['rows'][0].get('init', 'sphere')}`; the preset runs "
@@ -378,6 +381,7 @@ def main(argv=None):
     scan = simulate_scene(args.scene, "random6", rig=rig, device="cuda:0" if dev == "cuda" else "cpu")
     name = torch.cuda.get_device_name(0) if dev == "cuda" else "CPU"
     doc = {"device": name, "date": str(datetime.date.today()), "preset": preset_name, "options": args.set,
+           "bench_command": "python -m bench.train_speed " + " ".join(argv if argv is not None else sys.argv[1:]),
            "scene": args.scene, "rig": rig,
            "warmup": args.warmup, "iters": args.iters, "rows": [], "end_to_end": []}
     for spec in configs:

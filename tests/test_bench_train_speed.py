@@ -29,6 +29,7 @@ def test_train_speed_smoke_hashgrid_on_cpu(tmp_path):
     assert e2e["timeline"][-1]["to"] == 5 and all(x["ms_per_it"] > 0 and x["inv_s"] > 0 for x in e2e["timeline"])
     md = (tmp_path / "train-speed-cpu-tiny.md").read_text()
     assert "warp:eager:fp32:twin / warp:eager:fp32" in md and "with field=hashgrid" in md
+    assert doc["bench_command"].startswith("python -m bench.train_speed --preset tiny") and "`python -m bench" in md
 
 
 def test_train_speed_times_a_trained_field(tmp_path):
