@@ -28,6 +28,7 @@ import argparse
 import datetime
 import json
 import os
+import platform
 import shutil
 import subprocess
 import sys
@@ -138,6 +139,24 @@ def compile_bytecode(prefix: Path) -> float:
     return time.perf_counter() - t
 
 
+def host_baseline(env: dict, count: int = 3) -> dict:
+    """The host the runs ran on: its CPU model and cores, and `python -c "import torch"` timed `count` times as fresh
+    processes in the runs' environment (s): the part of every command's imports that no change of slwarp's moves,
+    which differs between hosts by a second (bench/results: 1.5-2.6 s of imports for the same code)."""
+    model = platform.processor() or platform.machine()
+    try:
+        model = next(line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                     if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    times = []
+    for _ in range(count):
+        t = time.perf_counter()
+        subprocess.run([sys.executable, "-c", "import torch"], env=env, capture_output=True)
+        times.append(time.perf_counter() - t)
+    return {"cpu": model, "cores": os.cpu_count(), "torch_import_s": times}
+
+
 def markdown(doc: dict) -> str:
     s = doc["setup"]
     lines = [f"# The command's wall time, preset `{s['preset']}`, {s['scene']} ({s['rig']} rig), {doc['device']}, "
@@ -146,7 +165,10 @@ def markdown(doc: dict) -> str:
              "kernels, Inductor, Triton) in the work folder" + (", emptied before run 1" if s["cold"] else "")
              + f"; Python bytecode {s['bytecode']}"
              + (f" (compiled into a cache prefix first, {doc['bytecode_s']:.0f} s)" if s["bytecode"] == "warm" else "")
-             + ". Phases in seconds (marks of the command and its timings.json).", "",
+             + ". Phases in seconds (marks of the command and its timings.json)."
+             + (f" Host: {doc['host']['cpu']}, {doc['host']['cores']} cores; `python -c \"import torch\"` took "
+                + " / ".join(f"{t:.2f}" for t in doc["host"]["torch_import_s"]) + " s in the runs' environment "
+                "(hosts differ by about a second there)." if doc.get("host") else ""), "",
              "| run | caches | wall s | to depth map s | " + " | ".join(t for _, t in PHASES) + " |",
              "|---|---|---:|---:|" + "---:|" * len(PHASES)]
     for i, r in enumerate(doc["runs"], 1):
@@ -258,6 +280,7 @@ def main(argv=None) -> None:
         device = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
                                 text=True).stdout.strip().splitlines()[0]
     doc = {"device": device, "date": str(datetime.date.today()), "command": command, "bytecode_s": bytecode_s,
+           "host": host_baseline(env),
            "bench_command": "python -m bench.command_wall " + " ".join(argv if argv is not None else sys.argv[1:]),
            "setup": {"preset": args.preset, "scene": args.scene, "rig": args.rig, "scan": args.scan, "set": args.set,
                      "cold": args.cold, "bytecode": args.bytecode, "smoke": args.smoke, "sample": args.sample},

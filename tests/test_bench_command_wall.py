@@ -16,7 +16,12 @@ def test_command_wall_smoke_on_cpu(tmp_path):
     assert abs(phases - run["wall_s"]) < 1e-3  # the phases tile the time from spawn to exit
     assert 0 < run["to_depth_map"] < run["wall_s"]
     assert (tmp_path / "work" / "out-1" / "depth.npy").is_file()
-    assert "| 1 | empty |" in (tmp_path / "command-wall-cpu-tiny.md").read_text()
+    md = (tmp_path / "command-wall-cpu-tiny.md").read_text()
+    assert "| 1 | empty |" in md
+    # the host beside the runs: its CPU and its bare torch import, three fresh processes
+    assert doc["host"]["cores"] >= 1 and len(doc["host"]["torch_import_s"]) == 3
+    assert all(t > 0 for t in doc["host"]["torch_import_s"])
+    assert '`python -c "import torch"` took' in md and doc["host"]["cpu"] in md
     # --scan: a scan on disk instead of the simulated one (here the one the run above simulated)
     scan = tmp_path / "work" / "scan-spheres-small"
     command_wall.main(["--smoke", "--runs", "1", "--scan", str(scan), "--work", str(tmp_path / "work2"),
