@@ -113,9 +113,9 @@ def _start_driver(args) -> None:
     """The CUDA driver (cuInit) and NVML initialised in a thread while the child imports, unless the command asks for
     the CPU. Why: torch's first CUDA call (`torch.cuda.is_available()` as the configuration resolves the device) ran
     cuInit holding the interpreter lock, 0.19 s of a fresh `fast` command on an H100 host (a stack sampler), and
-    torch's CUDA start counts the devices through NVML, whose start held it for 0.015 s on an H200 host; called
-    through ctypes both leave the lock free, and torch's and Warp's calls then find them initialised (both count
-    their starts: a later start is a count up)."""
+    torch's CUDA start counts the devices through NVML, whose start took 0.015 s of the main thread on an H200 host;
+    called through ctypes both leave the lock free, and torch's and Warp's calls then find them initialised (each
+    counts its starts: a later start is a count up)."""
     from .neural import _requested_device
 
     if _requested_device(args) == "cpu" or not sys.platform.startswith("linux"):
