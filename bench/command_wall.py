@@ -150,7 +150,7 @@ def host_baseline(env: dict, count: int = 3) -> dict:
     except (OSError, StopIteration):
         pass
     times = []
-    for _ in range(count):
+    for _ in range(count):  # after the runs: their caches and bytecode are the import's too
         t = time.perf_counter()
         subprocess.run([sys.executable, "-c", "import torch"], env=env, capture_output=True)
         times.append(time.perf_counter() - t)
@@ -226,6 +226,8 @@ def main(argv=None) -> None:
     p.add_argument("--bytecode", choices=["as-is", "warm"], default="as-is")
     p.add_argument("--work", default="/tmp/slwarp-command-wall", help="the scan, the caches and the outputs")
     p.add_argument("--smoke", action="store_true", help="CPU, small rig, tiny preset and a few iterations")
+    p.add_argument("--host-imports", type=int, default=3, help="time `python -c 'import torch'` this many times "
+                   "after the runs, the host's share of the imports (0: not)")
     p.add_argument("--sample", action="store_true", help="run each command under bench.stack_sampler and report where "
                    "its main thread was, per phase")
     p.add_argument("--stem", default=None)
@@ -280,7 +282,7 @@ def main(argv=None) -> None:
         device = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
                                 text=True).stdout.strip().splitlines()[0]
     doc = {"device": device, "date": str(datetime.date.today()), "command": command, "bytecode_s": bytecode_s,
-           "host": host_baseline(env),
+           "host": host_baseline(env, args.host_imports) if args.host_imports > 0 else None,
            "bench_command": "python -m bench.command_wall " + " ".join(argv if argv is not None else sys.argv[1:]),
            "setup": {"preset": args.preset, "scene": args.scene, "rig": args.rig, "scan": args.scan, "set": args.set,
                      "cold": args.cold, "bytecode": args.bytecode, "smoke": args.smoke, "sample": args.sample},

@@ -36,18 +36,15 @@ from bench.command_wall import process_env  # noqa: E402  (a fresh process's cac
 
 SMOKE_SET = ["iters=3", "init_iters=2", "mc_resolution=32", "rays=64"]
 STAGES = ("setup_s", "train_s", "depth_map_s")
-# timings.json entries in seconds that are not one extraction stage's
-NOT_STAGES = {"setup_s", "train_s", "depth_map_s", "total_s", "train_wall_s_total", "waited_before_extraction_s"}
 
 
-def parts(timings: dict) -> dict:
+def parts(timings: dict, stages: list[str]) -> dict:
     """{part: s} of one reconstruction's timings: "setup: <phase>" (Trainer.setup_phases), "step 1" (the first
-    training step), "extract: <stage>" (each extraction stage)."""
+    training step), "extract: <stage>" for each of the extraction's `stages` (their names, in order)."""
     out = {f"setup: {k}": v for k, v in (timings.get("setup_phases_s") or {}).items()}
     if timings.get("first_steps_s"):
         out["step 1"] = timings["first_steps_s"][0]
-    out.update({f"extract: {k[:-2]}": v for k, v in timings.items()
-                if k.endswith("_s") and k not in NOT_STAGES and isinstance(v, (int, float))})
+    out.update({f"extract: {name}": timings[f"{name}_s"] for name in stages if f"{name}_s" in timings})
     return out
 
 
@@ -56,6 +53,7 @@ def child(args) -> None:
     import torch
 
     from slwarp.neural.config import preset
+    from slwarp.neural.extraction import build_stages
     from slwarp.neural.reconstruct import reconstruct
     from slwarp.scans.scan import load_scan
 
@@ -76,13 +74,14 @@ def child(args) -> None:
     scan = load_scan(args.scan)
     load = time.perf_counter() - t
     scans, first = [], None
+    stages = [stage.name for stage in build_stages(cfg.extraction)]
     for _ in range(2):
         t = time.perf_counter()
         r = reconstruct(scan, cfg, progress=False)
         first = first or time.perf_counter() - T_START
         scans.append({"wall_s": time.perf_counter() - t, **{k: r.timings[k] for k in STAGES},
                       "extract_s": r.timings["depth_map_s"] - r.timings["setup_s"] - r.timings["train_s"],
-                      "mae": None if r.metrics is None else r.metrics["mae"], "parts": parts(r.timings)})
+                      "mae": None if r.metrics is None else r.metrics["mae"], "parts": parts(r.timings, stages)})
     name = torch.cuda.get_device_name() if args.device.startswith("cuda") else "CPU"
     print(json.dumps({"device": name, "imports_s": imports, "device_start_s": device_start, "load_s": load,
                       "to_first_depth_map_s": first, "scans": scans}))

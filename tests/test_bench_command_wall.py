@@ -25,8 +25,9 @@ def test_command_wall_smoke_on_cpu(tmp_path):
     # --scan: a scan on disk instead of the simulated one (here the one the run above simulated)
     scan = tmp_path / "work" / "scan-spheres-small"
     command_wall.main(["--smoke", "--runs", "1", "--scan", str(scan), "--work", str(tmp_path / "work2"),
-                       "--out", str(tmp_path), "--stem", "on-disk"])
+                       "--out", str(tmp_path), "--stem", "on-disk", "--host-imports", "0"])
     doc = json.loads((tmp_path / "on-disk.json").read_text())
+    assert doc["host"] is None and "import torch" not in (tmp_path / "on-disk.md").read_text()
     assert doc["setup"]["scan"] == str(scan) and str(scan) in doc["command"] and "error" not in doc["runs"][0]
     assert not (tmp_path / "work2" / "scan-spheres-small").exists()  # nothing simulated
     with pytest.raises(SystemExit, match="no such scan folder"):
