@@ -15,16 +15,17 @@ NO_COST = 1.0e30  # the cost of "no hypothesis yet": above any mean L1 cost of i
 
 @wp.func
 def window_total(cost: wp.array3d(dtype=float), valid: wp.array2d(dtype=wp.int32), k: int, v: int, u: int,
-                 radius: int) -> wp.vec2:
-    """(sum of cost[k] over the valid pixels of the (2 radius + 1)^2 window at (v, u), their count)."""
+                 radius: int, step: int) -> wp.vec2:
+    """(sum of cost[k] over the valid pixels of the (2 radius + 1)^2 window at (v, u), its pixels `step` apart, their
+    count)."""
     H = cost.shape[1]
     W = cost.shape[2]
     total = float(0.0)
     count = float(0.0)
     for dv in range(-radius, radius + 1):
         for du in range(-radius, radius + 1):
-            y = v + dv
-            x = u + du
+            y = v + dv * step
+            x = u + du * step
             if y >= 0 and y < H and x >= 0 and x < W:
                 if valid[y, x] != 0:
                     total += cost[k, y, x]
@@ -85,6 +86,7 @@ def search_kernels(N: int):
         n_hyp: int,
         h0: int,
         radius: int,
+        step: int,  # camera px between a window's pixels
         stride: int,
         exclude: int,  # hypotheses within this many cells of the best do not count as a rival
         best: wp.array2d(dtype=float),  # [H / stride, W / stride], NO_COST before the first block
@@ -97,7 +99,7 @@ def search_kernels(N: int):
         if centre[v, u] == 0:  # v < H and u < W: the grid is ceil(H / stride) x ceil(W / stride)
             return
         # the window's valid pixels (the same at every hypothesis)
-        count = window_total(cost, valid, 0, v, u, radius)[1] * float(N)
+        count = window_total(cost, valid, 0, v, u, radius, step)[1] * float(N)
         if count == 0.0:
             return
         b_cost = best[i, j]
@@ -106,7 +108,7 @@ def search_kernels(N: int):
         for k in range(cost.shape[0]):
             h = h0 + k
             if h < n_hyp:
-                c = window_total(cost, valid, k, v, u, radius)[0] / count
+                c = window_total(cost, valid, k, v, u, radius, step)[0] / count
                 if c < b_cost:
                     if b_h >= 0 and wp.abs(h - b_h) > exclude:
                         far = wp.min(far, b_cost)

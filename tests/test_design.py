@@ -72,6 +72,16 @@ def test_a_window_batch_holds_each_pixels_neighbours_at_its_depth(model):
     assert torch.allclose(win.uv_hyp[:, 4], alone.uv_hyp[:, 0])
     step = torch.linalg.norm(win.uv_true - win.uv_true[:, 4:5], dim=-1)[win.lit]
     assert float(step.max()) < 4.0 and float(step.max()) > 0.5  # one camera px is a projector px or two
+    # window_step 2: the same 3 x 3 pixels, twice as far apart
+    g2 = torch.Generator()
+    g2.manual_seed(4)
+    wide = model.batch(48, 3, g2, window=1, step=2)
+    assert torch.allclose(wide.uv_true[:, 4], win.uv_true[:, 4]) and torch.allclose(wide.dist, win.dist)
+    ok = wide.lit & win.lit
+    ratio = (torch.linalg.norm(wide.uv_true - wide.uv_true[:, 4:5], dim=-1)[ok]
+             / torch.linalg.norm(win.uv_true - win.uv_true[:, 4:5], dim=-1)[ok].clamp_min(1e-9))
+    ratio = ratio[torch.linalg.norm(win.uv_true - win.uv_true[:, 4:5], dim=-1)[ok] > 0]
+    assert 1.9 < float(ratio.median()) < 2.1  # nearly linear over a few pixels (but where the image's edge clamps)
 
 
 def test_windowed_objective_gradient_warp_matches_twin_and_sees_more(model):
@@ -138,6 +148,8 @@ def test_a_short_windowed_design_lowers_its_objective():
     assert res.options.window == 1 and 0.0 <= res.baselines["random6"]["miss_rate"] <= 1.0
     with pytest.raises(ValueError, match="window"):
         DesignOptions(window=-1)
+    with pytest.raises(ValueError, match="window-step"):
+        DesignOptions(window=1, window_step=0)
 
 
 def test_a_binary_design_sharpens_during_the_descent():

@@ -422,7 +422,7 @@ def test_extract_depth_readmits_edge_pixels_and_only_them(tiny_rods_field):
     assert strict.timings["edge_readmitted"] < back.timings["edge_readmitted"]
 
 
-def _brute_force_search(scan, patterns, valid, centres, radius, step_mm, exclude_mm=6.0):
+def _brute_force_search(scan, patterns, valid, centres, radius, step_mm, exclude_mm=6.0, window_step=1):
     """(depth [P], best [P], second [P]) at centres [P, 2] (row, col): each window projects and samples its own
     pixels at every hypothesis (the torch twin's projection and bilinear taps), hypotheses in order, the rival
     the best cost more than `exclude` cells from the best (the search kernel's rule, written out in float64)."""
@@ -441,8 +441,8 @@ def _brute_force_search(scan, patterns, valid, centres, radius, step_mm, exclude
     H, W = valid.shape
     out = []
     for v, u in centres:
-        pix = [(y, x) for y in range(v - radius, v + radius + 1) for x in range(u - radius, u + radius + 1)
-               if 0 <= y < H and 0 <= x < W and valid[y, x]]
+        taps = range(-radius * window_step, radius * window_step + 1, window_step)
+        pix = [(v + dy, u + dx) for dy in taps for dx in taps if 0 <= v + dy < H and 0 <= u + dx < W and valid[v + dy, u + dx]]
         ys, xs = np.array(pix).T
         d = rays[ys, xs]  # [Q, 3]
         z = near + (far - near) * (np.arange(n_hyp) + 0.5) / n_hyp
@@ -463,23 +463,24 @@ def _brute_force_search(scan, patterns, valid, centres, radius, step_mm, exclude
     return np.array(out).T
 
 
-@pytest.mark.parametrize("radius,stride", [(1, 1), (2, 2)])
-def test_search_is_the_brute_force_window_search(scene, radius, stride):
+@pytest.mark.parametrize("radius,stride,window_step", [(1, 1, 1), (2, 2, 1), (1, 2, 3)])
+def test_search_is_the_brute_force_window_search(scene, radius, stride, window_step):
     """search_depth's two passes (each pixel's cost once per hypothesis, then the windows' sums across blocks of
     hypotheses) give the brute-force search's answer: the best hypothesis of 40 centres, and where the ratio
-    test is clear of rounding, the same confident ones."""
+    test is clear of rounding, the same confident ones; also with the window's pixels window_step px apart."""
     from slwarp.neural.start import search
 
     scan, patterns, valid = scene
     rng = np.random.default_rng(1)
     on_grid = np.argwhere(valid[::stride, ::stride]) * stride
     centres = on_grid[rng.choice(len(on_grid), 40, replace=False)]
-    depth, best, rival = _brute_force_search(scan, patterns, valid, centres, radius, step_mm=2.0)
+    depth, best, rival = _brute_force_search(scan, patterns, valid, centres, radius, step_mm=2.0, window_step=window_step)
     old = search.SEARCH_BLOCK_VALUES
     try:
         search.SEARCH_BLOCK_VALUES = 37 * valid.size  # several blocks, the last one partly beyond the hypotheses
-        every = _search(scan, patterns, valid, radius=radius, stride=stride, step_mm=2.0, median=False, ratio=1e9)
-        confident = _search(scan, patterns, valid, radius=radius, stride=stride, step_mm=2.0, median=False, ratio=0.8)
+        kw = dict(radius=radius, window_step=window_step, stride=stride, step_mm=2.0, median=False)
+        every = _search(scan, patterns, valid, ratio=1e9, **kw)
+        confident = _search(scan, patterns, valid, ratio=0.8, **kw)
     finally:
         search.SEARCH_BLOCK_VALUES = old
     got = every[centres[:, 0], centres[:, 1]]

@@ -39,7 +39,8 @@ def cmd_design(args) -> int:
         steps = steps if args.iterations is None else args.iterations
         opts = DesignOptions(count=args.count, iterations=steps, pixels=args.pixels or pixels, lr=args.lr,
                              tol_px=args.tol_px, binary=args.binary, seed=args.seed, noise=noise,
-                             window=args.window, report_every=max(1, min(100, steps // 10 or 1)))
+                             window=args.window, window_step=args.window_step,
+                             report_every=max(1, min(100, steps // 10 or 1)))
     except ValueError as e:
         raise UserError(f"design-patterns: {e}") from None
     axis_baselines = _baselines_for(camera, projector, depth_range)
@@ -58,6 +59,8 @@ def cmd_design(args) -> int:
     say("\n".join(lines))
     say(f"wrote {yaml_path} ({opts.count} PNGs), design.json, design.png in {res.timings['total_s']:.1f} s"
         + (" (interrupted: the best patterns so far)" if res.interrupted else ""))
+    if opts.window_step > 1:  # the search must sum the windows the design scored
+        say(f"reconstruct scans of these patterns with --search-window-step {opts.window_step}")
     if res.interrupted:
         print("slwarp design-patterns: interrupted; the best patterns so far are written", file=sys.stderr)
         return 130
@@ -169,6 +172,8 @@ def _add_design(p):
     p.add_argument("--window", type=int, default=0,
                    help="score each pixel with the (2 W + 1)^2 camera pixels around it at one depth, as the depth "
                         "search matches them (its windows: 2); default 0, each pixel alone")
+    p.add_argument("--window-step", type=int, default=1,
+                   help="camera px between the window's pixels (default 1; 2: as many pixels over twice the span)")
     p.add_argument("--binary", action="store_true", help="black and white patterns (DLP projectors): sharpened during the descent, rounded at the end")
     p.add_argument("--blur-px", type=float, default=1.0, help="the camera's view of the pattern: Gaussian sigma in projector px (default 1)")
     p.add_argument("--ambient", type=float, default=0.08, help="ambient offset up to this, full scale (default 0.08)")

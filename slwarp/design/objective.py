@@ -163,10 +163,10 @@ class CodeModel:
         ok = ok & (uv[..., 0] > -0.5) & (uv[..., 0] < W - 0.5) & (uv[..., 1] > -0.5) & (uv[..., 1] < H - 0.5)
         return uv, ok
 
-    def batch(self, pixels: int, K: int, generator: torch.Generator, window: int = 0) -> Batch:
+    def batch(self, pixels: int, K: int, generator: torch.Generator, window: int = 0, step: int = 1) -> Batch:
         """A batch of up to `pixels` camera pixels whose true point lands on the projector image (the others are
-        unlit: no code to design), each with the (2 window + 1)^2 camera pixels around it (window 0: itself only) at
-        its depth, as the depth search's window sums them (`start.search.search_depth`: one hypothesis depth for
+        unlit: no code to design), each with the (2 window + 1)^2 camera pixels around it (window 0: itself only;
+        `step` camera px apart) at its depth, as the depth search's window sums them (`start.search.search_depth`: one hypothesis depth for
         the whole window)."""
         dev = self.device
         g = generator
@@ -176,7 +176,7 @@ class CodeModel:
         near, far = self.depth_range
         t = torch.rand(pixels, generator=g, device=dev)
         z_true = 1.0 / (1.0 / near + t * (1.0 / far - 1.0 / near))
-        r = torch.arange(-window, window + 1, dtype=torch.float64, device=dev)
+        r = step * torch.arange(-window, window + 1, dtype=torch.float64, device=dev)
         offsets = torch.stack(torch.meshgrid(r, r, indexing="xy"), -1).reshape(-1, 2)  # [Wn, 2], the centre in the middle
         Wn = offsets.shape[0]
         uvw = torch.minimum(torch.clamp(uvc[:, None, :] + offsets[None], min=0.0), last)  # [P, Wn, 2], on the image

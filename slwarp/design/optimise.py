@@ -46,7 +46,8 @@ class DesignOptions:
     scored as rounded, rounded at the end; seed: every random draw; validation_pixels: the fixed batch that picks
     the best patterns; report_every: steps between validations; window: the radius (camera px) of the window whose
     pixels share a depth hypothesis, as the depth search's (2), 0: each pixel alone (a window of (2 window + 1)^2
-    pixels costs as many reprojections, so each batch then holds that many times fewer windows); backend: "warp" (the
+    pixels costs as many reprojections, so each batch then holds that many times fewer windows); window_step: the
+    camera px between a window's pixels (1: every pixel; 2: a window of the same count spans twice as far); backend: "warp" (the
     reprojection's Warp kernels), "torch" (its twin) or "auto": Warp on CUDA, the twin on the CPU (Warp's CPU kernels run
     on one core, torch's on all of them: 3x faster on 2 cores)."""
 
@@ -63,6 +64,7 @@ class DesignOptions:
     validation_pixels: int = 8192
     report_every: int = 100
     window: int = 0
+    window_step: int = 1
     backend: str = "auto"
     noise: NoiseModel = field(default_factory=NoiseModel)
 
@@ -75,6 +77,8 @@ class DesignOptions:
             raise ValueError("lr, tol_px, step_px and softness must be > 0")
         if self.window < 0:
             raise ValueError(f"the window's radius must be >= 0 camera px, got --window {self.window}")
+        if self.window_step < 1:
+            raise ValueError(f"the window's step must be >= 1 camera px, got --window-step {self.window_step}")
 
     def windows(self, pixels: int) -> int:
         """How many windows a batch of `pixels` camera pixels' worth of reprojections holds."""
@@ -179,11 +183,12 @@ def design_patterns(camera, projector, depth_range, opts: DesignOptions, *, devi
     # the validation batch: fixed, drawn from its own seed so that it does not depend on the training draws
     gv = torch.Generator(device=device)
     gv.manual_seed(opts.seed + 7919)
-    val = model.batch(opts.windows(opts.validation_pixels), K, gv, opts.window)
+    val = model.batch(opts.windows(opts.validation_pixels), K, gv, opts.window, opts.window_step)
     base = {}
     for name in baselines:
         pset = named_set(name, W, H)
-        pv = model.batch(opts.windows(opts.validation_pixels), len(pset), _seeded(device, opts.seed + 7919), opts.window)
+        pv = model.batch(opts.windows(opts.validation_pixels), len(pset), _seeded(device, opts.seed + 7919), opts.window,
+                         opts.window_step)
         base[name] = evaluate_patterns(model, torch.as_tensor(pset.patterns, device=device), pv, opts)
     theta = _smooth_start(K, model.code_length, opts.init_scale_px, g, device).requires_grad_(True)
 
@@ -215,7 +220,7 @@ def design_patterns(camera, projector, depth_range, opts: DesignOptions, *, devi
     try:
         validate(0)
         for it in range(1, opts.iterations + 1):
-            batch = model.batch(opts.windows(opts.pixels), K, g, opts.window)
+            batch = model.batch(opts.windows(opts.pixels), K, g, opts.window, opts.window_step)
             pats = patterns_of(theta)
             beta = _sharpness(it, opts.iterations) if opts.binary else 0.0
             if beta > 0.0:

@@ -124,7 +124,8 @@ def search_start(scan, config, n_frames: int, depth_range, lit: np.ndarray, imag
     if device.type != "cuda":
         patterns = patterns.numpy()
     return search_depth(scan.camera, scan.projector, images, patterns, depth_range, valid=lit,
-                        step_mm=config.init.search_step_mm, stride=config.init.search_stride, device=device)
+                        step_mm=config.init.search_step_mm, stride=config.init.search_stride,
+                        window_step=config.init.search_window_step, device=device)
 
 
 # auto_range narrows the depth range only where the searched depths fill less than this share of it: a range a user

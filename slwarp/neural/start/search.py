@@ -31,15 +31,16 @@ SEARCH_BLOCK_VALUES = 1 << 25
 
 
 def search_depth(camera, projector, images, patterns, depth_range, *, valid=None, step_mm: float = 1.0,
-                 max_hypotheses: int = 1024, radius: int = 2, stride: int = 2, ratio: float = 0.8,
-                 exclude_mm: float = 6.0, centres=None, median: bool = True, device=None) -> tuple[np.ndarray, dict]:
+                 max_hypotheses: int = 1024, radius: int = 2, window_step: int = 1, stride: int = 2,
+                 ratio: float = 0.8, exclude_mm: float = 6.0, centres=None, median: bool = True, device=None) -> tuple[np.ndarray, dict]:
     """Depth map [H, W] (camera z, mm; NaN where not confident) and info (timings, counts).
 
     images [N, H, W], patterns [N, Hp, Wp] in [0, 1] (numpy, or tensors on `device`); valid [H, W]: the pixels to search and that the windows
     count (default: those lit with contrast, `pattern_model.lit_with_contrast`); centres [H, W] (default: valid):
     the pixels to search when only some are wanted. Hypotheses every `step_mm` (at most `max_hypotheses`)
-    between the near and far depth. A pixel is confident when its best cost < `ratio` x the best cost farther
-    than `exclude_mm` away. median: drop answers > 10 mm from their 3x3 neighbourhood's median.
+    between the near and far depth; windows of (2 radius + 1)^2 pixels `window_step` camera px apart (a designed
+    pattern set's, `design.DesignOptions.window_step`). A pixel is confident when its best cost < `ratio` x the best
+    cost farther than `exclude_mm` away. median: drop answers > 10 mm from their 3x3 neighbourhood's median.
     device: a torch device or device string (None: auto).
     """
     wp = runtime.init()
@@ -60,7 +61,7 @@ def search_depth(camera, projector, images, patterns, depth_range, *, valid=None
     searched = np.zeros((H, W), bool)  # the centres the windows sit on
     searched[::stride, ::stride] = (valid if centres is None else np.asarray(centres, bool) & valid)[::stride, ::stride]
     # the pixels whose own costs some searched window sums
-    k = 2 * int(radius) + 1
+    k = 2 * int(radius) * int(window_step) + 1
     needed = cv2.dilate(searched.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool) & valid
     block = int(max(1, min(n_hyp, SEARCH_BLOCK_VALUES // (H * W))))
     with wp.ScopedDevice(device):
@@ -78,8 +79,9 @@ def search_depth(camera, projector, images, patterns, depth_range, *, valid=None
         for h0 in range(0, n_hyp, block):
             wp.launch(pixel_costs, dim=(block, H, W), inputs=[rays_w, obs_w, a_w, b_w, needed_w, pat_w, prm, near, far,
                                                              n_hyp, h0], outputs=[cost])
-            wp.launch(window_search, dim=(hs, ws), inputs=[cost, valid_w, centre_w, n_hyp, h0, int(radius), int(stride),
-                                                          exclude], outputs=[best, best_h, second])
+            wp.launch(window_search, dim=(hs, ws), inputs=[cost, valid_w, centre_w, n_hyp, h0, int(radius),
+                                                          int(window_step), int(stride), exclude],
+                      outputs=[best, best_h, second])
         wp.launch(finish, dim=(hs, ws), inputs=[best_h, near, far, n_hyp], outputs=[best, second, depth])
         # the answers' confidence, outlier rule and spreading on the search's device (a full-resolution map's
         # 3x3 median took 0.25 s on the host, twice per search repair)
@@ -95,7 +97,7 @@ def search_depth(camera, projector, images, patterns, depth_range, *, valid=None
         share = float(confident[found].double().mean()) if bool(found.any()) else 0.0
     t1 = time.perf_counter()
     info = {"hypotheses": n_hyp, "step_mm": (far - near) / n_hyp, "stride": stride, "radius": radius,
-            "confident_share": share, "search_s": t1 - t0, "total_s": time.perf_counter() - t0, "device": device}
+            "window_step": window_step, "confident_share": share, "search_s": t1 - t0, "total_s": time.perf_counter() - t0, "device": device}
     return full, info
 
 
