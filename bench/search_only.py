@@ -6,8 +6,8 @@ it was designed for (`slwarp design-patterns --window-step S`) and with the plai
     python -m bench.search_only --smoke            # small rig, one scene, no design (a CPU smoke test)
 
 Each scene is simulated once with random 6 + Gray code 7 (simulator seed 0), and once per designed set. The search is
-`start.search.search_depth` as the trainer runs it (5 x 5 windows on every 2nd pixel, hypotheses 1 mm apart, the
-patterns blurred by 1 px); GC(7) interp decodes the 7 Gray code images. Metrics against the scan's ground truth inside
+the trainer's (`neural.start.search_start` with `fast`'s settings: 5 x 5 windows on every 2nd pixel, hypotheses 1 mm
+apart, the patterns blurred by 1 px); GC(7) interp decodes the 7 Gray code images. Metrics against the scan's ground truth inside
 its mask (MAE, median, share > 5 mm, completeness). Writes <out>/<stem>.json and .md and prints the table.
 """
 from __future__ import annotations
@@ -25,16 +25,17 @@ METRICS = ("mae", "median", "over_5mm", "completeness")
 
 
 def search(scan, names: list[str], step: int, device: str):
-    """The search's depth map [H, W] (mm, NaN: none) of the frames `names` of `scan`, windows `step` px apart."""
+    """The trainer's starting search (`neural.start.search_start`, `fast`'s search settings) on the frames `names`
+    of `scan`, windows `step` px apart: its depth map [H, W] (mm, NaN: none)."""
     import torch
 
-    from slwarp.neural.pattern_model import blur_patterns
-    from slwarp.neural.start.search import search_depth
+    from slwarp.neural.config import preset
+    from slwarp.neural.start import search_start, working_volume
 
-    idx = [scan.names.index(n) for n in names]
-    patterns = blur_patterns(torch.as_tensor(scan.patterns[idx]), 1.0).numpy()
-    return search_depth(scan.camera, scan.projector, scan.images[idx], patterns, scan.depth_range, radius=2,
-                        window_step=step, stride=2, device=device)[0]
+    frames = scan.select(names)
+    config = preset("fast", search_window_step=step, device=device)
+    lit, _ = working_volume(frames, config, len(frames), frames.depth_range)
+    return search_start(frames, config, len(frames), frames.depth_range, lit, frames.images, torch.device(device))[0]
 
 
 def scores(depth, scan) -> dict:
