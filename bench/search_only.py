@@ -45,8 +45,9 @@ def scores(depth, scan) -> dict:
     return {k: float(m[k]) for k in METRICS}
 
 
-def run(rig: str, scenes: list[str], designs: list[tuple[int, str]], device: str, log=print) -> dict:
-    """{scene: {method: metrics}} (see the module docstring)."""
+def run(rig: str, scenes: list[str], designs: list[tuple[int, str]], device: str, log=print,
+        random6_steps: tuple[int, ...] = (1,)) -> dict:
+    """{scene: {method: metrics}} (see the module docstring); random 6 searched with each of `random6_steps`."""
     from slwarp.decode import reconstruct_depth
     from slwarp.scans.patterns import named_set
     from slwarp.sim.simulate import simulate_scene
@@ -55,8 +56,9 @@ def run(rig: str, scenes: list[str], designs: list[tuple[int, str]], device: str
     for scene in scenes:
         t = time.perf_counter()
         base = simulate_scene(scene, "random6+gray7", rig=rig, device=device)
-        rows = {"random 6, search": scores(search(base, [n for n in base.names if n.startswith("rand")], 1, device),
-                                          base)}
+        rand = [n for n in base.names if n.startswith("rand")]
+        rows = {("random 6, search" if s == 1 else f"random 6, search step {s}"): scores(search(base, rand, s, device), base)
+                for s in random6_steps}
         gc, _, _ = reconstruct_depth(base, "gc-interp", frames="gray:col:bit=0-6:noinv")
         rows["GC(7) interp"] = scores(gc, base)
         for step, path in designs:
@@ -88,6 +90,7 @@ def main(argv=None) -> None:
     p.add_argument("--scenes", default="bunny,rods")
     p.add_argument("--designs", nargs="*", default=[], metavar="STEP:PATH",
                    help="designed sets: the window step each was designed for, and its patterns.yaml")
+    p.add_argument("--random6-steps", default="1", help="window steps to search random 6 with, e.g. 1,2,3 (default 1)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--smoke", action="store_true", help="small rig, spheres, no design")
     p.add_argument("--stem", default=None)
@@ -102,9 +105,15 @@ def main(argv=None) -> None:
             raise SystemExit(f"--designs: {d!r} is not STEP:PATH (a window step >= 1, then a patterns.yaml)")
         designs.append((int(step), path))
     scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
+    try:
+        steps = tuple(int(s) for s in args.random6_steps.split(","))
+    except ValueError:
+        steps = ()
+    if not steps or min(steps) < 1:
+        raise SystemExit(f"--random6-steps: {args.random6_steps!r} is not a list of window steps >= 1 (e.g. 1,2,3)")
     doc = {"device": "CPU" if args.device == "cpu" else args.device, "date": str(datetime.date.today()), "rig": args.rig,
            "bench_command": "python -m bench.search_only " + " ".join(argv if argv is not None else sys.argv[1:]),
-           "scenes": run(args.rig, scenes, designs, args.device)}
+           "scenes": run(args.rig, scenes, designs, args.device, random6_steps=steps)}
     write_study(Path(args.out) / (args.stem or f"search-only-{args.rig}"), doc, lambda d: markdown(d) + "\n")
 
 

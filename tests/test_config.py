@@ -18,7 +18,7 @@ FLAT_DEFAULTS = dict(iters=4000, rays=2048, n_samples=32, n_importance=32, up_sa
                      lr_final=0.05, variance_lr_factor=1.0, lambda_rc=1.0, lambda_sc=1.0, sc_start=1000, lambda_reg=0.1, level_adam_steps=False, lens_variance_lr_factor=None, lens_lambda_reg=None, anneal_end=0,
                      contrast_threshold=0.05, pattern_blur="auto", pattern_halo=0.0, pattern_halo_sigma=40.0, confidence="photometric", min_confidence=0.6,
                      hidden=256, layers=8, skip=4,
-                     n_freqs=6, init="search", init_iters=300, auto_range=False, auto_range_margin_mm=50.0, search_step_mm=1.0, search_stride=2, search_window_step=1, seed=0, backend="warp",
+                     n_freqs=6, init="search", init_iters=300, auto_range=False, auto_range_margin_mm=50.0, search_step_mm=1.0, search_stride=2, search_window_step=0, seed=0, backend="warp",
                      device="auto", matmul="fp32", compile=True, cuda_graph=True, incremental=False, start_frames=3,
                      add_every=500, checkpoint_every=500, log_every=50, retry_lost_surface=True, mc_resolution=384, depth_method="mesh",
                      edge_filter=10.0, edge_readmit=False, edge_readmit_support=3, edge_readmit_confidence=0.9, refine_range=0.0, search_repair=False, repair_min_component=0, repair_grow=False, search_doubt=False, doubt_confidence=0.7,

@@ -191,6 +191,30 @@ def test_design_patterns_command_writes_a_set_that_simulate_projects(tmp_path, c
     assert "designed" in capsys.readouterr().out
 
 
+def test_a_set_designed_for_spaced_windows_tells_the_search_its_step(tmp_path, capsys):
+    """design-patterns --window-step 3 writes window_step into the set's roles; simulate carries them into scan.yaml,
+    and the reconstruction's depth search takes that step unless search_window_step is set."""
+    from slwarp.neural.config import preset
+    from slwarp.neural.start import window_step_of
+    from slwarp.scans.scan import load_scan
+
+    out = tmp_path / "design"
+    assert cli_main(["design-patterns", "--rig", "small", "--count", "3", "--window", "1", "--window-step", "3",
+                     "--iterations", "2", "--pixels", "256", "--device", "cpu", "--out", str(out)]) == 0
+    assert "window_step=3" in capsys.readouterr().out
+    pset = read_pattern_set(out)
+    assert [r.window_step for r in pset.frame_roles()] == [3, 3, 3]
+    scan_dir = tmp_path / "scan"
+    assert cli_main(["simulate", "--scene", "spheres", "--rig", "small", "--patterns", f"random6+{out}",
+                     "--out", str(scan_dir), "--device", "cpu"]) == 0
+    scan = load_scan(scan_dir)
+    designed = scan.select("designed")
+    auto = preset("cpu-hashgrid")
+    assert auto.init.search_window_step == 0  # auto is every preset's default
+    assert window_step_of(designed, auto, 3) == 3 and window_step_of(scan, auto, 6) == 1  # random 6 first
+    assert window_step_of(designed, preset("cpu-hashgrid", search_window_step=2), 3) == 2
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--rig", "small", "--scan", "x"], "either --rig"),
     (["--rig", "nowhere"], "unknown rig"),

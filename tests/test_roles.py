@@ -36,6 +36,11 @@ def test_declared_role_forms_and_names_agree():
     for r in (gray0, phase, FrameRole("black"), FrameRole("uniform", level=0.4), FrameRole("random", size=5.0, index=1, inverse=True)):
         assert parse_role(r.to_yaml()) == r and parse_role(r.label()) == r
     assert role_from_name("ps_col_p40_s5of4") is None and role_from_name("gray_b0") is None
+    # a designed set made for spaced search windows: the step is part of its role and agrees with the name
+    spaced = parse_role({"kind": "designed", "index": 1, "count": 3, "window_step": 3})
+    assert spaced.window_step == 3 and parse_role(spaced.to_yaml()) == spaced == parse_role(spaced.label())
+    assert resolve_roles(["design3_1"], {"design3_1": spaced.to_yaml()}) == [spaced]
+    assert parse_selector("designed:count=3").matches(spaced) and not parse_selector("designed:window_step=2").matches(spaced)
 
 
 @pytest.mark.parametrize("role,message", [
@@ -51,6 +56,8 @@ def test_declared_role_forms_and_names_agree():
     ({"axis": "col", "bit": 0}, "has no 'kind'"),
     ("zebra", "unknown role 'zebra'"),
     ({"kind": "uniform", "level": 2}, "level must be in [0, 1]"),
+    ({"kind": "designed", "index": 0, "count": 3, "window_step": 0}, "window_step must be >= 1"),
+    ({"kind": "gray", "axis": "col", "bit": 0, "window_step": 2}, "'window_step' is not a field of a gray role"),
 ])
 def test_malformed_role_names_the_frame_and_the_problem(role, message):
     with pytest.raises(RoleError) as e:

@@ -59,8 +59,9 @@ def cmd_design(args) -> int:
     say("\n".join(lines))
     say(f"wrote {yaml_path} ({opts.count} PNGs), design.json, design.png in {res.timings['total_s']:.1f} s"
         + (" (interrupted: the best patterns so far)" if res.interrupted else ""))
-    if opts.window_step > 1:  # the search must sum the windows the design scored
-        say(f"reconstruct scans of these patterns with --search-window-step {opts.window_step}")
+    if opts.window_step > 1:  # the search must sum the windows the design scored: the roles tell it
+        say(f"the set's roles say window_step={opts.window_step}: reconstruct searches its scans with windows "
+            f"{opts.window_step} camera px apart (--search-window-step overrides)")
     if res.interrupted:
         print("slwarp design-patterns: interrupted; the best patterns so far are written", file=sys.stderr)
         return 130

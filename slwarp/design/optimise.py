@@ -32,6 +32,7 @@ import torch
 
 from ..neural.pattern_model import blur_patterns
 from ..scans.patterns import PatternSet
+from ..scans.roles import FrameRole
 from .objective import CodeModel, NoiseModel, code_image, miss_loss
 
 __all__ = ["DesignOptions", "DesignResult", "design_patterns", "normalised_codes", "binarise", "evaluate_patterns"]
@@ -240,7 +241,11 @@ def design_patterns(camera, projector, depth_range, opts: DesignOptions, *, devi
         pats = binarise(pats)
     pats = np.round(pats * 255.0) / 255.0  # what an 8-bit projector shows (and the pattern-set file holds)
     final = evaluate_patterns(model, torch.as_tensor(pats, device=device), val, opts)
-    pset = PatternSet(pats.astype(np.float32), designed_names(K))
+    names = designed_names(K)
+    # a set designed for spaced windows says so in its roles: the depth search then sums the same windows
+    roles = ({n: FrameRole("designed", index=i, count=K, window_step=opts.window_step) for i, n in enumerate(names)}
+             if opts.window_step > 1 else None)
+    pset = PatternSet(pats.astype(np.float32), names, roles)
     timings = {"setup_s": t1 - t0, "descent_s": t2 - t1, "total_s": time.perf_counter() - t0}
     return DesignResult(pset, opts, history, final, base, timings, model.hypotheses, model.span_px, interrupted)
 

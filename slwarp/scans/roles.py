@@ -10,7 +10,9 @@ role string (the selector grammar below, every field given):
     random | {kind: random, size: 20, index: 0}          random binary pattern (square size in px when known;
                                                          index and inverse optional)
     {kind: designed, index: 0, count: 4}                 i-th pattern (0-based) of an optimised set of `count`
-                                                         grey-level patterns (slwarp.scans.pattern_files)
+                                                         grey-level patterns (slwarp.scans.pattern_files);
+                                                         window_step: 3 when designed for the depth search's
+                                                         windows 3 camera px apart (the search then uses 3)
 
 Without a declared role, slwarp's own frame names are the fallback (`role_from_name`):
 
@@ -25,7 +27,7 @@ incomplete, malformed, contradicts the frame's slwarp-style name, or repeats ano
 Selector grammar (`--frames`, `slwarp info`): KIND[:QUALIFIER]..., KIND one of gray, phase, white, black,
 uniform, random, designed; a QUALIFIER is `col` or `row` (axis), `inv` or `noinv` (inverse or not), or
 FIELD=VALUE or FIELD=LO-HI (an inclusive range) with FIELD one of bit, period, step, steps, size, index, count,
-level:
+level, window_step:
 
     gray:col                  every column Gray code frame (bits and inverses)
     gray:col:bit=0-6:noinv    the 7 most significant column bits, no inverses (GC(7))
@@ -52,9 +54,9 @@ _FIELDS = {
     "black": (set(), set()),
     "uniform": ({"level"}, set()),
     "random": ({"size", "index", "inverse"}, set()),
-    "designed": ({"index", "count"}, {"index", "count"}),
+    "designed": ({"index", "count", "window_step"}, {"index", "count"}),
 }
-_INT_FIELDS = ("bit", "step", "steps", "index", "count")
+_INT_FIELDS = ("bit", "step", "steps", "index", "count", "window_step")
 _FLOAT_FIELDS = ("period", "size", "level")
 
 
@@ -67,7 +69,8 @@ class FrameRole:
     """What a frame is. kind: one of KINDS; axis: 'col' or 'row' (gray, phase); bit: Gray code bit, 0 = most
     significant; inverse: the inverted pattern (gray, random); period: projector px, step and steps: k of N
     (phase); size: random square size px (None: unknown); index: i-th random or designed pattern (0-based);
-    count: the designed set's size K; level: uniform level."""
+    count: the designed set's size K; level: uniform level; window_step: camera px between the pixels of the depth
+    search's windows a designed set was optimised for (design-patterns --window-step; None: 1, adjacent pixels)."""
 
     kind: str
     axis: str | None = None
@@ -80,6 +83,7 @@ class FrameRole:
     index: int | None = None
     level: float | None = None
     count: int | None = None
+    window_step: int | None = None
 
     @property
     def unique(self) -> bool:
@@ -96,7 +100,7 @@ class FrameRole:
         parts = [self.kind]
         if self.axis:
             parts.append(self.axis)
-        for f in ("bit", "period", "step", "steps", "size", "count", "index", "level"):
+        for f in ("bit", "period", "step", "steps", "size", "count", "index", "level", "window_step"):
             v = getattr(self, f)
             if v is not None:
                 parts.append(f"{f}={_fmt(v)}")
@@ -109,7 +113,7 @@ class FrameRole:
         if self.kind in ("white", "black"):
             return self.kind
         d = {"kind": self.kind}
-        for f in ("axis", "bit", "inverse", "period", "step", "steps", "size", "index", "count", "level"):
+        for f in ("axis", "bit", "inverse", "period", "step", "steps", "size", "index", "count", "level", "window_step"):
             v = getattr(self, f)
             if f == "inverse":
                 if self.kind == "gray" or v:
@@ -203,6 +207,8 @@ def _check(role: FrameRole) -> FrameRole:
             raise RoleError(f"count must be >= 1 (the designed set's size), got {role.count}")
         if role.index is not None and role.index >= role.count:
             raise RoleError(f"index must be in 0..count-1 ({role.count - 1}), got index={role.index}")
+    if role.window_step is not None and role.window_step < 1:
+        raise RoleError(f"window_step must be >= 1 camera px, got window_step={role.window_step}")
     return role
 
 
@@ -359,7 +365,7 @@ def parse_selector(token: str) -> RoleSelector | None:
             key, val = q.split("=", 1)
             if key not in _INT_FIELDS + _FLOAT_FIELDS:
                 raise RoleError(f"selector {token!r}: unknown field {key!r} (fields: bit, period, step, steps, size, "
-                                "index, count, level)")
+                                "index, count, level, window_step)")
             m = re.fullmatch(rf"{_NUM}(?:-{_NUM})?", val)
             if not m:
                 raise RoleError(f"selector {token!r}: {key}= needs a number or a range LO-HI, got {val!r}")

@@ -162,8 +162,9 @@ class InitConfig:
                                          "(at least 0.05 of their span)", min=0.0)
     search_step_mm: float = option(1.0, "depth-search hypothesis spacing (mm)", above=0.0)
     search_stride: int = option(2, "depth search on every stride-th pixel", min=1)
-    search_window_step: int = option(1, "depth search: camera px between its windows' pixels (a pattern set designed "
-                                     "with design-patterns --window-step S is searched with S)", min=1)
+    search_window_step: int = option(0, "depth search: camera px between its windows' pixels; 0: the step the scan's "
+                                     "designed set was made for (its roles' window_step, design-patterns "
+                                     "--window-step S), else 1 (adjacent pixels)", min=0)
 
 
 @dataclass

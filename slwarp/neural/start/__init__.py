@@ -32,8 +32,8 @@ from ..render import StructuredLightRenderer
 from .search import search_depth
 
 __all__ = ["SURFACE_CONFIDENCE", "SURFACE_MIN_GROUP", "set_process_flags", "checked_depth_range", "frames_at_start",
-           "working_volume", "start_field", "start_renderer", "searches", "search_start", "narrowed_range", "fit_blur",
-           "surface_terms_on", "surface_depth"]
+           "working_volume", "start_field", "start_renderer", "searches", "search_start", "window_step_of",
+           "narrowed_range", "fit_blur", "surface_terms_on", "surface_depth"]
 
 SURFACE_CONFIDENCE = 0.8  # the surface term's depths: the map's where the pixel's own codes fit this well ...
 SURFACE_MIN_GROUP = 50  # ... inside a connected group of at least this many such pixels (depth_maps.AGREE_MM apart)
@@ -125,7 +125,17 @@ def search_start(scan, config, n_frames: int, depth_range, lit: np.ndarray, imag
         patterns = patterns.numpy()
     return search_depth(scan.camera, scan.projector, images, patterns, depth_range, valid=lit,
                         step_mm=config.init.search_step_mm, stride=config.init.search_stride,
-                        window_step=config.init.search_window_step, device=device)
+                        window_step=window_step_of(scan, config, n_frames), device=device)
+
+
+def window_step_of(scan, config, n_frames: int) -> int:
+    """The depth search's window step (camera px): config.init.search_window_step, or where that is 0 (auto) the
+    largest window_step in the roles of the scan's first n_frames frames (a set made by design-patterns
+    --window-step S declares S), else 1."""
+    if config.init.search_window_step > 0:
+        return int(config.init.search_window_step)
+    steps = [r.window_step for r in scan.roles[:n_frames] if r is not None and r.window_step is not None]
+    return max(steps, default=1)
 
 
 # auto_range narrows the depth range only where the searched depths fill less than this share of it: a range a user
