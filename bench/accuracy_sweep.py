@@ -194,6 +194,7 @@ def run_job(job: dict) -> dict:
             valid = rec.trainer.renderer.valid_map.cpu().numpy()
             m["lost"] = lost_pixels(scan.mask, valid, rec.timings)
             m.update(refine_facts(rec.timings))
+            m["search_window_step"] = (rec.trainer.search_info or {}).get("window_step")  # a designed set's, or 1
             out["methods"][method_label(job)] = m
             # the same trained field extracted again with other extraction options (--also-extract)
             trainer = rec.trainer

@@ -31,9 +31,10 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def design_one(rig: str, count: int, folder: str, iterations: int, device: str, seed: int, pixels: int = 4096,
-               window: int = 0) -> dict:
+               window: int = 0, window_step: int = 1) -> dict:
     """Design `count` patterns for `rig` into folder (reused when its design.json says the same options); window:
-    DesignOptions.window (the depth search's window the objective scores; 0: each pixel alone)."""
+    DesignOptions.window (the depth search's window the objective scores; 0: each pixel alone); window_step: camera
+    px between the window's pixels (the set's roles carry it, so the sweep's search uses the same step)."""
     import torch
 
     from slwarp.cli.design import write_design
@@ -43,13 +44,14 @@ def design_one(rig: str, count: int, folder: str, iterations: int, device: str, 
     out = Path(folder)
     done = out / "design.json"
     key = {"rig": rig, "count": count, "iterations": iterations, "seed": seed, "pixels": pixels,
-           **({"window": window} if window else {})}
+           **({"window": window} if window else {}), **({"window_step": window_step} if window_step > 1 else {})}
     if done.is_file():
         prev = json.loads(done.read_text())
         if prev.get("key") == key:
             return prev
     camera, projector = make_rig(rig)
-    opts = DesignOptions(count=count, iterations=iterations, seed=seed, pixels=pixels, window=window)
+    opts = DesignOptions(count=count, iterations=iterations, seed=seed, pixels=pixels, window=window,
+                         window_step=window_step)
     if device.startswith("cuda"):
         torch.cuda.set_device(torch.device(device))
     res = design_patterns(camera, projector, DEPTH_RANGE_MM, opts, device=device, baselines=())
@@ -68,6 +70,8 @@ def main(argv=None) -> int:
     ap.add_argument("--pixels", type=int, default=4096, help="camera pixels per design step (default 4096)")
     ap.add_argument("--window", type=int, default=0,
                     help="design for the depth search's windows: their radius in camera px (2), 0: each pixel alone")
+    ap.add_argument("--window-step", type=int, default=1,
+                    help="camera px between the window's pixels (the sets' roles say it: the search uses the same)")
     ap.add_argument("--without-random6", action="store_true", help="no neural runs on random 6 (the designs and Gray code only)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--designs", default=None, help="folder of the designs (default <out>/designs)")
@@ -98,7 +102,7 @@ def main(argv=None) -> int:
     workers = min(len(todo), 6 if cuda else (args.workers or 1))
     with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
         futs = {(r, k): pool.submit(design_one, r, k, str(designs / r / f"design{k}"), args.iterations, dev, args.seed,
-                                          args.pixels, args.window)
+                                          args.pixels, args.window, args.window_step)
                 for r, k in todo}
         made = {}
         for (r, k), f in futs.items():
