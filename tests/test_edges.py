@@ -156,3 +156,30 @@ def test_extract_depth_with_the_edge_sides_records_their_fates_and_counts(tiny_r
     assert moved.sum() == counts["switched"] and (got.fate[moved] == FATE["repaired"]).all()
     same = ~dropped & ~moved
     np.testing.assert_array_equal(got.depth[same], plain.depth[same])
+
+
+def test_the_repairs_searches_take_the_sets_window_step(steps, monkeypatch):
+    """ModelInputs.window_step (a set designed for spaced windows) reaches every depth search of the search repair
+    and of its doubt rule; with the true depths the step-1 and step-3 doubts both keep nearly every pixel."""
+    from dataclasses import replace
+
+    from slwarp.neural.extraction import repair
+
+    scan, patterns, valid, gt = steps
+    seen, real = [], repair.search_depth
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("window_step"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(repair, "search_depth", spy)
+    inputs = _inputs(scan, patterns, valid)
+    assert inputs.window_step == 1
+    for step in (1, 3):
+        seen.clear()
+        out, info = repair.doubt_by_search(gt, replace(inputs, window_step=step))
+        assert seen == [step] and info["dropped"] < 0.01 * valid.sum()
+        seen.clear()
+        repair.repair_by_search(np.where(np.arange(gt.shape[1]) % 7 == 0, np.nan, gt), replace(inputs, window_step=step),
+                                min_confidence=0.6)
+        assert seen and set(seen) == {step}

@@ -77,13 +77,14 @@ def repair_by_search(depth: np.ndarray, inputs: ModelInputs, min_confidence: flo
     - doubts: a contradicted depth that is not replaced is dropped when its confidence is below `doubt_confidence`
       (on rods, the background's depth on a rod pixel the 5x5 search cannot confirm) or when the switch's
       confidence test passed but the neighbour or group rule refused it.
-    The searches run over `inputs.valid` (default: the lit pixels) with inputs.step_mm on inputs.device. The caller
+    The searches run over `inputs.valid` (default: the lit pixels) with inputs.step_mm on inputs.device, their windows'
+    pixels inputs.window_step px apart (a set designed for spaced windows tells chance matches apart only so). The caller
     refines the result (`pattern_model.refine_depth`). info: counts of holes, filled, contested, switched and
     dropped pixels."""
     depth = np.asarray(depth, np.float32)
     valid = _searched(inputs)
     out = depth.copy()
-    common = dict(step_mm=inputs.step_mm, stride=1, device=inputs.device)
+    common = dict(step_mm=inputs.step_mm, stride=1, window_step=inputs.window_step, device=inputs.device)
     s1, contested = _contested(depth, inputs, valid, **common)
     has = np.isfinite(depth)
     holes = valid & ~has & np.isfinite(s1)
@@ -145,7 +146,8 @@ def doubt_by_search(depth: np.ndarray, inputs: ModelInputs, *,
     while the doubt rule only removes depth: on thin parts, the background's depth the field left there.
     The search as the repair's (`inputs.valid`, step and device). info: counts of contested and dropped pixels."""
     depth = np.asarray(depth, np.float32)
-    _, contested = _contested(depth, inputs, _searched(inputs), step_mm=inputs.step_mm, stride=1, device=inputs.device)
+    _, contested = _contested(depth, inputs, _searched(inputs), step_mm=inputs.step_mm, stride=1,
+                              window_step=inputs.window_step, device=inputs.device)
     conf_d = photometric_confidence(np.where(contested, depth, np.nan), *inputs.model)
     doubt = contested & (conf_d < doubt_confidence)
     out = depth.copy()

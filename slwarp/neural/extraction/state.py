@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from ..pattern_model import lit_with_contrast, offset_and_modulation
+from ..start import window_step_of
 from ..training import pattern_model_inputs
 
 
@@ -30,7 +31,8 @@ class ModelInputs:
     add pixels (None: anywhere); raw_patterns [N, Hp, Wp]: the patterns unblurred (the refinement fits its own
     blur); device: where the searches and the refinement run; step_mm: the depth searches' hypothesis spacing;
     host_images [N, H, W]: the images as numpy (default: `images` brought to the host); lens_halo: the share of the
-    lens halo in the patterns (the trainer's, fitted or given; 0: none)."""
+    lens halo in the patterns (the trainer's, fitted or given; 0: none); window_step: camera px between the pixels of
+    the depth searches' windows (the start's: a set designed for spaced windows is searched with its step)."""
 
     camera: object
     projector: object
@@ -45,6 +47,7 @@ class ModelInputs:
     step_mm: float = 1.0
     host_images: np.ndarray | None = None
     lens_halo: float = 0.0
+    window_step: int = 1
 
     def __post_init__(self):
         # frozen: the derived defaults are set once, here
@@ -72,7 +75,8 @@ class ModelInputs:
         return cls(trainer.scan.camera, trainer.scan.projector, images, patterns, trainer.depth_range, valid=valid,
                    lit=trainer.renderer.valid_map.cpu().numpy(), region=region, raw_patterns=trainer.scan.patterns[:n],
                    device=trainer.device, step_mm=trainer.cfg.init.search_step_mm,
-                   host_images=trainer.scan.images[:n], lens_halo=float(getattr(trainer, "halo_share", 0.0)))
+                   host_images=trainer.scan.images[:n], lens_halo=float(getattr(trainer, "halo_share", 0.0)),
+                   window_step=window_step_of(trainer.scan, trainer.cfg, n))
 
 
 # what became of each camera pixel at extraction (the values of Extraction.fate): with a depth, "measured" (the
