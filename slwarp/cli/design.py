@@ -172,9 +172,12 @@ def _add_design(p):
                    help="a code comparison misses when it picks a depth farther than this along the line (projector px; default 2)")
     p.add_argument("--window", type=int, default=0,
                    help="score each pixel with the (2 W + 1)^2 camera pixels around it at one depth, as the depth "
-                        "search matches them (its windows: 2); default 0, each pixel alone")
+                        "search matches them (its windows: 2); default 0, each pixel alone (best for 4 or more "
+                        "patterns, and for 3 on a small camera)")
     p.add_argument("--window-step", type=int, default=1,
-                   help="camera px between the window's pixels (default 1; 2: as many pixels over twice the span)")
+                   help="camera px between the window's pixels (default 1; 2: as many pixels over twice the span); "
+                        "the set's roles record it and reconstruct searches with it. 3 patterns on a 1280 x 1024 "
+                        "camera: --window 2 --window-step 3 (bench/results/README.md, Designed patterns)")
     p.add_argument("--binary", action="store_true", help="black and white patterns (DLP projectors): sharpened during the descent, rounded at the end")
     p.add_argument("--blur-px", type=float, default=1.0, help="the camera's view of the pattern: Gaussian sigma in projector px (default 1)")
     p.add_argument("--ambient", type=float, default=0.08, help="ambient offset up to this, full scale (default 0.08)")
