@@ -4,6 +4,7 @@ carried its wrong depth, with its distance to a depth edge of the ground truth a
 
     python -m bench.gross_errors --preset fast --rigs default,oblique                # every scene of two rigs
     python -m bench.gross_errors --preset fast --scenes spheres --set edge_band_radius=0 --json G.json
+    python -m bench.gross_errors --designs D --frames design3 --scenes rods   # a designed set (bench.designed_patterns)
 
 One row per scene: the gross pixels (behind / in front of the truth), the RMSE with and without them against
 GC(7)'s, the stage that first gave them their depth, how many lie within 1 pixel of a farther (the pixel is a
@@ -70,17 +71,19 @@ def stage_maps(trainer) -> tuple[dict, object]:
     return maps, extract_depth(trainer, trainer.renderer.valid_map.cpu().numpy(), on_stage=keep)
 
 
-def scene_row(rig: str, scene: str, preset_name: str, overrides: dict, device: str, gross_mm: float) -> dict:
-    """One scene's row (see the module docstring)."""
+def scene_row(rig: str, scene: str, preset_name: str, overrides: dict, device: str, gross_mm: float,
+              designs: str | None = None, frames: str = "random6") -> dict:
+    """One scene's row (see the module docstring): the neural run on `frames` (random6, gray7 or design<K>: the rig's
+    set in `designs`, a folder of <rig>/design<K>/patterns.yaml)."""
     from slwarp.decode import reconstruct_depth
     from slwarp.neural.config import preset
     from slwarp.neural.extraction.state import pixel_fates
     from slwarp.neural.reconstruct import reconstruct
 
     t0 = time.perf_counter()
-    scan, axis = _scan(rig, scene, 0, device=device)
+    scan, axis = _scan(rig, scene, 0, designs=designs, device=device)
     cfg = preset(preset_name, device=device, **overrides)
-    rec = reconstruct(scan.select(neural_frames({}, axis)), cfg, progress=False)
+    rec = reconstruct(scan.select(neural_frames({"frames": frames}, axis)), cfg, progress=False)
     maps, final = stage_maps(rec.trainer)
     gt = scan.gt_depth
     ref = scan.mask & np.isfinite(gt) & (gt > 0)
@@ -105,19 +108,24 @@ def scene_row(rig: str, scene: str, preset_name: str, overrides: dict, device: s
             "gc7_right": int((gross & (np.abs(np.nan_to_num(e7, nan=np.inf)) < 5)).sum()),
             "confidence": (np.nanpercentile(final.confidence[gross], [10, 50, 90]).round(3).tolist()
                            if gross.any() else None),
+            # the same percentiles over the pixels within 5 mm: how a confidence bar would split right from gross
+            "confidence_right": np.nanpercentile(final.confidence[has & (np.abs(np.nan_to_num(err)) <= 5)],
+                                                 [10, 50, 90]).round(3).tolist(),
             "wall_s": time.perf_counter() - t0}
 
 
 def markdown(rows: list[dict]) -> str:
     head = ("| rig | scene | gross px | behind / in front | RMSE mm | without them | GC(7) RMSE | first wrong after | "
-            "outline (farther GT within 1 px) / nearer GT within 1 px | GC(7) right there | confidence p10/p50/p90 |")
-    lines = [head, "|" + "---|" * 11]
+            "outline (farther GT within 1 px) / nearer GT within 1 px | GC(7) right there | confidence p10/p50/p90 | "
+            "right pixels' confidence p10/p50/p90 |")
+    lines = [head, "|" + "---|" * 12]
     for r in rows:
         first = ", ".join(f"{k} {v}" for k, v in r["first_wrong_after"].items() if v)
         conf = "/".join(f"{c:.2f}" for c in r["confidence"]) if r["confidence"] else "-"
+        right = "/".join(f"{c:.2f}" for c in r.get("confidence_right") or []) or "-"
         lines.append(f"| {r['rig']} | {r['scene']} | {r['gross']} | {r['behind']} / {r['in_front']} | {r['rmse']:.3f} | "
                      f"{r['rmse_without_gross']:.3f} | {r['rmse_gc7']:.3f} | {first or '-'} | {r['farther_within_1']} / "
-                     f"{r['nearer_within_1']} | {r['gc7_right']} | {conf} |")
+                     f"{r['nearer_within_1']} | {r['gc7_right']} | {conf} | {right} |")
     return "\n".join(lines)
 
 
@@ -130,7 +138,11 @@ def main(argv=None) -> int:
     p.add_argument("--device", default=None, help="default: cuda when present, else cpu")
     p.add_argument("--gross", type=float, default=20.0, help="an error above this many mm is gross (default 20)")
     p.add_argument("--json", help="also write the rows to this JSON file")
+    p.add_argument("--frames", default="random6", help="what the neural run trains on: random6, gray7 or design<K>")
+    p.add_argument("--designs", default=None, help="with --frames design<K>: the folder of <rig>/design<K>/patterns.yaml")
     args = p.parse_args(argv)
+    if args.frames.startswith("design") and not args.designs:
+        raise SystemExit(f"--frames {args.frames} needs --designs (a folder of <rig>/design<K>/patterns.yaml)")
     import torch
 
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
@@ -138,7 +150,7 @@ def main(argv=None) -> int:
     rows = []
     for rig in args.rigs.split(","):
         for scene in args.scenes.split(","):
-            rows.append(scene_row(rig, scene, args.preset, overrides, device, args.gross))
+            rows.append(scene_row(rig, scene, args.preset, overrides, device, args.gross, args.designs, args.frames))
             print(f"{rig} {scene}: {rows[-1]['gross']} gross pixels ({rows[-1]['wall_s']:.0f} s)", file=sys.stderr)
     if args.json:
         with open(args.json, "w") as f:

@@ -41,3 +41,10 @@ def test_a_tiny_run_traces_its_gross_pixels(tmp_path, capsys):
     assert abs(row["rmse"] - row["run_rmse"]) < 1e-6 * row["rmse"]
     assert "| small | spheres |" in capsys.readouterr().out
     assert markdown([row]).count("\n") == 2
+
+
+def test_a_designed_set_needs_its_folder():
+    import pytest
+
+    with pytest.raises(SystemExit, match="needs --designs"):
+        main(["--frames", "design3", "--rigs", "small", "--scenes", "spheres", "--device", "cpu"])
