@@ -150,6 +150,16 @@ def test_a_short_windowed_design_lowers_its_objective():
         DesignOptions(window=-1)
     with pytest.raises(ValueError, match="window-step"):
         DesignOptions(window=1, window_step=0)
+    with pytest.raises(ValueError, match="give the window too"):
+        DesignOptions(window=0, window_step=3)
+
+
+def test_the_design_command_scores_spaced_windows_by_default_only_where_they_were_best():
+    """3 patterns or fewer on a 1280 px camera: 5 x 5 windows 3 px apart; 4 patterns, or a small camera: each pixel."""
+    from slwarp.cli.design import default_window
+
+    assert default_window(3, 1280) == default_window(2, 1920) == (2, 3)
+    assert default_window(4, 1280) == default_window(3, 320) == (0, 1)
 
 
 def test_a_binary_design_sharpens_during_the_descent():
@@ -177,7 +187,7 @@ def test_design_patterns_command_writes_a_set_that_simulate_projects(tmp_path, c
     assert cli_main(["design-patterns", "--rig", "small", "--count", "3", "--iterations", "4", "--pixels", "256",
                      "--device", "cpu", "--out", str(out)]) == 0
     text = capsys.readouterr().out
-    assert "designed 3" in text and "random6" in text and "gray7" in text
+    assert "designed 3" in text and "random6" in text and "gray7" in text and "each pixel alone" in text
     for f in ("patterns.yaml", "design.json", "design.png", "design3_0.png", "design3_2.png"):
         assert (out / f).is_file(), f
     doc = json.loads((out / "design.json").read_text())
@@ -223,6 +233,7 @@ def test_a_set_designed_for_spaced_windows_tells_the_search_its_step(tmp_path, c
     (["--rig", "small", "--modulation", "0.5"], "--modulation"),
     (["--rig", "small", "--modulation", "0.9,0.1"], "modulation range"),
     (["--rig", "small", "--blur-px", "-1"], "blur"),
+    (["--rig", "small", "--count", "4", "--window-step", "3"], "give the window too"),
 ])
 def test_design_patterns_bad_input_is_one_line(tmp_path, capsys, argv, message):
     assert cli_main(["design-patterns", "--out", str(tmp_path / "o"), "--device", "cpu", *argv]) == 2

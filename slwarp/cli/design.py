@@ -21,6 +21,19 @@ BASELINES = ("random6", "gray6", "gray7")  # scored beside the design on the sam
 # (9.2% against 8.9% misses: bench/results/designed-patterns-cpu.md, design-patterns-cli-cuda-default4.md)
 GPU_STEPS = (1500, 4096)
 CPU_STEPS = (300, 1024)
+# the window a design scores by default, (radius, step) camera px: 3 patterns or fewer on a camera at least
+# WINDOW_MIN_WIDTH px wide get 5 x 5 windows of pixels 3 px apart (fast, 1280 x 1024 rigs: 0.46-0.71 mm against
+# 0.8-5.5 for each pixel alone); otherwise each pixel alone (4 patterns: 0.55-1.20x random 6 against 1.5-3.6x with
+# those windows; 3 on the 320 x 256 small rigs: 0.75-0.95 mm against 0.88-1.59; bench/results/README.md, Designed patterns)
+SPACED_WINDOW = (2, 3)
+WINDOW_MAX_COUNT = 3
+WINDOW_MIN_WIDTH = 1280
+
+
+def default_window(count: int, camera_width: int) -> tuple[int, int]:
+    """(window radius, window step) camera px a design of `count` patterns scores by default for a camera
+    `camera_width` px wide (see SPACED_WINDOW)."""
+    return SPACED_WINDOW if count <= WINDOW_MAX_COUNT and camera_width >= WINDOW_MIN_WIDTH else (0, 1)
 
 
 def cmd_design(args) -> int:
@@ -37,16 +50,20 @@ def cmd_design(args) -> int:
                            read_noise=args.read_noise, full_well=args.full_well, blur_px=args.blur_px)
         steps, pixels = CPU_STEPS if device.type == "cpu" else GPU_STEPS
         steps = steps if args.iterations is None else args.iterations
+        window, window_step = default_window(args.count, camera.width) if args.window is None else (args.window, 1)
+        window_step = window_step if args.window_step is None else args.window_step
         opts = DesignOptions(count=args.count, iterations=steps, pixels=args.pixels or pixels, lr=args.lr,
                              tol_px=args.tol_px, binary=args.binary, seed=args.seed, noise=noise,
-                             window=args.window, window_step=args.window_step,
+                             window=window, window_step=window_step,
                              report_every=max(1, min(100, steps // 10 or 1)))
     except ValueError as e:
         raise UserError(f"design-patterns: {e}") from None
     axis_baselines = _baselines_for(camera, projector, depth_range)
     say = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
     say(f"designing {opts.count} patterns for {source}: projector {projector.width}x{projector.height}, depth "
-        f"{depth_range[0]:g}-{depth_range[1]:g} mm, {opts.iterations} steps of {opts.pixels} pixels on {device}")
+        f"{depth_range[0]:g}-{depth_range[1]:g} mm, {opts.iterations} steps of {opts.pixels} pixels on {device}, "
+        + (f"each pixel in a {2 * opts.window + 1} x {2 * opts.window + 1} window of pixels {opts.window_step} px apart"
+           if opts.window else "each pixel alone"))
     try:
         res = design_patterns(camera, projector, depth_range, opts, device=device, baselines=axis_baselines,
                               progress=say)
@@ -170,14 +187,13 @@ def _add_design(p):
     p.add_argument("--lr", type=float, default=0.05, help="step size (default 0.05)")
     p.add_argument("--tol-px", type=float, default=2.0,
                    help="a code comparison misses when it picks a depth farther than this along the line (projector px; default 2)")
-    p.add_argument("--window", type=int, default=0,
+    p.add_argument("--window", type=int, default=None,
                    help="score each pixel with the (2 W + 1)^2 camera pixels around it at one depth, as the depth "
-                        "search matches them (its windows: 2); default 0, each pixel alone (best for 4 or more "
-                        "patterns, and for 3 on a small camera)")
-    p.add_argument("--window-step", type=int, default=1,
-                   help="camera px between the window's pixels (default 1; 2: as many pixels over twice the span); "
-                        "the set's roles record it and reconstruct searches with it. 3 patterns on a 1280 x 1024 "
-                        "camera: --window 2 --window-step 3 (bench/results/README.md, Designed patterns)")
+                        "search matches them (its windows: 2); 0: each pixel alone. Default: 2 with --window-step 3 "
+                        "for 3 patterns or fewer on a camera >= 1280 px wide, else 0 (the best measured)")
+    p.add_argument("--window-step", type=int, default=None,
+                   help="camera px between the window's pixels (default 1 unless the window is the default's; 2: as "
+                        "many pixels over twice the span); the set's roles record it and reconstruct searches with it")
     p.add_argument("--binary", action="store_true", help="black and white patterns (DLP projectors): sharpened during the descent, rounded at the end")
     p.add_argument("--blur-px", type=float, default=1.0, help="the camera's view of the pattern: Gaussian sigma in projector px (default 1)")
     p.add_argument("--ambient", type=float, default=0.08, help="ambient offset up to this, full scale (default 0.08)")

@@ -80,6 +80,9 @@ class DesignOptions:
             raise ValueError(f"the window's radius must be >= 0 camera px, got --window {self.window}")
         if self.window_step < 1:
             raise ValueError(f"the window's step must be >= 1 camera px, got --window-step {self.window_step}")
+        if self.window_step > 1 and self.window == 0:  # the step would reach the roles, and the search, for nothing
+            raise ValueError(f"--window-step {self.window_step} spaces a window's pixels: give the window too "
+                             "(--window 2, the depth search's)")
 
     def windows(self, pixels: int) -> int:
         """How many windows a batch of `pixels` camera pixels' worth of reprojections holds."""
