@@ -234,6 +234,8 @@ def test_batch_under_torchrun_with_a_broken_scan_then_resumed(tmp_path):
                           "reconstruct", "scans", "--out", "out", *FAST], cwd=tmp_path, env=env, capture_output=True,
                          text=True, timeout=300)
     assert run.returncode != 0, run.stdout + run.stderr  # a scan failed: rank 0 exits with 1, torchrun says so
+    # every rank ends by its status alone (torchrun's own report of the failed status is not a rank's crash)
+    assert not re.search(r"\[rank\d+\]: Traceback", run.stdout + run.stderr), run.stdout + run.stderr
     assert run.stdout.count("3 scans: 2 done, 0 skipped (complete before), 1 failed; torchrun, 2 worker(s)") == 1, run.stdout
     doc = json.loads((out / "summary.json").read_text())
     rows = {r["name"]: r for r in doc["scans"]}
@@ -395,6 +397,7 @@ def test_batch_over_two_nodes_with_a_broken_scan(tmp_path):
                               text=True) for _ in range(2)]
     logs = [n.communicate(timeout=300)[0] for n in nodes]
     assert [n.returncode for n in nodes] == [1, 1], logs
+    assert not any(re.search(r"\[rank\d+\]: Traceback", log) for log in logs), logs  # a status, not a rank's crash
     doc = json.loads((tmp_path / "out" / "summary.json").read_text())
     rows = {r["name"]: r for r in doc["scans"]}
     assert list(rows) == ["a", "b", "broken", "c"] and doc["mode"] == "torchrun" and doc["workers"] == 2

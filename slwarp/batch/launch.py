@@ -180,7 +180,7 @@ def _run_torchrun(scans, config, out: Path, options: BatchOptions, single: bool,
                 summary = BatchSummary(_in_order(scans, results + skipped), "torchrun", world,
                                        time.perf_counter() - t0, [d for d, _ in gathered], config.to_dict())
                 summary.write(out)
-                failed = [summary.failed]
+                failed = [len(summary.failed)]  # a count: the list would reach the other ranks as their "summary"
         finally:
             # every rank learns whether a scan failed, so that every process exits alike: over several hosts the
             # launchers whose processes succeed wait at torchrun's exit barrier (5 min) for those whose failed
