@@ -184,7 +184,7 @@ def run_config(cfg: dict, scans_dir: Path, work: Path, reconstruct_args: list[st
                    mean_scan_s=sum(s["seconds"] for s in done) / len(done) if done else None,
                    errors=sorted({s["error"] for s in doc["scans"] if s["error"]}), stages=stage_means(done))
     row["first_scan_done_s"] = first_scans(timeline_path, spawned)
-    if timed_out or summary.is_file() is False or rc not in (0, 1):
+    if timed_out or summary.is_file() is False or rc != 0:  # 1: failed scans, or a launcher's own failure
         row["log_tail"] = log_path.read_text()[-2000:]
     print(f"[{cfg['name']}] {completed} scans in {wall:.1f} s: {row['scans_per_hour']:.1f} scans/h"
           + (" (time limit)" if timed_out else "") + (f"; exit status {rc}" if rc else ""), flush=True)

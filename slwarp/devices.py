@@ -10,6 +10,7 @@ import threading
 
 import torch
 
+from . import timeline
 from .neural.config import DEVICE_PATTERN  # the device names a user may give: the config checks them too
 
 __all__ = ["DeviceError", "torch_device", "with_index", "warp_device", "start_runtimes", "runtimes_started",
@@ -79,6 +80,7 @@ def start_runtimes(device: torch.device) -> threading.Thread:
             from slwarp.kernels import runtime
 
             runtime.init()
+            timeline.mark("warp started")
             if device.type == "cuda":
                 torch.cuda.init()
                 torch.empty(1, device=device)  # the context and the caching allocator's first block
@@ -87,6 +89,7 @@ def start_runtimes(device: torch.device) -> threading.Thread:
                 # runs each, interleaved; bench/results/command-wall-cuda-h100-fast-blas-*.md)
                 a = torch.ones(64, 64, device=device)
                 (torch.nn.functional.linear(a, a) @ a).sum().item()
+            timeline.mark("runtimes started")
         except Exception:  # noqa: BLE001 - the run's own first use reports it, where it happens
             pass
 

@@ -50,3 +50,21 @@ def test_with_index_names_the_current_cuda_device():
     assert with_index(torch.device("cuda", 0)) == torch.device("cuda", 0)  # no lookup: no CUDA needed
     if torch.cuda.is_available():
         assert with_index(torch.device("cuda")) == torch.device("cuda", torch.cuda.current_device())
+
+
+def test_the_early_driver_start_leaves_torch_a_working_cuda_or_none():
+    """start_driver in a fresh process, then torch's own start: on a GPU machine torch computes on the context the
+    thread made; without a driver the thread ends quietly and torch says CUDA is absent."""
+    import subprocess
+    import sys
+
+    code = ("import torch; from slwarp.driver import start_driver, _RETAINED; t = start_driver(0); "
+            "t is None or t.join(30); ok = torch.cuda.is_available(); "
+            "print(ok, len(_RETAINED), float((torch.ones(4, device='cuda') * 2).sum()) if ok else None)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    ok, retained, total = out.stdout.split()
+    if ok == "True":
+        assert retained == "1" and float(total) == 8.0
+    else:
+        assert total == "None"

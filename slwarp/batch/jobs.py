@@ -277,6 +277,7 @@ def run_scan(job: ScanJob, config, options: BatchOptions = BatchOptions(), worke
             scan = (loaded.result() if loaded is not None
                     else load_scan(job.source, frames=options.frames, outside_paths=options.outside_paths,
                                    patterns=options.patterns))
+            timeline.mark("scan in memory")
         finally:
             if on_loaded is not None:
                 on_loaded()

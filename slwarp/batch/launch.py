@@ -254,6 +254,9 @@ def pin_torchrun_rank(device: str) -> None:
         return
     local = int(os.environ.get("LOCAL_RANK", os.environ.get("RANK", "0")))
     _pin(ids[local % len(ids)], f"cuda:{local % len(ids)}")
+    from ..driver import start_driver
+
+    start_driver(0)  # the rank's GPU context beside its imports (slwarp.driver)
 
 
 def device_label(device: str) -> str:
@@ -414,12 +417,17 @@ def _queue_worker(w: int, workers: int, per_device: int | None, make_config: Cal
     loaded one ahead and written in the background as `run_scans` does; each scan's taking and final row reported
     to `events`. slot: its GPU (`_worker_slots`): seen alone, "idle" to take nothing, None to take devices[w %
     len(devices)] of those torch sees. A worker beyond per_device x the devices takes nothing."""
+    from ..driver import start_driver
+
     timeline.mark("worker started")
     if isinstance(slot, tuple):
         _pin(slot[0], slot[1])  # before make_config, which may start CUDA (the device 'auto')
+        start_driver(0)  # its GPU's context beside the imports (slwarp.driver): 4 workers' starts queue in the driver
     try:
         config = make_config()
+        timeline.mark("worker config")
         devices = worker_devices(config.runtime.device)
+        timeline.mark("worker devices")
         if slot is None:
             active = workers if per_device is None else min(workers, per_device * len(devices))
         else:  # the parent dealt the GPUs: this worker is active with its own one, or idle
@@ -427,6 +435,7 @@ def _queue_worker(w: int, workers: int, per_device: int | None, make_config: Cal
         if w < active:
             device = devices[0] if isinstance(slot, tuple) else devices[w % len(devices)]
             _enter_worker(device, w, active)
+            timeline.mark("worker entered")
             events.put(("device", w, device_label(device)))
             cfg = config.with_options(device=device)
             _warm_up(device)
@@ -434,6 +443,7 @@ def _queue_worker(w: int, workers: int, per_device: int | None, make_config: Cal
             def taken():
                 while (item := todo.get()) is not None:
                     i, job = item
+                    timeline.mark("job taken")
                     index[job.out_dir] = i
                     events.put(("start", w, i))
                     yield job
@@ -468,5 +478,6 @@ def _warm_up(device: str) -> None:
 
     from ..devices import start_runtimes
 
+    timeline.mark("worker torch")
     start_runtimes(torch.device(device))
     from ..neural import reconstruct  # noqa: F401 - the first scan's imports, while the batch is being planned

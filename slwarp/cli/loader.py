@@ -110,27 +110,17 @@ def _end_with_parent(parent: int | None) -> None:
 
 
 def _start_driver(args) -> None:
-    """The CUDA driver (cuInit) and NVML initialised in a thread while the child imports, unless the command asks for
-    the CPU. Why: torch's first CUDA call (`torch.cuda.is_available()` as the configuration resolves the device) ran
-    cuInit holding the interpreter lock, 0.19 s of a fresh `fast` command on an H100 host (a stack sampler), and
-    torch's CUDA start counts the devices through NVML, whose start took 0.015 s of the main thread on an H200 host;
-    called through ctypes both leave the lock free, and torch's and Warp's calls then find them initialised (each
-    counts its starts: a later start is a count up)."""
+    """The CUDA driver (cuInit) and NVML started in a thread while the child imports, unless the command asks for the
+    CPU (slwarp.driver). Why: torch's first CUDA call (`torch.cuda.is_available()` as the configuration resolves the
+    device) ran cuInit holding the interpreter lock, 0.19 s of a fresh `fast` command on an H100 host (a stack
+    sampler). The GPU's context is left to torch here: made in the same thread too, the command took 7.13 s against
+    6.91 (one H200 host, 9 and 5 runs; bench/results/command-wall-cuda-h200-fast-context.md), no gain within the
+    hosts' noise, where four processes starting at once gain a second (slwarp.driver)."""
+    from ..driver import start_driver
     from .neural import _requested_device
 
-    if _requested_device(args) == "cpu" or not sys.platform.startswith("linux"):
-        return
-
-    def run():
-        try:
-            import ctypes
-
-            if ctypes.CDLL("libcuda.so.1").cuInit(0) == 0:  # else no usable GPU: the command runs on the CPU
-                ctypes.CDLL("libnvidia-ml.so.1").nvmlInit_v2()
-        except (OSError, AttributeError):  # no driver: the command runs on the CPU and says so
-            pass
-
-    threading.Thread(target=run, name="slwarp-cuda-driver", daemon=True).start()
+    if _requested_device(args) != "cpu":
+        start_driver(None)
 
 
 def _parent(args, child: int, scan_w: int, status_r: int) -> int:

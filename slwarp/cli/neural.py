@@ -50,6 +50,9 @@ def _early_pool(args):
     pool = WorkerPool(args.per_device * count, _WorkerConfig(args), _batch_options(args, progress=False),
                       per_device=args.per_device, device=_requested_device(args))
     timeline.mark("pool started")
+    # This process only plans and collects: its check that CUDA is there counts the GPUs through NVML instead of
+    # starting the driver (cuInit), which would queue in the driver with the workers' starts (slwarp.driver).
+    os.environ.setdefault("PYTORCH_NVML_BASED_CUDA_CHECK", "1")
     return pool
 
 
