@@ -4,9 +4,10 @@
 
 Each process sees one GPU (CUDA_VISIBLE_DEVICES, as a batch's workers and torchrun's ranks do) and times three steps:
 `import torch`; torch's CUDA start (`torch.cuda.init()` and a first allocation: cuInit and the device's primary
-context); Warp's start (`wp.init()`). With --early the process first starts the driver and the context in a thread
-through ctypes (slwarp.driver.start_driver) and the torch import runs beside it. Why: a batch's four workers took 3.2 s
-from their start to torch being ready against 1.9 s for a process alone (bench/results/cuda-start-cuda-h200x4.md).
+context); Warp's start (`wp.init()`). In the variant `early` the process first starts the driver and the context in a
+thread through ctypes (slwarp.driver.start_driver) and the torch import runs beside it; in `torch` torch starts them.
+Why: a batch's four workers were ready 3.9-4.2 s after the command started, their CUDA start alone 0.4-1.5 s
+(bench/results/batch-throughput-cuda-h200x4-16-driver.md).
 Writes <out>/<stem>.json and .md.
 """
 from __future__ import annotations
@@ -25,10 +26,9 @@ REPO = Path(__file__).resolve().parents[1]
 _CHILD = r"""
 import json, sys, time
 t0 = time.time()
-early = sys.argv[1] == "1"
-if early:
+if sys.argv[1] == "1":
     from slwarp.driver import start_driver
-    thread = start_driver(0)
+    start_driver(0)
 import torch
 t1 = time.time()
 torch.cuda.init()

@@ -5,7 +5,7 @@
 Why: a process's CUDA start has two parts, cuInit and the device's primary context (about 0.45 s on an H200 host,
 torch's `torch.cuda.init()` and first allocation), and torch makes both on the main thread, holding the interpreter
 lock, after its import (about 1.5 s). Several processes starting CUDA at once wait on each other inside the driver:
-four on a 4 x H200 host took 1.4-1.7 s each (bench/results/cuda-start-cuda-h200x4.md). Called through ctypes, both
+four on a 4 x H200 host took up to 1.7 s each against 0.45 alone (bench/results/cuda-start-cuda-h200x4.md). Called through ctypes, both
 leave the interpreter lock free, so they run beside the imports; torch and Warp then find the driver initialised and
 the context made (the runtime API and Warp both use the device's primary context), and count a start up. Used by a
 batch's worker processes and torchrun's ranks (each sees one GPU), and for cuInit alone by a single scan's command.

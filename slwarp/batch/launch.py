@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from .. import timeline
+from ..driver import start_driver
 from .discovery import ScanEntry, largest_first, scan_cost, shard
 from .jobs import (BatchOptions, ScanJob, ScanResult, error_line, outputs_complete, result_from_outputs, run_scan,
                    run_scans)
@@ -254,8 +255,6 @@ def pin_torchrun_rank(device: str) -> None:
         return
     local = int(os.environ.get("LOCAL_RANK", os.environ.get("RANK", "0")))
     _pin(ids[local % len(ids)], f"cuda:{local % len(ids)}")
-    from ..driver import start_driver
-
     start_driver(0)  # the rank's GPU context beside its imports (slwarp.driver)
 
 
@@ -417,8 +416,6 @@ def _queue_worker(w: int, workers: int, per_device: int | None, make_config: Cal
     loaded one ahead and written in the background as `run_scans` does; each scan's taking and final row reported
     to `events`. slot: its GPU (`_worker_slots`): seen alone, "idle" to take nothing, None to take devices[w %
     len(devices)] of those torch sees. A worker beyond per_device x the devices takes nothing."""
-    from ..driver import start_driver
-
     timeline.mark("worker started")
     if isinstance(slot, tuple):
         _pin(slot[0], slot[1])  # before make_config, which may start CUDA (the device 'auto')
@@ -478,6 +475,5 @@ def _warm_up(device: str) -> None:
 
     from ..devices import start_runtimes
 
-    timeline.mark("worker torch")
     start_runtimes(torch.device(device))
     from ..neural import reconstruct  # noqa: F401 - the first scan's imports, while the batch is being planned
