@@ -6,10 +6,11 @@ with K scans per GPU at a time; the issue's target is >= 0.9 x G scaling over G 
     python -m bench.batch_throughput --smoke                  # CPU: 3 small scans, tiny settings (a smoke test)
 
 A configuration GxK[:launcher] runs the batch on G GPUs with K scans per GPU at a time:
-- 1x1: one process, one scan after another (`slwarp reconstruct DIR`);
+- 1x1: one process, one scan after another (`slwarp reconstruct DIR --per-device 0`);
 - 1xK: K worker processes on one GPU (`--per-device K`: how a single-GPU user fills a big GPU);
 - GxK with G > 1: `torchrun --standalone --nproc-per-node G*K`; GPU LOCAL_RANK % G.
-`:torchrun` or `:per-device` picks the other launcher. Default configurations: 1x1, 1xK, Gx1, GxK for every K of
+`:torchrun` or `:per-device` picks the other launcher; `Gx1:plain` runs the command as a user types it, no launcher
+flag (`slwarp reconstruct DIR` on G GPUs: the command picks how many scans a GPU runs at a time). Default configurations: 1x1, 1xK, Gx1, GxK for every K of
 --per-gpu (G = --gpus, default all visible GPUs).
 
 The scans: --scans simulated scans (default rig, 6 random patterns, scenes in turn, a noise seed each), made once
@@ -92,8 +93,10 @@ def parse_config(token: str, unit: str) -> dict:
         raise SystemExit(f"--configs: {token!r}: G and K must be >= 1")
     default = "sequential" if gpus == per_gpu == 1 else "per-device" if gpus == 1 else "torchrun"
     launcher = launcher or default
-    if launcher not in ("sequential", "per-device", "torchrun"):
-        raise SystemExit(f"--configs: {token!r}: the launcher is sequential, per-device or torchrun")
+    if launcher not in ("sequential", "per-device", "torchrun", "plain"):
+        raise SystemExit(f"--configs: {token!r}: the launcher is sequential, per-device, torchrun or plain")
+    if launcher == "plain" and per_gpu != 1:
+        raise SystemExit(f"--configs: {token!r}: the plain command picks its scans a GPU itself (write Gx1:plain)")
     if launcher == "sequential" and gpus * per_gpu != 1:
         raise SystemExit(f"--configs: {token!r}: one process runs one scan at a time on one device")
     name = f"{gpus}{unit}" + (f"-x{per_gpu}" if per_gpu > 1 else "") + ("" if launcher == default else f"-{launcher}")
@@ -114,7 +117,9 @@ def command(cfg: dict, scans_dir: Path, out: Path, reconstruct_args: list[str]) 
                 "--nproc-per-node", str(cfg["gpus"] * cfg["per_gpu"]), *slwarp]
     if cfg["launcher"] == "per-device":
         return [sys.executable, *slwarp, "--per-device", str(cfg["per_gpu"])]
-    return [sys.executable, *slwarp]
+    if cfg["launcher"] == "plain":
+        return [sys.executable, *slwarp]
+    return [sys.executable, *slwarp, "--per-device", "0"]  # one after another in one process (else 2 a GPU)
 
 
 def visible_gpus() -> list[str]:

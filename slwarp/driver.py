@@ -49,3 +49,29 @@ def start_driver(ordinal: int | None = None) -> threading.Thread | None:
     thread.start()
     return thread
 
+
+def smallest_gpu_memory_gib() -> float | None:
+    """The total memory (GiB) of the smallest GPU the NVIDIA driver lists (NVML, through ctypes: no torch, no CUDA
+    context), or None without the driver's NVML library or a GPU. Every GPU counts, not only those
+    CUDA_VISIBLE_DEVICES shows (NVML numbers them its own way): a bound for all of them."""
+    if not sys.platform.startswith("linux"):
+        return None
+    import ctypes
+
+    try:
+        nvml = ctypes.CDLL("libnvidia-ml.so.1")
+        if nvml.nvmlInit_v2() != 0:
+            return None
+        count = ctypes.c_uint()
+        if nvml.nvmlDeviceGetCount_v2(ctypes.byref(count)) != 0 or count.value == 0:
+            return None
+        sizes = []
+        for index in range(count.value):
+            handle, memory = ctypes.c_void_p(), (ctypes.c_ulonglong * 3)()  # nvmlMemory_t: total, free, used
+            if nvml.nvmlDeviceGetHandleByIndex_v2(index, ctypes.byref(handle)) != 0 or \
+                    nvml.nvmlDeviceGetMemoryInfo(handle, ctypes.byref(memory)) != 0:
+                return None
+            sizes.append(memory[0] / 2**30)
+        return min(sizes)
+    except (OSError, AttributeError):  # no driver library, or one without these calls
+        return None

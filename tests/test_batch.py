@@ -159,8 +159,8 @@ def test_cli_refuses_bad_batch_commands(tmp_path, capsys, monkeypatch):
     assert cli_main(base + [str(tmp_path / "s"), str(tmp_path / "typo")]) == 2  # before any scan runs
     assert "scan not found" in capsys.readouterr().err and not (tmp_path / "o").exists()
     with pytest.raises(SystemExit):
-        cli_main(base + [str(tmp_path / "s"), "--per-device", "0"])
-    assert "it takes an integer >= 1" in capsys.readouterr().err
+        cli_main(base + [str(tmp_path / "s"), "--per-device", "-1"])
+    assert "it takes an integer >= 0" in capsys.readouterr().err
     monkeypatch.setenv("WORLD_SIZE", "2")
     monkeypatch.setenv("RANK", "0")
     assert cli_main(base + [str(tmp_path / "s"), "--per-device", "2"]) == 2
@@ -441,3 +441,57 @@ def test_compiled_graphs_are_kept_for_scans_of_the_same_sizes(monkeypatch):
                              (Scan(800, 1280, 9), fast, 2), (Scan(800, 1280, 9), other, 3)):
         batch._fit_compiled(s, cfg)
         assert len(resets) == expected
+
+
+def test_batches_on_gpus_run_two_scans_a_gpu_by_default(tmp_path, monkeypatch):
+    """Without --per-device, several scans on GPUs (told without torch) of DEFAULT_PER_GPU_MIN_GIB or more run
+    DEFAULT_PER_GPU at a time on each; one after another in this process on the CPU, for one scan folder, under
+    torchrun, on smaller GPUs or where the GPUs or their memory cannot be told; --per-device K as given, 0 for one after
+    another."""
+    import argparse
+
+    from slwarp.batch import launch
+    from slwarp.cli import neural
+    from slwarp import driver
+
+    fake_scan(tmp_path / "s" / "a")
+    fake_scan(tmp_path / "s" / "b")
+    monkeypatch.delenv("WORLD_SIZE", raising=False)
+    monkeypatch.delenv("RANK", raising=False)
+    gpus, memory = [["0", "1"]], [80.0]
+    monkeypatch.setattr(launch, "visible_device_ids", lambda device: gpus[0] if device != "cpu" else None)
+    monkeypatch.setattr(driver, "smallest_gpu_memory_gib", lambda: memory[0])
+
+    def per_device(scans, given=None, device=None):
+        return neural._per_device(argparse.Namespace(scans=[str(s) for s in scans], per_device=given, device=device,
+                                                     config=None))
+
+    batch = [tmp_path / "s"]
+    assert neural.DEFAULT_PER_GPU == 2 and per_device(batch) == 2 and per_device(batch, device="cuda") == 2
+    assert per_device(batch, given=3) == 3 and per_device(batch, given=0) is None
+    assert per_device(batch, device="cpu") is None
+    assert per_device([tmp_path / "s" / "a"]) is None  # one scan folder
+    assert per_device([tmp_path / "s" / "a", tmp_path / "missing"]) is None  # the command reports it
+    memory[0] = neural.DEFAULT_PER_GPU_MIN_GIB - 1
+    assert per_device(batch) is None
+    memory[0] = None
+    assert per_device(batch) is None
+    memory[0], gpus[0] = 80.0, None
+    assert per_device(batch) is None
+    gpus[0] = ["0"]
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("RANK", "0")
+    assert per_device(batch) is None
+
+
+def test_smallest_gpu_memory_without_a_driver_is_unknown(monkeypatch):
+    """No NVML library (this machine, or any without NVIDIA's driver): None, so the batch keeps one process."""
+    import ctypes
+
+    from slwarp import driver
+
+    def missing(name, *a, **k):
+        raise OSError(f"{name}: cannot open shared object file")
+
+    monkeypatch.setattr(ctypes, "CDLL", missing)
+    assert driver.smallest_gpu_memory_gib() is None

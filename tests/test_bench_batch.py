@@ -39,3 +39,19 @@ def test_set_options_reach_the_command_as_its_flags():
     assert reconstruct_flags("fast", "cuda", ["compile=true", "iters=20"]) == [
         "--preset", "fast", "--device", "cuda", "--compile", "--iters", "20"]
     assert reconstruct_flags("fast", "cpu", ["compile=false"])[-1] == "--no-compile"
+
+
+def test_each_launcher_gives_its_command(tmp_path):
+    """1x1 runs the scans one after another in one process (`--per-device 0`: the command's own default on GPUs is
+    two a GPU), GxK:per-device passes K, Gx1:plain is the command as typed, with no launcher flag."""
+    from bench.batch_throughput import command, parse_config
+
+    def flags(token):
+        cmd = command(parse_config(token, "gpu"), tmp_path / "scans", tmp_path / "out", ["--preset", "fast"])
+        return cmd[cmd.index("--preset"):]
+
+    assert flags("1x1") == ["--preset", "fast", "--per-device", "0"]
+    assert flags("4x2:per-device") == ["--preset", "fast", "--per-device", "2"]
+    assert flags("4x1:plain") == ["--preset", "fast"] and parse_config("4x1:plain", "gpu")["name"] == "4gpu-plain"
+    with pytest.raises(SystemExit, match="plain"):
+        parse_config("1x2:plain", "gpu")

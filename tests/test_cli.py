@@ -61,8 +61,8 @@ BAD_VALUES = [
     (["evaluate", "pred.npy", "scan", "--bogus"], "slwarp evaluate: error: unrecognized arguments: --bogus",
      "slwarp evaluate"),
     (["info"], "slwarp info: error: the following arguments are required: scan", "slwarp info"),
-    (["reconstruct", "scan", "--out", "o", "--per-device", "0"],
-     "slwarp reconstruct: error: --per-device: '0' is not allowed; it takes an integer >= 1", "slwarp reconstruct"),
+    (["reconstruct", "scan", "--out", "o", "--per-device", "-1"],
+     "slwarp reconstruct: error: --per-device: '-1' is not allowed; it takes an integer >= 0", "slwarp reconstruct"),
     (["recontsruct"], "slwarp: error: COMMAND: invalid choice: 'recontsruct' (choose from 'demo', 'info', "
      "'simulate', 'decode', 'evaluate', 'reconstruct', 'design-patterns', 'watch')", "slwarp"),
 ]

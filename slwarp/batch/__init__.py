@@ -6,7 +6,7 @@
     print(summary.report())                                  # also out/summary.json and out/summary.md
 
 How the scans run (the same per-scan work, `run_scan`, everywhere):
-- in one process, one after another (the default);
+- in one process, one after another (run_batch's default; the command line's on the CPU, and with --per-device 0);
 - under `torchrun --nproc-per-node N` (any of torchrun's multi-node flags): the processes join a gloo process
   group, rank 0 plans (which scans are done already, what each costs) and broadcasts the plan, each rank takes
   the share `shard` gives it, on GPU LOCAL_RANK % device_count, and rank 0 gathers the results and writes the
@@ -15,7 +15,8 @@ How the scans run (the same per-scan work, `run_scan`, everywhere):
 - with `per_device=K` (no torchrun): K worker processes per device (every visible GPU for device "cuda", the
   one given for "cuda:N", the CPU for "cpu"), started here (a WorkerPool; the command line starts it before it
   imports torch), pulling scans largest first from a queue, each loading its next scan and writing its last one
-  while it trains; a worker that dies loses only the scans it held.
+  while it trains; a worker that dies loses only the scans it held. The command line's default for several scans on
+  GPUs of 20 GiB or more: K = 2 (cli.neural._per_device).
 
 Each scan writes into out/<name>/ (out/ itself for a single scan folder: `Discovery.single`). A scan that fails
 is reported with a one-line error (and its traceback in summary.json); the others go on. With resume=True a

@@ -26,6 +26,17 @@ FRAMES_HELP = ("frame selection, comma-separated tokens: frame names, indices, s
                "(gray:col:bit=0-6:noinv, phase:row:period=40, white, random:size=20) or name globs (gc_col_b*)")
 
 
+def _non_negative_int(text: str) -> int:
+    """argparse's `type` for a count of at least 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not allowed; it takes an integer >= 0")
+    return value
+
+
 def _positive_int(text: str) -> int:
     """argparse's `type` for a count of at least 1."""
     try:
