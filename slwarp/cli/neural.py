@@ -63,10 +63,10 @@ def _per_device(args) -> int | None:
 
 
 def _early_pool(args):
-    """The WorkerPool of `reconstruct --per-device K` (not under torchrun), started now, while this process has
-    imported nothing heavy: its workers' imports and runtime starts (about 2-3 s) overlap this process's own and
-    its planning. None when there is no --per-device, or the device count cannot be told without torch (the
-    batch then starts its workers itself)."""
+    """The WorkerPool of `reconstruct --per-device K` (given, or the default on GPUs: _per_device; not under
+    torchrun), no more workers than scans, started now, while this process has imported nothing heavy: its
+    workers' imports and runtime starts (about 2-3 s) overlap this process's own and its planning. None without
+    workers to start, or when the device count cannot be told without torch (the batch then starts them itself)."""
     from ..batch.discovery import find_scans
     from ..batch.launch import WorkerPool, launched_by_torchrun, visible_device_count
 
@@ -77,11 +77,10 @@ def _early_pool(args):
     if count is None:
         return None
     try:  # no workers for a command that will fail: the command reports its errors in their order
-        find_scans(args.scans)
+        scans = len(find_scans(args.scans).scans)
     except Exception:  # noqa: BLE001
         return None
     timeline.mark("pool")
-    scans = len(find_scans(args.scans).scans)  # no more workers than scans
     pool = WorkerPool(min(args.per_device * count, scans), _WorkerConfig(args), _batch_options(args, progress=False),
                       per_device=args.per_device, device=_requested_device(args))
     timeline.mark("pool started")

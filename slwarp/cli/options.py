@@ -26,26 +26,25 @@ FRAMES_HELP = ("frame selection, comma-separated tokens: frame names, indices, s
                "(gray:col:bit=0-6:noinv, phase:row:period=40, white, random:size=20) or name globs (gc_col_b*)")
 
 
-def _non_negative_int(text: str) -> int:
-    """argparse's `type` for a count of at least 0."""
+def _count_at_least(text: str, minimum: int) -> int:
+    """`text` as an integer of at least `minimum`, else argparse's error saying so."""
     try:
         value = int(text)
     except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{text!r} is not allowed; it takes an integer >= 0")
+        value = minimum - 1
+    if value < minimum:
+        raise argparse.ArgumentTypeError(f"{text!r} is not allowed; it takes an integer >= {minimum}")
     return value
+
+
+def _non_negative_int(text: str) -> int:
+    """argparse's `type` for a count of at least 0."""
+    return _count_at_least(text, 0)
 
 
 def _positive_int(text: str) -> int:
     """argparse's `type` for a count of at least 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} is not allowed; it takes an integer >= 1")
-    return value
+    return _count_at_least(text, 1)
 
 
 def _parse_range(text: str | None):
