@@ -478,6 +478,8 @@ def test_batches_on_gpus_run_two_scans_a_gpu_by_default(tmp_path, monkeypatch):
     assert per_device(batch) is None
     memory[0], gpus[0] = 80.0, None
     assert per_device(batch) is None
+    gpus[0] = ["MIG-4f1c2a3b-0000-0000-0000-000000000000"]  # a slice of a GPU: NVML's total is the whole GPU's
+    assert per_device(batch) is None
     gpus[0] = ["0"]
     monkeypatch.setenv("WORLD_SIZE", "2")
     monkeypatch.setenv("RANK", "0")

@@ -42,7 +42,7 @@ def _per_device(args) -> int | None:
     """The batch's scans at a time per device: --per-device K as given (0: one after another in this process, None);
     without it DEFAULT_PER_GPU for several scans on GPUs of DEFAULT_PER_GPU_MIN_GIB or more, told without torch
     (the driver's GPU listing and NVML), else None: one after another in this process (the CPU, one scan folder,
-    torchrun's ranks, GPUs that cannot be told)."""
+    torchrun's ranks, MIG slices, GPUs that cannot be told)."""
     from ..batch.discovery import find_scans
     from ..batch.launch import launched_by_torchrun, visible_device_ids
     from ..driver import smallest_gpu_memory_gib
@@ -50,7 +50,9 @@ def _per_device(args) -> int | None:
     if args.per_device is not None:
         return args.per_device or None
     device = _requested_device(args)
-    if launched_by_torchrun() or device == "cpu" or not visible_device_ids(device):
+    ids = None if launched_by_torchrun() or device == "cpu" else visible_device_ids(device)
+    # a MIG slice's memory is a share of the GPU's, which is all NVML's total says: one worker there
+    if not ids or any(i.upper().startswith("MIG") for i in ids):
         return None
     try:
         found = find_scans(args.scans)
