@@ -463,8 +463,8 @@ def test_batches_on_gpus_run_two_scans_a_gpu_by_default(tmp_path, monkeypatch):
     monkeypatch.setattr(driver, "smallest_gpu_memory_gib", lambda: memory[0])
 
     def per_device(scans, given=None, device=None):
-        return neural._per_device(argparse.Namespace(scans=[str(s) for s in scans], per_device=given, device=device,
-                                                     config=None))
+        args = argparse.Namespace(scans=[str(s) for s in scans], per_device=given, device=device, config=None)
+        return neural._per_device(args, neural._found_or_none(args))
 
     batch = [tmp_path / "s"]
     assert neural.DEFAULT_PER_GPU == 2 and per_device(batch) == 2 and per_device(batch, device="cuda") == 2

@@ -19,11 +19,12 @@ def cmd_reconstruct(args) -> int:
     from ..batch.launch import pin_torchrun_rank
 
     pin_torchrun_rank(_requested_device(args))  # a torchrun rank sees only its own GPU, before CUDA starts here
-    args.per_device, args.per_device_default = _per_device(args), args.per_device is None
+    found = _found_or_none(args)  # the scans, looked for once here; None: the command reports why, in its order
+    args.per_device, args.per_device_default = _per_device(args, found), args.per_device is None
     ahead = load_beside(args)  # one scan: loaded in a process of its own while this one imports (cli.loader)
-    pool = _early_pool(args)  # --per-device: the workers start before this process imports torch
+    pool = _early_pool(args, found)  # --per-device: the workers start before this process imports torch
     try:
-        return _reconstruct(args, pool, ahead)
+        return _reconstruct(args, pool, ahead, found)
     finally:
         if pool is not None:
             pool.close()
@@ -38,12 +39,21 @@ DEFAULT_PER_GPU = 2
 DEFAULT_PER_GPU_MIN_GIB = 20.0
 
 
-def _per_device(args) -> int | None:
+def _found_or_none(args):
+    """batch.find_scans(args.scans), or None where it raises (the command raises it again where it reports errors)."""
+    from ..batch.discovery import find_scans
+
+    try:
+        return find_scans(args.scans)
+    except Exception:  # noqa: BLE001
+        return None
+
+
+def _per_device(args, found) -> int | None:
     """The batch's scans at a time per device: --per-device K as given (0: one after another in this process, None);
     without it DEFAULT_PER_GPU for several scans on GPUs of DEFAULT_PER_GPU_MIN_GIB or more, told without torch
     (the driver's GPU listing and NVML), else None: one after another in this process (the CPU, one scan folder,
-    torchrun's ranks, MIG slices, GPUs that cannot be told)."""
-    from ..batch.discovery import find_scans
+    torchrun's ranks, MIG slices, GPUs that cannot be told). found: _found_or_none(args)."""
     from ..batch.launch import launched_by_torchrun, visible_device_ids
     from ..driver import smallest_gpu_memory_gib
 
@@ -54,22 +64,18 @@ def _per_device(args) -> int | None:
     # a MIG slice's memory is a share of the GPU's, which is all NVML's total says: one worker there
     if not ids or any(i.upper().startswith("MIG") for i in ids):
         return None
-    try:
-        found = find_scans(args.scans)
-    except Exception:  # noqa: BLE001 - the command reports a bad scan word itself, in its order
-        return None
-    if found.single or len(found.scans) < 2:
+    if found is None or found.single or len(found.scans) < 2:
         return None
     memory = smallest_gpu_memory_gib()
     return DEFAULT_PER_GPU if memory is not None and memory >= DEFAULT_PER_GPU_MIN_GIB else None
 
 
-def _early_pool(args):
+def _early_pool(args, found):
     """The WorkerPool of `reconstruct --per-device K` (given, or the default on GPUs: _per_device; not under
     torchrun), no more workers than scans, started now, while this process has imported nothing heavy: its
     workers' imports and runtime starts (about 2-3 s) overlap this process's own and its planning. None without
-    workers to start, or when the device count cannot be told without torch (the batch then starts them itself)."""
-    from ..batch.discovery import find_scans
+    workers to start, or when the device count cannot be told without torch (the batch then starts them itself).
+    found: _found_or_none(args)."""
     from ..batch.launch import WorkerPool, launched_by_torchrun, visible_device_count
 
     if args.per_device is None or launched_by_torchrun():
@@ -78,13 +84,11 @@ def _early_pool(args):
     count = visible_device_count(_requested_device(args))
     if count is None:
         return None
-    try:  # no workers for a command that will fail: the command reports its errors in their order
-        scans = len(find_scans(args.scans).scans)
-    except Exception:  # noqa: BLE001
+    if found is None:  # no workers for a command that will fail: the command reports its errors in their order
         return None
     timeline.mark("pool")
-    pool = WorkerPool(min(args.per_device * count, scans), _WorkerConfig(args), _batch_options(args, progress=False),
-                      per_device=args.per_device, device=_requested_device(args))
+    pool = WorkerPool(min(args.per_device * count, len(found.scans)), _WorkerConfig(args),
+                      _batch_options(args, progress=False), per_device=args.per_device, device=_requested_device(args))
     timeline.mark("pool started")
     # This process only plans and collects: its check that CUDA is there counts the GPUs through NVML instead of
     # starting the driver (cuInit), which would queue in the driver with the workers' starts (slwarp.driver).
@@ -124,7 +128,7 @@ def _batch_options(args, progress: bool):
                         outside_paths=args.allow_outside_paths, patterns=args.patterns, overlap=args.overlap)
 
 
-def _reconstruct(args, pool, ahead=None) -> int:
+def _reconstruct(args, pool, ahead=None, found=None) -> int:
     import numpy as np
     import torch
 
@@ -140,7 +144,7 @@ def _reconstruct(args, pool, ahead=None) -> int:
     if args.per_device is not None and launched_by_torchrun():
         raise UserError("--per-device starts its own worker processes: under torchrun use --nproc-per-node "
                         "(K x GPUs for K scans per GPU) instead")
-    found = find_scans(args.scans) if ahead is None else ahead.found
+    found = ahead.found if ahead is not None else found if found is not None else find_scans(args.scans)
     # a bad file is reported before any scan runs (with a loader process, by it, which reads the file for the scan)
     pset = _pattern_set(args.patterns) if ahead is None else None
     if not found.single or args.per_device is not None or launched_by_torchrun():
