@@ -153,6 +153,7 @@ class StructuredLightRenderer(nn.Module):
         self.a_flat, self.b_flat = a.reshape(-1), b.reshape(-1)
         self.valid_map = lit_with_contrast(b, self.contrast_threshold)
         self._valid_index = torch.nonzero(self.valid_map.reshape(-1)).squeeze(1)  # flat indices of the valid pixels
+        self._set_draw_list()
         self.patterns = patterns
         self.patterns_hwn = ops.pack_patterns(blur_patterns(patterns, self.pattern_blur))
 
@@ -195,18 +196,55 @@ class StructuredLightRenderer(nn.Module):
         """The number of valid pixels (lit with contrast)."""
         return int(self._valid_index.numel())
 
+    @property
+    def n_draw(self) -> int:
+        """The length of the list the draws index: the valid pixels, then the emphasised ones repeated (`emphasise`)."""
+        return int(self._draw_index.numel())
+
+    def emphasise(self, pixels: torch.Tensor | np.ndarray | None, share: float) -> int:
+        """Draw about `share` (0 <= share < 1) of each batch from the valid pixels among `pixels` ([H, W] bool; None:
+        none) and the rest from every valid pixel, for as long as the renderer lives (`set_frames` keeps the choice);
+        returns the number of emphasised valid pixels. One uniform draw over one list, the valid pixels followed by
+        the emphasised ones repeated to share / (1 - share) of the valid count: the draws stay one randint and one
+        gather, as a captured step needs."""
+        if not 0.0 <= share < 1.0:
+            raise ValueError(f"share must be in [0, 1), got {share}")
+        self._emphasis = None
+        if pixels is not None and share > 0:
+            mask = torch.as_tensor(np.asarray(pixels) if not isinstance(pixels, torch.Tensor) else pixels)
+            if tuple(mask.shape) != (self.camera.height, self.camera.width):
+                raise ValueError(f"emphasised pixels are {tuple(mask.shape)}, camera is "
+                                 f"{self.camera.height}x{self.camera.width}")
+            self._emphasis = (mask.to(torch.bool).reshape(-1), float(share))
+        return self._set_draw_list()
+
+    def _set_draw_list(self) -> int:
+        """Build the list the draws index (`n_draw`) from the valid pixels and the emphasis; the emphasised count."""
+        emphasis = getattr(self, "_emphasis", None)
+        self._draw_index = self._valid_index
+        if emphasis is None:
+            return 0
+        mask, share = emphasis
+        chosen = self._valid_index[mask.to(self._valid_index.device)[self._valid_index]]
+        if chosen.numel() == 0:
+            return 0
+        extra = round(share / (1.0 - share) * self.n_valid)
+        repeats = -(-extra // chosen.numel())
+        self._draw_index = torch.cat([self._valid_index, chosen.repeat(repeats)[:extra]])
+        return int(chosen.numel())
+
     def draw_valid(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
-        """n random positions [n] (long) in the list of valid pixels (uniform, with replacement), on the
-        generator's device: what `valid_batch` takes. Drawing and gathering apart lets a captured step gather
-        on the device what was drawn on the host."""
+        """n random positions [n] (long) in the draw list (`n_draw`: the valid pixels, uniform unless `emphasise`d;
+        with replacement), on the generator's device: what `valid_batch` takes. Drawing and gathering apart lets a
+        captured step gather on the device what was drawn on the host."""
         if self.n_valid == 0:
             raise ValueError("no valid pixel (lit with enough contrast) in the frames")
         dev = generator.device if generator is not None else "cpu"
-        return torch.randint(0, self.n_valid, (n,), generator=generator, device=dev)
+        return torch.randint(0, self.n_draw, (n,), generator=generator, device=dev)
 
     def valid_batch(self, positions: torch.Tensor) -> PixelBatch:
-        """The batch of the valid pixels at `positions` [R] (long, from `draw_valid`; any device)."""
-        return self.batch(self._valid_index[positions.to(self._valid_index.device)])
+        """The batch of the pixels at `positions` [R] in the draw list (long, from `draw_valid`; any device)."""
+        return self.batch(self._draw_index[positions.to(self._draw_index.device)])
 
     # --- sampling -----------------------------------------------------------------------------
     def inv_s(self) -> torch.Tensor:

@@ -51,8 +51,9 @@ from ...scans.scanner import with_halo
 from ..config import TrainConfig
 from ..fields import Volume
 from ..pattern_model import fit_halo, halo_light
-from ..start import (checked_depth_range, fit_blur, frames_at_start, narrowed_range, search_start, searches,
-                     set_process_flags, start_field, start_renderer, surface_depth, surface_terms_on, working_volume)
+from ..start import (checked_depth_range, doubtful_pixels, fit_blur, frames_at_start, narrowed_range, search_start,
+                     searches, set_process_flags, start_field, start_renderer, surface_depth, surface_terms_on,
+                     working_volume)
 from . import schedule
 from .checkpoint import (CheckpointError, CheckpointExists, RunMismatch, check_field, identity_differences,
                          make_state, read_checkpoint, restore, run_identity, write_checkpoint)
@@ -222,11 +223,24 @@ class Trainer:
         if self.init_depth is not None and surface_terms_on(config.init):
             self.surface_depth = surface_depth(self.init_depth, scan.camera, scan.projector,
                                                *pattern_model_inputs(self), self.device)
+        self.doubt_pixels = self._emphasise_doubt()
         clock.mark("surface depth")
         self.setup_phases = clock.phases
         self.first_steps: list[float] = []
         # train()'s final checkpoint written in a thread (reconstruct sets it, then calls wait_checkpoint)
         self.checkpoint_in_background = False
+
+    def _emphasise_doubt(self) -> int:
+        """With sampling.doubt_rays, the renderer draws that share of each batch from the start's doubtful pixels
+        (start.doubtful_pixels: lit, without a surface-term depth, or without the search's depth when the surface
+        term is off, and their neighbours); their count (0: off, or no starting map)."""
+        s = self.cfg.sampling
+        confirmed = self.surface_depth if self.surface_depth is not None else self.init_depth
+        if s.doubt_rays <= 0 or confirmed is None:
+            return 0
+        cam = self.scan.camera
+        doubt = doubtful_pixels(confirmed.reshape(cam.height, cam.width), self.renderer.valid_map, s.doubt_rays_radius)
+        return self.renderer.emphasise(doubt, s.doubt_rays)
 
     def _open_checkpoint(self, resume: bool, overwrite: bool) -> tuple[dict | None, Path | None]:
         """(the checkpoint this run continues or None, its path): checked first, as a refusal costs nothing.
@@ -429,7 +443,7 @@ class Trainer:
     def step(self) -> dict:
         """One optimisation step; returns the scalar losses (0-d tensors: reading them synchronises)."""
         it = self.iteration
-        pick, jitter = self._steps.draw(self.generator, self._draw, key=self.renderer.n_valid)
+        pick, jitter = self._steps.draw(self.generator, self._draw, key=self.renderer.n_draw)
         weights = schedule.step_weights(self.cfg.schedule, it, self.warmup_iters)
         schedule.set_learning_rates(self.optimizer, self.lr_factor(it), self.cfg.schedule.lr)
         schedule.set_levels(self.cfg.field, self.field, it, self.warmup_iters)
