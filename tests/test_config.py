@@ -16,7 +16,7 @@ from slwarp.neural.config import (OPTIONS, PRESET_SUMMARIES, PRESETS, SECTIONS, 
 # hold exactly these values (a change here is a change of behaviour).
 FLAT_DEFAULTS = dict(iters=4000, rays=2048, n_samples=32, n_importance=32, up_sample_steps=4, lr=1e-4, lr_decay="none",
                      lr_final=0.05, variance_lr_factor=1.0, lambda_rc=1.0, lambda_sc=1.0, sc_start=1000, lambda_reg=0.1, level_adam_steps=False, lens_variance_lr_factor=None, lens_lambda_reg=None, anneal_end=0,
-                     contrast_threshold=0.05, pattern_blur="auto", pattern_halo=0.0, pattern_halo_sigma=40.0, doubt_rays=0.0, doubt_rays_radius=1, confidence="photometric", min_confidence=0.6,
+                     contrast_threshold=0.05, pattern_blur="auto", pattern_halo=0.0, pattern_halo_sigma=40.0, doubt_rays=0.0, doubt_rays_radius=1, doubt_rays_until=1.0, confidence="photometric", min_confidence=0.6,
                      hidden=256, layers=8, skip=4,
                      n_freqs=6, init="search", init_iters=300, auto_range=False, auto_range_margin_mm=50.0, search_step_mm=1.0, search_stride=2, search_window_step=0, seed=0, backend="warp",
                      device="auto", matmul="fp32", compile=True, cuda_graph=True, incremental=False, start_frames=3,

@@ -61,26 +61,35 @@ def test_the_emphasis_outlives_new_frames_and_refuses_bad_input(small_scan):
     assert r.emphasise(np.zeros_like(chosen), 0.25) == 0 and r.n_draw == r.n_valid
 
 
-def test_doubtful_pixels_are_lit_pixels_without_a_confirmed_depth_and_their_neighbours():
+def test_doubtful_pixels_are_lit_pixels_of_fair_modulation_without_a_confirmed_depth_and_their_neighbours():
     lit = torch.ones(6, 7, dtype=torch.bool)
     lit[:, 0] = False
+    modulation = torch.full((6, 7), 0.4)
     confirmed = torch.full((6, 7), 500.0)
     confirmed[2, 3] = float("nan")
     confirmed[5, 0] = float("nan")  # unlit: never doubtful, nor spreading doubt
-    alone = doubtful_pixels(confirmed, lit, 0)
+    confirmed[5, 6] = float("nan")
+    modulation[5, 6] = 0.1  # dark: its doubt is noise, not geometry
+    alone = doubtful_pixels(confirmed, lit, modulation, 0)
     assert alone.sum() == 1 and alone[2, 3]
-    spread = doubtful_pixels(confirmed, lit, 1)
+    spread = doubtful_pixels(confirmed, lit, modulation, 1)
     expected = torch.zeros(6, 7, dtype=torch.bool)
     expected[1:4, 2:5] = True
     assert torch.equal(spread, expected)
+    assert doubtful_pixels(confirmed, torch.zeros_like(lit), modulation, 1).sum() == 0
 
 
 def test_a_run_with_doubt_rays_draws_from_the_doubtful_pixels_and_trains(small_scan):
     cfg = preset("tiny", device="cpu", iters=30, init_iters=10, doubt_rays=0.3, doubt_rays_radius=1,
-                 surface_weight=1.0)
+                 doubt_rays_until=0.5, surface_weight=1.0)
     t = Trainer(small_scan, cfg, progress=False)
     assert t.surface_depth is not None
     assert 0 < t.doubt_pixels < t.renderer.n_valid
     assert t.renderer.n_draw == t.renderer.n_valid + round(0.3 / 0.7 * t.renderer.n_valid)
     history = t.train()
     assert np.isfinite(history.loss[-1])
+    # the first half of the 40 iterations draws from the whole list, the rest from the valid pixels alone
+    assert t._doubt_until == 20
+    g = torch.Generator().manual_seed(0)
+    assert t._draw(g, emphasised=True)[0].max() >= t.renderer.n_valid
+    assert t._draw(g, emphasised=False)[0].max() < t.renderer.n_valid

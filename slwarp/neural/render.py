@@ -233,14 +233,16 @@ class StructuredLightRenderer(nn.Module):
         self._draw_index = torch.cat([self._valid_index, chosen.repeat(repeats)[:extra]])
         return int(chosen.numel())
 
-    def draw_valid(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
-        """n random positions [n] (long) in the draw list (`n_draw`: the valid pixels, uniform unless `emphasise`d;
-        with replacement), on the generator's device: what `valid_batch` takes. Drawing and gathering apart lets a
-        captured step gather on the device what was drawn on the host."""
+    def draw_valid(self, n: int, generator: torch.Generator | None = None, emphasised: bool = True) -> torch.Tensor:
+        """n random positions [n] (long) in the draw list, with replacement, on the generator's device: what
+        `valid_batch` takes. The whole list (`n_draw`: uniform unless `emphasise`d), or with emphasised=False its
+        head, the valid pixels once each (uniform); the gather reads the same list either way, so a captured step
+        serves both. Drawing and gathering apart lets a captured step gather on the device what was drawn on the
+        host."""
         if self.n_valid == 0:
             raise ValueError("no valid pixel (lit with enough contrast) in the frames")
         dev = generator.device if generator is not None else "cpu"
-        return torch.randint(0, self.n_draw, (n,), generator=generator, device=dev)
+        return torch.randint(0, self.n_draw if emphasised else self.n_valid, (n,), generator=generator, device=dev)
 
     def valid_batch(self, positions: torch.Tensor) -> PixelBatch:
         """The batch of the pixels at `positions` [R] in the draw list (long, from `draw_valid`; any device)."""

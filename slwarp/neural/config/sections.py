@@ -88,12 +88,14 @@ class SamplingConfig:
     pattern_halo_sigma: float = option(40.0, "the halo's Gaussian sigma, projector px", above=0.0)
     # the start's doubtful pixels are where the field goes wrong (outlines, thin parts: fast's oblique rods lost whole
     # stretches), and a uniform draw visits each pixel less than once in fast's 1000 x 1024 rays
-    doubt_rays: float = option(0.0, "share of each batch's rays drawn from the lit pixels the start leaves without a "
-                               "surface-term depth (without the search's depth when that term is off: the doubtful "
-                               "pixels, outlines and thin parts) and their neighbours within doubt_rays_radius; the "
-                               "rest from every lit pixel (0: uniform)", min=0.0, max=0.9)
+    doubt_rays: float = option(0.0, "share of each batch's rays drawn from the lit pixels of fair modulation the start "
+                               "leaves without a surface-term depth (without the search's depth when that term is "
+                               "off: the doubtful pixels, outlines and thin parts) and their neighbours within "
+                               "doubt_rays_radius; the rest from every lit pixel (0: uniform)", min=0.0, max=0.9)
     doubt_rays_radius: int = option(1, "doubt rays: pixels within this many pixels of a doubtful one are drawn with "
                                     "it", min=0)
+    doubt_rays_until: float = option(1.0, "doubt rays: drawn during this fraction of the iterations (the warm-up "
+                                     "included), uniform draws after it", above=0.0, max=1.0)
 
 
 @dataclass

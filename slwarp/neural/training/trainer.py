@@ -37,6 +37,7 @@ Repeatability: every random draw (pixel batches, ray jitter) comes from one torc
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 import threading
@@ -235,12 +236,15 @@ class Trainer:
         (start.doubtful_pixels: lit, without a surface-term depth, or without the search's depth when the surface
         term is off, and their neighbours); their count (0: off, or no starting map)."""
         s = self.cfg.sampling
+        self._doubt_until = round(s.doubt_rays_until * (self.cfg.schedule.iters + self.warmup_iters))
         confirmed = self.surface_depth if self.surface_depth is not None else self.init_depth
         if s.doubt_rays <= 0 or confirmed is None:
             return 0
         cam = self.scan.camera
-        doubt = doubtful_pixels(confirmed.reshape(cam.height, cam.width), self.renderer.valid_map, s.doubt_rays_radius)
-        return self.renderer.emphasise(doubt, s.doubt_rays)
+        r = self.renderer
+        doubt = doubtful_pixels(confirmed.reshape(cam.height, cam.width), r.valid_map,
+                                r.b_flat.reshape(cam.height, cam.width), s.doubt_rays_radius)
+        return r.emphasise(doubt, s.doubt_rays)
 
     def _open_checkpoint(self, resume: bool, overwrite: bool) -> tuple[dict | None, Path | None]:
         """(the checkpoint this run continues or None, its path): checked first, as a refusal costs nothing.
@@ -443,7 +447,11 @@ class Trainer:
     def step(self) -> dict:
         """One optimisation step; returns the scalar losses (0-d tensors: reading them synchronises)."""
         it = self.iteration
-        pick, jitter = self._steps.draw(self.generator, self._draw, key=self.renderer.n_draw)
+        # the draws depend on the list's length and on whether this step draws from the emphasis (doubt_rays_until);
+        # the phase goes with the draw function, which the draws made ahead replay when they rewind
+        emphasised = self.doubt_pixels > 0 and it < self._doubt_until
+        pick, jitter = self._steps.draw(self.generator, functools.partial(self._draw, emphasised=emphasised),
+                                        key=(self.renderer.n_draw, emphasised))
         weights = schedule.step_weights(self.cfg.schedule, it, self.warmup_iters)
         schedule.set_learning_rates(self.optimizer, self.lr_factor(it), self.cfg.schedule.lr)
         schedule.set_levels(self.cfg.field, self.field, it, self.warmup_iters)
@@ -456,11 +464,12 @@ class Trainer:
         self.iteration += 1
         return vals
 
-    def _draw(self, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-        """A step's pixel positions [R] (long) and ray jitter [R] from `generator` (on the CPU: GraphedStep.draw makes
-        them in the same order with or without a CUDA graph, so a resumed run continues an interrupted one exactly)."""
+    def _draw(self, generator: torch.Generator, emphasised: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+        """A step's pixel positions [R] (long; from the whole draw list when `emphasised`, else from the valid pixels
+        alone) and ray jitter [R] from `generator` (on the CPU: GraphedStep.draw makes them in the same order with or
+        without a CUDA graph, so a resumed run continues an interrupted one exactly)."""
         R = self.cfg.sampling.rays
-        return self.renderer.draw_valid(R, generator), self.renderer.draw_jitter(R, generator)
+        return self.renderer.draw_valid(R, generator, emphasised=emphasised), self.renderer.draw_jitter(R, generator)
 
     def _step_body(self, pick: torch.Tensor, jitter: torch.Tensor, weights: dict,
                    cos_anneal_ratio: float = 1.0) -> dict:
