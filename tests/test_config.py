@@ -50,6 +50,7 @@ FLAT_PRESETS = {
                  sc_start=100, hidden=48, layers=3, skip=None, n_freqs=4, init_iters=100, search_step_mm=2.0,
                  search_stride=3, mc_resolution=128, checkpoint_every=100, log_every=25),
     "fast": dict(matmul="tf32", compile=False, iters=800, init_iters=200, rays=1024, up_sample_steps=2, grid_levels=8,
+                 doubt_rays=0.5, doubt_rays_until=0.5,
                  grid_gradient="finite_difference_4",
                  grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, refine_range=3.0,
                  refine_max_misfit=0.024, search_doubt=True, search_repair=True, repair_min_component=100, repair_grow=True,

@@ -83,6 +83,15 @@ _EDGE_BAND = dict(edge_band_radius=3, edge_band_sides="both", edge_band_confiden
 # worse, completeness 0.09-0.12 points lower; real captures 0-2 the same plate RMS, 0.0-0.4 points fewer pixels with
 # depth (one H100, 2026-11-28, real-captures-cuda-cpu-default-edge-band.md)
 _CPU_EDGE_BAND = {**_EDGE_BAND, "edge_band_radius": 2}
+# fast draws half of each batch from the start's doubtful pixels (sampling.doubt_rays: lit, of fair modulation, without a
+# surface-term depth, and their neighbours) during the first half of its iterations, uniformly after: its 1000 x 1024
+# rays visit a pixel less than once, and outlines and steps were drawn off. Every rig, seeds 0 / 1 (one H200,
+# 2026-11-28, accuracy-cuda-doubt-rays-fast-seed0.md, -seed1.md): oblique RMSE 1.203 / 1.297 -> 1.031 / 1.111 mm (GC(7)
+# 1.246 / 1.226: the last simulator target fast missed), vertical and rolled lower too, default higher (0.797 / 0.912
+# -> 0.981 / 0.979, GC(7) 1.093 / 1.148); mean MAE -4% to +4% per rig; completeness within 0.05 points. Drawn to the
+# end, MAE rose 40% (the flat surfaces' rays went to the doubt). Real captures 0-2 (real-captures-cuda-doubt-rays.md):
+# plate RMS 0.523 / 0.294 / 0.297 -> 0.534 / 0.305 / 0.298 mm, below the full decode's mean (0.431) and GC(7) on each
+_DOUBT_RAYS = dict(doubt_rays=0.5, doubt_rays_until=0.5)
 # what the hash-grid presets share
 _HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, grid_table_lr_factor=10.0)
 
@@ -103,14 +112,15 @@ _preset("tiny", "a 3x48 field for 300 iterations: tests", iters=300, rays=256, n
         up_sample_steps=1, lr=5e-4, lr_decay="cosine", sc_start=100, hidden=48, layers=3, skip=None, n_freqs=4,
         init_iters=100, search_step_mm=2.0, search_stride=3, mc_resolution=128, checkpoint_every=100, log_every=25)
 _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 800 iterations of 1024 rays, levels switched on "
-        "quickly, two up-sampling steps, NeuS's variance at 4x the rate, with tuned's surface term (on both sides of "
-        "the map) and extraction and a free-space term: a depth map as soon as possible (GPU)",
+        "quickly, two up-sampling steps, NeuS's variance at 4x the rate, half the rays on the start's doubtful pixels for "
+        "half the run, with tuned's surface term (on both sides of the map) and extraction and a free-space term: a "
+        "depth map as soon as possible (GPU)",
         matmul="tf32", compile=False, iters=800, init_iters=200, rays=1024, up_sample_steps=2, grid_levels=8,
         grid_gradient="finite_difference_4",
         grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, surface_weight=1.0,
         surface_after=1.0, surface_in_front=True, free_space=0.5, variance_lr_factor=4.0, edge_readmit=True,
-        **_DEFAULT_EXTRACTION, **_EDGE_SIDE, **_HOLE_FILL, **_EDGE_BAND, **_LENS, **_LENS_HASHGRID, **_GPU_DENOISE,
-        **_HASHGRID)
+        **_DOUBT_RAYS, **_DEFAULT_EXTRACTION, **_EDGE_SIDE, **_HOLE_FILL, **_EDGE_BAND, **_LENS, **_LENS_HASHGRID,
+        **_GPU_DENOISE, **_HASHGRID)
 _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations of the paper's batch, levels "
         "coarse to fine, NeuS's variance at 4x the rate, with tuned's surface term and extraction and a free-space "
         "term, through a lens with a halo NeuS's variance at 16x and the Eikonal weight at 0.5: seconds a scan, as "
