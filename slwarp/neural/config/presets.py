@@ -89,7 +89,7 @@ _CPU_EDGE_BAND = {**_EDGE_BAND, "edge_band_radius": 2}
 # 2026-11-28, accuracy-cuda-doubt-rays-fast-seed0.md, -seed1.md): oblique RMSE 1.203 / 1.297 -> 1.031 / 1.111 mm (GC(7)
 # 1.246 / 1.226: the last simulator target fast missed), vertical and rolled lower too, default higher (0.797 / 0.912
 # -> 0.981 / 0.979, GC(7) 1.093 / 1.148); mean MAE -4% to +4% per rig; completeness within 0.05 points. Drawn to the
-# end, MAE rose 40% (the flat surfaces' rays went to the doubt). Real captures 0-2 (real-captures-cuda-doubt-rays.md):
+# end, MAE rose 30-54% (the flat surfaces' rays went to the doubt). Real captures 0-2 (real-captures-cuda-doubt-rays.md):
 # plate RMS 0.523 / 0.294 / 0.297 -> 0.534 / 0.305 / 0.298 mm, below the full decode's mean (0.431) and GC(7) on each
 _DOUBT_RAYS = dict(doubt_rays=0.5, doubt_rays_until=0.5)
 # what the hash-grid presets share
