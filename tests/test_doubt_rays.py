@@ -93,3 +93,18 @@ def test_a_run_with_doubt_rays_draws_from_the_doubtful_pixels_and_trains(small_s
     g = torch.Generator().manual_seed(0)
     assert t._draw(g, emphasised=True)[0].max() >= t.renderer.n_valid
     assert t._draw(g, emphasised=False)[0].max() < t.renderer.n_valid
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
+def test_the_captured_step_serves_both_phases_of_the_doubt_rays(small_scan):
+    """With a CUDA graph the draws are made ahead and gathered from the same list in both phases: the captured run
+    gives the plain launches' losses across doubt_rays_until, and draws from the emphasis only before it."""
+    runs = {}
+    for graph in (False, True):
+        cfg = preset("tiny", device="cuda", cuda_graph=graph, compile=False, iters=20, init_iters=6, doubt_rays=0.5,
+                     doubt_rays_until=0.5, surface_weight=1.0)
+        t = Trainer(small_scan, cfg, progress=False)
+        assert t.doubt_pixels > 0
+        runs[graph] = (np.array([float(t.step()["loss"]) for _ in range(26)]), t)
+    assert runs[True][1].graph_captured, "the step was not captured"
+    np.testing.assert_allclose(runs[True][0], runs[False][0], rtol=2e-4, atol=1e-6)

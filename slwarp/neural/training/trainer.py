@@ -233,8 +233,9 @@ class Trainer:
 
     def _emphasise_doubt(self) -> int:
         """With sampling.doubt_rays, the renderer draws that share of each batch from the start's doubtful pixels
-        (start.doubtful_pixels: lit, without a surface-term depth, or without the search's depth when the surface
-        term is off, and their neighbours); their count (0: off, or no starting map)."""
+        (start.doubtful_pixels: lit, of fair modulation, without a surface-term depth, or without the search's depth
+        when the surface term is off, and their neighbours) until doubt_rays_until of the iterations; their count (0:
+        off, or no starting map)."""
         s = self.cfg.sampling
         self._doubt_until = round(s.doubt_rays_until * (self.cfg.schedule.iters + self.warmup_iters))
         confirmed = self.surface_depth if self.surface_depth is not None else self.init_depth
