@@ -9,6 +9,7 @@ four on a 4 x H200 host took up to 1.7 s each against 0.45 alone (bench/results/
 leave the interpreter lock free, so they run beside the imports; torch and Warp then find the driver initialised and
 the context made (the runtime API and Warp both use the device's primary context), and count a start up. Used by a
 batch's worker processes and torchrun's ranks (each sees one GPU), and for cuInit alone by a single scan's command.
+`smallest_gpu_memory_gib()` reads the GPUs' memory through NVML the same way, for the command's batch default.
 """
 from __future__ import annotations
 

@@ -32,7 +32,7 @@ def test_emphasised_pixels_get_their_share_of_the_draws(small_scan):
     m = int((chosen & valid).sum())
     assert r.emphasise(chosen, 0.5) == m
     g = torch.Generator().manual_seed(0)
-    index = r.valid_batch(r.draw_valid(200_000, g)).index.numpy()
+    index = r.valid_batch(r.draw_valid(200_000, g, emphasised=True)).index.numpy()
     assert valid.reshape(-1)[index].all()  # only valid pixels, emphasised or not
     inside = chosen.reshape(-1)[index].mean()
     expected = 0.5 + 0.5 * m / r.n_valid  # the extra list's share, and the strip's part of the uniform rest
@@ -40,7 +40,7 @@ def test_emphasised_pixels_get_their_share_of_the_draws(small_scan):
     # without emphasis the strip gets its area's share
     r.emphasise(None, 0.5)
     assert r.n_draw == r.n_valid
-    inside = chosen.reshape(-1)[r.valid_batch(r.draw_valid(200_000, g)).index.numpy()].mean()
+    inside = chosen.reshape(-1)[r.valid_batch(r.draw_valid(200_000, g, emphasised=True)).index.numpy()].mean()
     assert abs(inside - m / r.n_valid) < 0.01
 
 

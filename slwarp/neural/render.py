@@ -113,6 +113,7 @@ class StructuredLightRenderer(nn.Module):
         self._compiled = {}
         self.phase_hook = None  # callable(name) told when each phase of a step starts (see mark_phase)
         self._frames_version = 0
+        self._emphasis = None  # (pixels [H*W] bool, share) of `emphasise`, kept across new frames
         device = torch.device(device) if device is not None else next(sdf.parameters(), torch.empty(0)).device
         self._projector_packed = ops.pack_projector(projector)
         self.set_frames(images, patterns, device=device)
@@ -220,11 +221,10 @@ class StructuredLightRenderer(nn.Module):
 
     def _set_draw_list(self) -> int:
         """Build the list the draws index (`n_draw`) from the valid pixels and the emphasis; the emphasised count."""
-        emphasis = getattr(self, "_emphasis", None)
         self._draw_index = self._valid_index
-        if emphasis is None:
+        if self._emphasis is None:
             return 0
-        mask, share = emphasis
+        mask, share = self._emphasis
         chosen = self._valid_index[mask.to(self._valid_index.device)[self._valid_index]]
         if chosen.numel() == 0:
             return 0
@@ -233,11 +233,11 @@ class StructuredLightRenderer(nn.Module):
         self._draw_index = torch.cat([self._valid_index, chosen.repeat(repeats)[:extra]])
         return int(chosen.numel())
 
-    def draw_valid(self, n: int, generator: torch.Generator | None = None, emphasised: bool = True) -> torch.Tensor:
+    def draw_valid(self, n: int, generator: torch.Generator | None = None, emphasised: bool = False) -> torch.Tensor:
         """n random positions [n] (long) in the draw list, with replacement, on the generator's device: what
-        `valid_batch` takes. The whole list (`n_draw`: uniform unless `emphasise`d), or with emphasised=False its
-        head, the valid pixels once each (uniform); the gather reads the same list either way, so a captured step
-        serves both. Drawing and gathering apart lets a captured step gather on the device what was drawn on the
+        `valid_batch` takes. The list's head, the valid pixels once each (uniform), or with emphasised=True the whole
+        list (`n_draw`: the `emphasise`d pixels more often); the gather reads the same list either way, so a captured
+        step serves both. Drawing and gathering apart lets a captured step gather on the device what was drawn on the
         host."""
         if self.n_valid == 0:
             raise ValueError("no valid pixel (lit with enough contrast) in the frames")

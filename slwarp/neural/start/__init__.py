@@ -197,9 +197,8 @@ def doubtful_pixels(confirmed: torch.Tensor, lit: torch.Tensor, modulation: torc
     """[H, W] bool: the lit pixels ([H, W] bool) of fair modulation (at least DOUBT_MODULATION times the lit pixels'
     median; modulation [H, W], the images' b) without a confirmed depth (confirmed [H, W] mm, NaN: none; the surface
     term's targets), and the lit pixels within `radius` pixels (Chebyshev) of one. Where the depth search doubts lie
-    the outlines and thin parts (fast, oblique-rig rods at full resolution: 11% of the lit pixels without a
-    surface-term depth, holding 53% of the ground truth's depth-edge pixels; 25% and 85% with their neighbours);
-    dark albedo is doubted for its noise, which more rays do not lift (the checker's dark squares)."""
+    the outlines and thin parts (docs/accuracy.md, section 33); dark albedo is doubted for its noise, which more rays
+    do not lift (the checker's dark squares)."""
     lit = lit.to(torch.bool)
     b = modulation.to(lit.device)
     fair = b >= DOUBT_MODULATION * b[lit].median() if lit.any() else lit
