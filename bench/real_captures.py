@@ -58,6 +58,7 @@ ACCEPTANCE_CAPTURES = (3, 4)
 SEVEN_ROWS = "gray:row:bit=0-6:noinv"  # the 7 most significant row bits, no inverses (role selector)
 DEPTH_RANGE = (800.0, 2600.0)  # mm: wide around the plate and the wall (about 1.1-1.7 m), as a user would set it
 AGREE_MM = 2.0
+EDGE_BAND_PX = 20  # a twin's pixels this close to a depth step count as the edges' (capture_metrics)
 
 
 def _extract_repo(repo: Path, into: Path) -> Path:
@@ -77,7 +78,6 @@ def _extract_repo(repo: Path, into: Path) -> Path:
 
 
 def prepare(args) -> None:
-    from slwarp.decode import reconstruct_depth
     from slwarp.evaluation.metrics import chessboard_region
     from slwarp.scans.scan import load_scan
 
@@ -90,20 +90,29 @@ def prepare(args) -> None:
         for n in captures:
             t = time.perf_counter()
             full = load_scan(sample / f"capture_{n}")
-            white = full.images[full.frame_with("white")]
-            region = chessboard_region(white)
-            ref, _, _ = reconstruct_depth(full, "gc-interp", depth_range=DEPTH_RANGE)
-            seven = full.select(SEVEN_ROWS)
-            gc7, _, _ = reconstruct_depth(seven, "gc-interp", depth_range=DEPTH_RANGE)
-            seven.depth_range = DEPTH_RANGE
+            region = chessboard_region(full.images[full.frame_with("white")])
             out = dest / f"capture_{n}"
-            shutil.rmtree(out, ignore_errors=True)
-            seven.save(out / "scan")
-            np.savez_compressed(out / "reference.npz", full_decode=ref.astype(np.float32), gc7=gc7.astype(np.float32),
-                                region=region)
-            print(f"capture_{n}: {len(seven)} frames -> {out / 'scan'}; full decode on "
+            ref = write_capture(full, region, out)
+            print(f"capture_{n}: 7 frames -> {out / 'scan'}; full decode on "
                   f"{np.isfinite(ref).mean():.1%} of the image, plate {int(region.sum())} px "
                   f"({time.perf_counter() - t:.1f} s)", flush=True)
+
+
+def write_capture(full, region: np.ndarray, out: Path) -> np.ndarray:
+    """A prepared capture in `out`: scan/ (the 7 most significant row-code images of the full scan `full`, depth
+    range DEPTH_RANGE) and reference.npz (the full decode, GC(7)-interp of the same 7 images, the plate's `region`).
+    Shared with bench.real_twin, whose simulated twins are prepared the same way. Returns the full decode."""
+    from slwarp.decode import reconstruct_depth
+
+    ref, _, _ = reconstruct_depth(full, "gc-interp", depth_range=DEPTH_RANGE)
+    seven = full.select(SEVEN_ROWS)
+    gc7, _, _ = reconstruct_depth(seven, "gc-interp", depth_range=DEPTH_RANGE)
+    seven.depth_range = DEPTH_RANGE
+    shutil.rmtree(out, ignore_errors=True)
+    seven.save(out / "scan")
+    np.savez_compressed(out / "reference.npz", full_decode=ref.astype(np.float32), gc7=gc7.astype(np.float32),
+                        region=region)
+    return ref
 
 
 def capture_metrics(depth: np.ndarray, ref: dict, camera) -> dict:
@@ -116,7 +125,20 @@ def capture_metrics(depth: np.ndarray, ref: dict, camera) -> dict:
     rms, n = plane_rms(pts)
     both = np.isfinite(depth) & np.isfinite(ref["full_decode"])
     diff = np.abs(depth[both] - ref["full_decode"][both])
-    return {"plane_rms_mm": rms, "quadric_rms_mm": quadric_rms(pts), "plate_coverage": n / max(int(region.sum()), 1),
+    exact = {}
+    if "gt_depth" in ref:  # a twin's exact depth: MAE, RMSE and completeness over its mask
+        from slwarp.evaluation.metrics import depth_metrics, depth_step_distance
+
+        m = depth_metrics(depth, ref["gt_depth"], ref["gt_mask"])
+        exact = {"gt_mae_mm": m["mae"], "gt_rmse_mm": m["rmse"], "gt_completeness": m["completeness"]}
+        # what the depth edges cost: the MAE's part from pixels within EDGE_BAND_PX of a depth step, and the MAE
+        # of the pixels beyond (a field draws small steps soft: docs/accuracy.md, section 34)
+        err = np.abs(depth - ref["gt_depth"])
+        ok = ref["gt_mask"] & np.isfinite(err)
+        near = ok & (depth_step_distance(ref["gt_depth"]) < EDGE_BAND_PX)
+        exact.update(gt_mae_edge_part_mm=float(err[near].sum() / max(ok.sum(), 1)),
+                     gt_mae_interior_mm=float(err[ok & ~near].mean()) if (ok & ~near).any() else float("nan"))
+    return {**exact, "plane_rms_mm": rms, "quadric_rms_mm": quadric_rms(pts), "plate_coverage": n / max(int(region.sum()), 1),
             "agree_median_mm": float(np.median(diff)) if diff.size else float("nan"),
             "agree_over_2mm": float((diff > AGREE_MM).mean()) if diff.size else float("nan"),
             "pixels_with_depth": float(np.isfinite(depth).mean())}
@@ -246,6 +268,8 @@ def run(args) -> None:
         ref = dict(np.load(data / f"capture_{c}" / "reference.npz"))
         seven = load_scan(data / f"capture_{c}" / "scan").select(SEVEN_ROWS)
         camera = seven.camera
+        if seven.gt_depth is not None:  # a simulated twin (bench.real_twin): the exact depth too
+            ref["gt_depth"], ref["gt_mask"] = seven.gt_depth, seven.mask
         # the refinement's gate compares this kind of number with refine_max_misfit: the model's misfit of the
         # 7 images at the full decode, a depth close to the truth
         misfit = model_misfit(ref["full_decode"], camera, seven.projector, seven.images, seven.patterns)
@@ -291,15 +315,34 @@ def markdown(doc: dict, captures: list[int], methods: list[str]) -> str:
     """Tables: plate RMS per capture and method with the mean; then every metric per capture."""
     by = {(r["capture"], r["method"]): r for r in doc["rows"]}
     head = " | ".join(f"capture {c}" for c in captures)
-    lines = [f"# Real captures: plate planarity and agreement with the full decode ({doc['device']}, {doc['date']})",
+    twin = any("gt_mae_mm" in r for r in doc["rows"])
+    title = ("Twins of the real captures (simulated by bench.real_twin): plate planarity, agreement with the full "
+             "decode and the exact depth" if twin else "Real captures: plate planarity and agreement with the full decode")
+    floor = ("the twin's plate is flat and its calibration exact, so no floor but the method's" if twin else
+             "the calibration bends the plate by about 0.4 mm, the floor of every method")
+    lines = [f"# {title} ({doc['device']}, {doc['date']})",
              "", f"`{doc['command']}`", "",
              f"Frames `{doc['frames']}` (7 row-code images), the neural runs' depth range {doc['depth_range_mm'][0]:.0f}-"
              f"{doc['depth_range_mm'][1]:.0f} mm. Plate RMS: distance (mm) of the plate's points to their fitted plane; "
-             "the calibration bends the plate by about 0.4 mm, the floor of every method.", "",
+             f"{floor}.", "",
              "## Plate RMS (mm)", "", f"| method | {head} | mean |", "|---|" + "---:|" * (len(captures) + 1)]
     for m in methods:
         vals = [by.get((c, m), {}).get("plane_rms_mm", float("nan")) for c in captures]
         lines.append(f"| {m} | " + " | ".join(f"{v:.3f}" for v in vals) + f" | {np.mean(vals):.3f} |")
+    if twin:  # twins: the exact depth's verdict beside the plate's
+        for key, title, fmt in (("gt_mae_mm", "MAE against the exact depth (mm)", "{:.3f}"),
+                                ("gt_rmse_mm", "RMSE against the exact depth (mm)", "{:.3f}"),
+                                ("gt_completeness", "Completeness (share of the exact depth's pixels)", "{:.1%}"),
+                                ("gt_mae_edge_part_mm", f"The MAE's part from pixels within {EDGE_BAND_PX} px of a "
+                                 "depth step (mm)", "{:.3f}"),
+                                ("gt_mae_interior_mm", f"MAE of the pixels farther than {EDGE_BAND_PX} px from a depth "
+                                 "step (mm)", "{:.3f}")):
+            if not any(key in r for r in doc["rows"]):  # results written before the metric
+                continue
+            lines += ["", f"## {title}", "", f"| method | {head} | mean |", "|---|" + "---:|" * (len(captures) + 1)]
+            for m in methods:
+                vals = [by.get((c, m), {}).get(key, float("nan")) for c in captures]
+                lines.append(f"| {m} | " + " | ".join(fmt.format(v) for v in vals) + f" | {fmt.format(np.mean(vals))} |")
     lines += ["", "## Every metric", "", "| capture | method | plate RMS mm | quadric RMS mm | plate covered | "
               "agreement median mm | agreement > 2 mm | pixels with depth | command wall s | in-run depth map s | "
               "refined (misfit, lens halo) |", "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]

@@ -307,3 +307,60 @@ def test_lens_halo_lifts_dark_stripes_near_bright_ones_and_keeps_the_light(devic
         assert abs(b.mean() - a.mean()) < 0.02 * a.mean()
     with pytest.raises(ValueError, match="halo"):
         SimOptions(halo=1.0)
+
+
+def test_near_halo_is_a_second_gaussian_scale_of_the_lens_tail():
+    """halo_patterns: (1 - halo - near_halo) P + halo G(halo_sigma) P + near_halo G(near_halo_sigma) P, with
+    sampled Gaussians over +-3 sigma and replicated edges; without a near halo it is with_halo itself."""
+    from scipy.ndimage import gaussian_filter1d
+
+    from slwarp.scans.scanner import with_halo
+    from slwarp.sim.simulate import halo_patterns
+
+    rng = np.random.default_rng(0)
+    pats = (rng.random((3, 40, 60)) < 0.5).astype(np.float32)
+    assert np.array_equal(halo_patterns(pats, SimOptions(halo=0.1, halo_sigma=7.0)), with_halo(pats, 0.1, 7.0))
+    assert np.array_equal(halo_patterns(pats, SimOptions()), pats)
+    # a step: columns 0-79 dark, 80-159 lit (constant down the columns, so the 2-D blur is the 1-D one)
+    step = np.zeros((1, 30, 160), np.float32)
+    step[..., 80:] = 1.0
+    both = SimOptions(halo=0.1, halo_sigma=10.0, near_halo=0.15, near_halo_sigma=2.0)
+    row = halo_patterns(step, both)[0, 15].astype(np.float64)
+    blur = lambda s: gaussian_filter1d(step[0, 15].astype(np.float64), s, mode="nearest", truncate=3.0)  # noqa: E731
+    assert np.abs(row - (0.75 * step[0, 15] + 0.1 * blur(10.0) + 0.15 * blur(2.0))).max() < 1e-5
+    # the near halo's own tail: light on the dark side next to the edge, taken from the lit side, gone in 5 sigma
+    near = row - halo_patterns(step, SimOptions(halo=0.1, halo_sigma=10.0))[0, 15]
+    assert near[79] > 0.05 and near[80] < -0.05
+    assert np.all(np.diff(near[60:80]) >= 0) and abs(near[69]) < 1e-4 and abs(near[90]) < 1e-4
+    # the light is kept: a pattern that is dark within 3 sigma of its border sums to the same
+    framed = np.zeros((2, 102, 122), np.float32)  # 31 px of dark around: the far blur reaches 30
+    framed[:, 31:-31, 31:-31] = pats[:2]
+    out = halo_patterns(framed, both)
+    assert out.sum(axis=(1, 2)) == pytest.approx(framed.sum(axis=(1, 2)), rel=1e-5)
+    assert np.abs(out - framed).max() > 0.1
+
+
+def test_sim_options_check_the_near_halo_and_black_level():
+    SimOptions(halo=0.5, near_halo=0.49, black_level=0.99)  # the bounds themselves are fine
+    for bad, msg in [({"halo": 0.5, "near_halo": 0.5}, "near_halo"), ({"near_halo": -0.1}, "near_halo"),
+                     ({"near_halo": 0.1, "near_halo_sigma": 0.0}, "near_halo"), ({"black_level": -0.01}, "black_level"),
+                     ({"black_level": 1.0}, "black_level")]:
+        with pytest.raises(ValueError, match=msg):
+            SimOptions(**bad)
+    procam = camera_model("procam")
+    assert procam.near_halo + procam.halo < 1 and procam.black_level == 0.02 and procam.defocus_slope == 0.0
+
+
+def test_black_level_is_added_before_the_response(device):
+    lin = np.array([0.0, 0.3, 0.99, 1.2])
+    assert camera_response(lin, SimOptions(black_level=0.02)) == pytest.approx([0.02, 0.32, 1.0, 1.0])
+    assert camera_response(lin, SimOptions(black_level=0.02, gamma=2.2)) == pytest.approx(
+        [0.02 ** (1 / 2.2), 0.32 ** (1 / 2.2), 1.0, 1.0])
+    # in a rendered scan: every pixel, lit or not, rises by the black level (the black frame reads it)
+    cam, proj = make_rig("small")
+    objs = [plane(700.0)]
+    pats = named_set("whiteblack", proj.width, proj.height)
+    off = simulate(objs, cam, proj, pats, IDEAL, device=device)
+    on = simulate(objs, cam, proj, pats, SimOptions(**{**IDEAL.__dict__, "black_level": 0.05}), device=device)
+    assert np.abs(on.images - off.images - 0.05).max() < 1e-6
+    assert np.abs(on.image("black") - (0.05 + IDEAL.ambient * 0.6)).max() < 1e-6

@@ -183,6 +183,23 @@ def metrics_document(metrics: dict, *, method: str | None = None, prediction: st
             "frames": None if frames is None else list(frames), "mask": mask, **extra, "metrics": dict(metrics)}
 
 
+def depth_step_distance(gt: np.ndarray, step_mm: float = 5.0) -> np.ndarray:
+    """[H, W] distance (px) of each pixel to the nearest depth step of the ground truth `gt` [H, W] (mm, NaN where
+    no surface): a pair of 4-neighbours differing by more than step_mm, or the surface's end. Splits an error into
+    what the depth edges cost and what the surfaces do (bench.real_captures on a twin)."""
+    import cv2
+
+    g = np.asarray(gt, np.float64)
+    step = ~np.isfinite(g)
+    with np.errstate(invalid="ignore"):
+        dx, dy = np.abs(np.diff(g, axis=1)) > step_mm, np.abs(np.diff(g, axis=0)) > step_mm
+    step[:, 1:] |= dx
+    step[:, :-1] |= dx
+    step[1:, :] |= dy
+    step[:-1, :] |= dy
+    return cv2.distanceTransform((~step).astype(np.uint8), cv2.DIST_L2, 5)
+
+
 def error_map(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     """|pred - gt| [H, W] mm, NaN where either is invalid or outside `mask`."""
     pred, gt, mask = _check_pair(pred, gt, mask)

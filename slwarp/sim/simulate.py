@@ -4,7 +4,7 @@ Image formation per camera pixel (ray through the pixel centre):
     first hit x (GT depth = x_z, mm), smooth normal n, albedo rho (optionally textured);
     lit = facing the projector, not shadowed, inside the projector image; GT mask = hit and lit;
     radiance = gain * rho * cos(n, to projector) * (ref_dist / |x - c_p|)^2 * P_blur(pi(x)) + ambient * rho
-    where P_blur is the pattern (with the lens halo `halo`, scans.scanner.with_halo) blurred by a Gaussian of
+    where P_blur is the pattern (with the lens's halos `halo` and `near_halo`, halo_patterns) blurred by a Gaussian of
     sigma = defocus_sigma + defocus_slope * |z_p - focus_dist| / focus_dist projector px, sampled bilinearly at the
     projection pi(x) (projector distortion applied);
     optics and pixels (off by default): with `supersample` k > 1 (odd) each camera pixel is k x k rays
@@ -12,7 +12,7 @@ Image formation per camera pixel (ray through the pixel centre):
     pixel mix, as on a real sensor); `camera_blur` > 0 convolves the radiance with a Gaussian lens PSF of
     that sigma (camera px) before the pixels integrate it; ground truth (depth, mask) is the ray through
     the pixel centre (the middle one of the k x k);
-    camera: I = response(clip(radiance, 0, 1)) with response I ** (1 / gamma) or the sRGB curve, then
+    camera: I = response(clip(radiance + black_level, 0, 1)) with response I ** (1 / gamma) or the sRGB curve, then
     Poisson shot noise (full_well electrons at I = 1) plus Gaussian read noise, then quantisation to `bits`.
 Every effect can be switched off (`SimOptions`); all randomness comes from `seed`. Named camera models
 (`CAMERA_MODELS`, `camera_model`) give the settings that benchmark sweeps use as one dimension.
@@ -57,12 +57,19 @@ class SimOptions:
     # Gaussian of halo_sigma projector px; the real capture's edges show about 0.1 at 40 px (bench.edge_profile)
     halo: float = 0.0
     halo_sigma: float = 40.0
+    # a second, nearer scale of the same tail: the real capture's edges fit 0.15 at 3 px beside 0.085 at 49 px
+    # (bench.real_twin: a core, a near and a far halo fitted to every bit's edge profile at once)
+    near_halo: float = 0.0
+    near_halo_sigma: float = 3.0
     focus_dist: float = 750.0  # projector focus distance (mm, projector z)
     shading: bool = True  # cosine and inverse-square fall-off toward the projector
     ambient: float = 0.03  # ambient light (times albedo)
     gain: float = 0.8  # projector power: white on albedo 1 facing the projector at ref_dist
     ref_dist: float = 750.0  # mm
     texture: bool = True  # per-object albedo textures where the scene defines them
+    # the camera's offset (full scale) added to every pixel before the response: the real capture's black frame
+    # reads about 0.02 on the white and the black squares alike, a dark level rather than light
+    black_level: float = 0.0
     seed: int = 0
 
     def __post_init__(self):
@@ -79,6 +86,11 @@ class SimOptions:
             raise ValueError(f"SimOptions.camera_blur must be >= 0 camera px, got {self.camera_blur}")
         if not 0 <= self.halo < 1 or not self.halo_sigma > 0:
             raise ValueError(f"SimOptions: halo must be in [0, 1) and halo_sigma > 0, got {self.halo}, {self.halo_sigma}")
+        if not 0 <= self.near_halo < 1 - self.halo or not self.near_halo_sigma > 0:
+            raise ValueError(f"SimOptions: near_halo must be in [0, 1 - halo) and near_halo_sigma > 0, got "
+                             f"{self.near_halo}, {self.near_halo_sigma}")
+        if not 0 <= self.black_level < 1:
+            raise ValueError(f"SimOptions.black_level must be in [0, 1), got {self.black_level}")
         if self.bits not in (0, 8, 16):
             raise ValueError(f"SimOptions.bits must be 0, 8 or 16, got {self.bits}")
 
@@ -95,6 +107,11 @@ CAMERA_MODELS = {
     "srgb": {"supersample": 3, "camera_blur": 0.5, "response": "srgb"},
     # the same optics with the real capture's lens halo: 10% of the light spread over 40 projector px
     "halo": {"supersample": 3, "camera_blur": 0.5, "halo": 0.1, "halo_sigma": 40.0},
+    # the real capture's optics as measured (bench.real_twin): its edge profile's core (0.59 projector px in all,
+    # so the projector's own 0.49 beside the pixel and the lens blur) in focus at every depth, a near and a far
+    # halo, and the camera's black level
+    "procam": {"supersample": 3, "camera_blur": 0.5, "defocus_sigma": 0.49, "defocus_slope": 0.0, "near_halo": 0.146,
+               "near_halo_sigma": 3.1, "halo": 0.085, "halo_sigma": 49.0, "black_level": 0.02},
 }
 
 
@@ -192,6 +209,16 @@ def _blur_levels(patterns: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
     return out
 
 
+def halo_patterns(patterns: np.ndarray, options: SimOptions) -> np.ndarray:
+    """patterns [N, Hp, Wp] through the lens's tail: (1 - halo - near_halo) P + halo G(halo_sigma) P + near_halo
+    G(near_halo_sigma) P (scans.scanner.with_halo per scale; the defocus applies on top)."""
+    far = with_halo(patterns, options.halo, options.halo_sigma)
+    if options.near_halo <= 0:
+        return far
+    near = with_halo(patterns, 1.0, options.near_halo_sigma)  # the near blur alone
+    return (far + options.near_halo * (near - np.asarray(patterns, np.float32))).astype(np.float32)
+
+
 def sample_projected_patterns(geom: RenderedGeometry, patterns: np.ndarray, options: SimOptions, device: str | None = None) -> np.ndarray:
     """[N, P]: (defocused) pattern value seen at each camera pixel; 0 where not lit."""
     from slwarp.kernels import runtime
@@ -209,7 +236,7 @@ def sample_projected_patterns(geom: RenderedGeometry, patterns: np.ndarray, opti
     else:
         sigmas = np.zeros(1, np.float32)
         sigma0, slope = 0.0, 0.0
-    levels = _blur_levels(with_halo(patterns, options.halo, options.halo_sigma), sigmas)
+    levels = _blur_levels(halo_patterns(patterns, options), sigmas)
     N, P = patterns.shape[0], geom.depth.shape[0]
     with wp.ScopedDevice(device):
         out = wp.empty((N, P), dtype=float)
@@ -230,8 +257,9 @@ def radiance(geom: RenderedGeometry, values: np.ndarray, options: SimOptions) ->
 
 
 def camera_response(radiance: np.ndarray, options: SimOptions) -> np.ndarray:
-    """The camera's response curve applied to radiance clipped to [0, 1] (full scale)."""
-    img = np.clip(radiance, 0.0, 1.0)
+    """The camera's response curve applied to radiance plus the camera's black level, clipped to [0, 1] (full
+    scale)."""
+    img = np.clip(radiance + options.black_level, 0.0, 1.0)
     if options.response == "srgb":
         return np.where(img <= 0.0031308, 12.92 * img, 1.055 * img ** (1.0 / 2.4) - 0.055)
     if options.gamma != 1.0:
