@@ -1,4 +1,6 @@
 """The virtual scanner: exact ground truth, shadows, the image formation model, the CLI."""
+from dataclasses import asdict
+
 import numpy as np
 import pytest
 import trimesh
@@ -144,6 +146,23 @@ def test_cli_simulate_bad_input(tmp_path, capsys):
     assert "unknown pattern set" in capsys.readouterr().err
     assert cli_main(["simulate", "--scene", "bunny", "--halo", "2", "--out", str(tmp_path / "x")]) == 2
     assert "halo must be in [0, 1)" in capsys.readouterr().err and not (tmp_path / "x").exists()
+    assert cli_main(["simulate", "--scene", "bunny", "--camera", "film", "--out", str(tmp_path / "x")]) == 2
+    assert "unknown camera model 'film'" in capsys.readouterr().err and not (tmp_path / "x").exists()
+
+
+def test_cli_simulate_camera_model_and_the_options_over_it(tmp_path):
+    """--camera takes a named model's optics; an option given on the command line overrides the model's, the others
+    keep it (scan.yaml records the simulator's settings)."""
+    assert cli_main(["simulate", "--scene", "bunny", "--rig", "small", "--patterns", "gray3", "--camera", "procam",
+                     "--black-level", "0.05", "--no-noise", "--out", str(tmp_path / "scan")]) == 0
+    sim = load_scan(tmp_path / "scan").meta["simulator"]
+    procam = camera_model("procam")
+    assert sim["black_level"] == 0.05 and sim["noise"] is False
+    assert (sim["near_halo"], sim["halo"], sim["supersample"]) == (procam.near_halo, procam.halo, procam.supersample)
+    assert cli_main(["simulate", "--scene", "bunny", "--rig", "small", "--patterns", "gray3", "--out",
+                     str(tmp_path / "plain")]) == 0
+    plain = load_scan(tmp_path / "plain").meta["simulator"]
+    assert plain == {**asdict(SimOptions()), "seed": 0}
 
 
 # --- textures, pixel integration, lens blur, camera response ---------------------------------------

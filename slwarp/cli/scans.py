@@ -37,7 +37,7 @@ def cmd_simulate(args) -> int:
     from ..scans.patterns import named_set
     from ..sim.rigs import DEPTH_RANGE_MM, describe_rigs, make_rig
     from ..sim.scenes import SCENE_NAMES, build_scene, load_mesh_objects
-    from ..sim.simulate import SimOptions, simulate
+    from ..sim.simulate import CAMERA_MODELS, camera_model, simulate
     from ..evaluation.viz import save_scan_preview
 
     if args.list:
@@ -50,6 +50,10 @@ def cmd_simulate(args) -> int:
         print("pattern sets (join with '+'):")
         for k, v in NAMED_SETS.items():
             print(f"  {k:22s} {v}")
+        print("camera models (--camera; the options --gamma, --halo, ... override theirs):")
+        for k, v in CAMERA_MODELS.items():
+            print(f"  {k:8s} " + (", ".join(f"{o} {x:g}" if isinstance(x, float) else f"{o} {x}" for o, x in v.items())
+                                   or "one ray a pixel, linear response, no halo (the built-in scanner)"))
         return 0
     if not args.out:
         raise UserError("simulate: --out DIR is required")
@@ -69,18 +73,18 @@ def cmd_simulate(args) -> int:
             if not Path(m).is_file():
                 raise UserError(f"mesh not found: {m}")
         objects, depth_range = load_mesh_objects(args.mesh), None
+    # the camera model's settings, then each option given on the command line over them
+    given = {k: getattr(args, k) for k in ("gamma", "ambient", "halo", "halo_sigma", "near_halo", "near_halo_sigma",
+                                           "black_level", "bits") if getattr(args, k) is not None}
+    given.update({k: False for k in ("noise", "defocus", "shading", "texture") if getattr(args, f"no_{k}")})
     try:
-        opts = SimOptions(
-            noise=not args.no_noise, defocus=not args.no_defocus, gamma=args.gamma, bits=args.bits,
-            ambient=args.ambient, shading=not args.no_shading, texture=not args.no_texture, seed=args.seed,
-            halo=args.halo, halo_sigma=args.halo_sigma,
-        )
-    except ValueError as e:  # an option out of its range (--gamma, --halo, ...)
+        opts = camera_model(args.camera, seed=args.seed, **given)
+    except ValueError as e:  # an unknown camera model, an option out of its range (--gamma, --halo, ...)
         raise UserError(str(e)) from None
     t0 = time.perf_counter()
     scan = simulate(objects, camera, projector, pset, opts, depth_range=depth_range, device=args.device,
                     meta={"scene": args.scene or "meshes", "rig": args.rig, "patterns": args.patterns})
-    out = scan.save(args.out, bits=16 if args.bits in (0, 16) else 8)
+    out = scan.save(args.out, bits=16 if opts.bits in (0, 16) else 8)
     save_scan_preview(Path(out) / "preview.png", scan)
     t1 = time.perf_counter()
     scan.source = str(out)
@@ -110,12 +114,21 @@ def _add_simulate(p):
     p.add_argument("--no-defocus", action="store_true", help="switch projector defocus off")
     p.add_argument("--no-shading", action="store_true", help="switch the cosine and fall-off terms off")
     p.add_argument("--no-texture", action="store_true", help="switch albedo textures off")
-    p.add_argument("--gamma", type=float, default=1.0, help="camera gamma (default: 1, linear)")
-    p.add_argument("--ambient", type=float, default=0.03, help="ambient light, full-scale units (default: 0.03)")
-    p.add_argument("--halo", type=float, default=0.0, help="share of the projected light a lens halo spreads around the "
-                   "patterns (the real capture's: about 0.1; default: 0, none)")
-    p.add_argument("--halo-sigma", type=float, default=40.0, help="the halo's Gaussian sigma, projector px (default: 40)")
-    p.add_argument("--bits", type=int, default=8, choices=[0, 8, 16], help="image quantisation (0 = none; default: 8)")
+    p.add_argument("--camera", default="linear",
+                   help="camera model (see --list): its optics and response, which the options below override "
+                        "(linear: one ray a pixel, linear; procam: the real procam-calibration capture's lens, halos "
+                        "and black level; default: linear)")
+    p.add_argument("--gamma", type=float, default=None, help="camera gamma (linear camera: 1)")
+    p.add_argument("--ambient", type=float, default=None, help="ambient light, full-scale units (linear camera: 0.03)")
+    p.add_argument("--halo", type=float, default=None, help="share of the projected light a lens halo spreads around the "
+                   "patterns (the real capture's: about 0.1; linear camera: 0, none)")
+    p.add_argument("--halo-sigma", type=float, default=None, help="the halo's Gaussian sigma, projector px (default: 40)")
+    p.add_argument("--near-halo", type=float, default=None, help="share of the light a second, nearer halo spreads (the "
+                   "real capture's: about 0.15 at 3 px; linear camera: 0)")
+    p.add_argument("--near-halo-sigma", type=float, default=None, help="the near halo's sigma, projector px (default: 3)")
+    p.add_argument("--black-level", type=float, default=None, help="the camera's offset, full-scale units (the real "
+                   "capture's: about 0.02; linear camera: 0)")
+    p.add_argument("--bits", type=int, default=None, choices=[0, 8, 16], help="image quantisation (0 = none; default: 8)")
     p.add_argument("--device", default=None, help="cpu or cuda:N (default: CUDA when present)")
     p.add_argument("--list", action="store_true", help="list scenes, rigs and pattern sets")
     p.set_defaults(func=cmd_simulate)
