@@ -116,7 +116,8 @@ def write_capture(full, region: np.ndarray, out: Path) -> np.ndarray:
 
 
 def capture_metrics(depth: np.ndarray, ref: dict, camera) -> dict:
-    """Plate RMS (plane, quadric), plate coverage and agreement with the full decode of one depth map [H, W] mm."""
+    """Plate RMS (plane, quadric), plate coverage and agreement with the full decode of one depth map [H, W] mm; on a
+    twin (ref with gt_depth, gt_mask and, computed once per capture, gt_step_px) the exact depth's metrics too."""
     from slwarp.evaluation.metrics import plane_rms, quadric_rms
     from slwarp.neural.depth_maps import depth_to_points
 
@@ -135,7 +136,8 @@ def capture_metrics(depth: np.ndarray, ref: dict, camera) -> dict:
         # of the pixels beyond (a field draws small steps soft: docs/accuracy.md, section 34)
         err = np.abs(depth - ref["gt_depth"])
         ok = ref["gt_mask"] & np.isfinite(err)
-        near = ok & (depth_step_distance(ref["gt_depth"]) < EDGE_BAND_PX)
+        step_px = ref["gt_step_px"] if "gt_step_px" in ref else depth_step_distance(ref["gt_depth"])
+        near = ok & (step_px < EDGE_BAND_PX)
         exact.update(gt_mae_edge_part_mm=float(err[near].sum() / max(ok.sum(), 1)),
                      gt_mae_interior_mm=float(err[ok & ~near].mean()) if (ok & ~near).any() else float("nan"))
     return {**exact, "plane_rms_mm": rms, "quadric_rms_mm": quadric_rms(pts), "plate_coverage": n / max(int(region.sum()), 1),
@@ -269,7 +271,11 @@ def run(args) -> None:
         seven = load_scan(data / f"capture_{c}" / "scan").select(SEVEN_ROWS)
         camera = seven.camera
         if seven.gt_depth is not None:  # a simulated twin (bench.real_twin): the exact depth too
+            from slwarp.evaluation.metrics import depth_step_distance
+
+            # the exact depth's steps, once per capture for every method's row
             ref["gt_depth"], ref["gt_mask"] = seven.gt_depth, seven.mask
+            ref["gt_step_px"] = depth_step_distance(seven.gt_depth)
         # the refinement's gate compares this kind of number with refine_max_misfit: the model's misfit of the
         # 7 images at the full decode, a depth close to the truth
         misfit = model_misfit(ref["full_decode"], camera, seven.projector, seven.images, seven.patterns)
