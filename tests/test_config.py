@@ -22,7 +22,7 @@ FLAT_DEFAULTS = dict(iters=4000, rays=2048, n_samples=32, n_importance=32, up_sa
                      device="auto", matmul="fp32", compile=True, cuda_graph=True, incremental=False, start_frames=3,
                      add_every=500, checkpoint_every=500, log_every=50, retry_lost_surface=True, mc_resolution=384, depth_method="mesh",
                      edge_filter=10.0, edge_readmit=False, edge_readmit_support=3, edge_readmit_confidence=0.9, refine_range=0.0, search_repair=False, repair_min_component=0, repair_grow=False, search_doubt=False, doubt_confidence=0.7,
-                     uniform_fill=False, edge_side_radius=0, edge_side_margin=0.5, refine_check=False, refine_through_halo=True, refine_max_misfit=0.0, denoise_radius=0, denoise_footprints=4.0, hole_fill=0, hole_fill_footprints=0.5, edge_band_radius=0, edge_band_confidence=0.8, edge_band_sides="both", edge_band_far_radius=0, edge_band_far_confidence=0.0, surface_weight=0.0, surface_after=0.0, surface_in_front=False, free_space=0.0, surface_band_mm=0.5,
+                     uniform_fill=False, step_split_radius=0, step_split_margin=0.9, edge_side_radius=0, edge_side_margin=0.5, refine_check=False, refine_through_halo=True, refine_max_misfit=0.0, denoise_radius=0, denoise_footprints=4.0, hole_fill=0, hole_fill_footprints=0.5, edge_band_radius=0, edge_band_confidence=0.8, edge_band_sides="both", edge_band_far_radius=0, edge_band_far_confidence=0.0, surface_weight=0.0, surface_after=0.0, surface_in_front=False, free_space=0.0, surface_band_mm=0.5,
                      field="mlp", grid_levels=16, grid_log2_table=19, grid_base=16, grid_finest="auto",
                      grid_hidden=64, grid_layers=1, grid_activation="softplus", grid_gradient="finite_difference",
                      grid_table_lr_factor=10.0, grid_start_levels=2, grid_level_every=150,
@@ -34,6 +34,8 @@ EDGE_SIDE_STAGES = (*SEARCH_STAGES[:-1], "edge_side", "denoise")
 HOLE_FILL_STAGES = (*EDGE_SIDE_STAGES, "hole_fill")
 # fast and accurate: the edge band last
 EDGE_BAND_STAGES = (*HOLE_FILL_STAGES, "edge_band")
+# fast and accurate: the ramps split before the edge sides are settled
+STEP_SPLIT_STAGES = (*SEARCH_STAGES[:-1], "step_split", "edge_side", "denoise", "hole_fill", "edge_band")
 HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, grid_table_lr_factor=10.0)
 FLAT_PRESETS = {
     "paper": dict(matmul="tf32"),
@@ -56,14 +58,15 @@ FLAT_PRESETS = {
                  refine_max_misfit=0.024, search_doubt=True, search_repair=True, repair_min_component=100, repair_grow=True,
                  surface_weight=1.0, surface_after=1.0, surface_in_front=True, free_space=0.5, variance_lr_factor=4.0, uniform_fill=True, denoise_radius=4,
                  denoise_footprints=8.0, edge_side_radius=1, hole_fill=7, edge_readmit=True, edge_band_radius=3,
-                 stages=EDGE_BAND_STAGES, pattern_halo="auto",
+                 step_split_radius=20, stages=STEP_SPLIT_STAGES, pattern_halo="auto",
                  refine_through_halo=False, lens_variance_lr_factor=16.0, lens_lambda_reg=0.5, **HASHGRID),
     "accurate": dict(matmul="tf32", compile=False, iters=2000, grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2, grid_level_every=100, variance_lr_factor=4.0, refine_range=3.0,
                      refine_max_misfit=0.024, search_doubt=True, search_repair=True, repair_min_component=100, repair_grow=True,
                      surface_weight=1.0, surface_after=1.0, free_space=1.0, uniform_fill=True, edge_readmit=True,
                      denoise_radius=4,
-                     denoise_footprints=8.0, edge_side_radius=1, hole_fill=7, edge_band_radius=3, stages=EDGE_BAND_STAGES,
-                     pattern_halo="auto", refine_through_halo=False, lens_variance_lr_factor=16.0, lens_lambda_reg=0.5,
+                     denoise_footprints=8.0, edge_side_radius=1, hole_fill=7, edge_band_radius=3, step_split_radius=20,
+                     stages=STEP_SPLIT_STAGES, pattern_halo="auto", refine_through_halo=False,
+                     lens_variance_lr_factor=16.0, lens_lambda_reg=0.5,
                      **HASHGRID),
     "cpu-hashgrid": dict(refine_range=3.0, refine_max_misfit=0.024, search_doubt=True, search_repair=True, repair_min_component=100, repair_grow=True, uniform_fill=True,
                          denoise_radius=2, denoise_footprints=4.0, doubt_confidence=0.9, min_confidence=0.65, edge_side_radius=1,

@@ -43,6 +43,9 @@ _GPU_DENOISE = dict(denoise_radius=4, denoise_footprints=8.0)
 # cpu-hashgrid: the small rig's 8 scenes unchanged but checker (0.318 -> 0.312 mm, accuracy-cpu-edge-side.md), a
 # full-resolution rods scan 0.255 -> 0.199 mm (offline, docs/accuracy.md, section 26), real captures 0-2 the same
 _EDGE_SIDE = dict(edge_side_radius=1)
+# the ramps the hash-grid fields draw across a step a few projector rows deep (twins of the real captures: fast 0.533 ->
+# 0.478 mm, accurate 0.405 -> 0.387; the simulator's 4 rigs within 0.001 mm: docs/accuracy.md section 35)
+_STEP_SPLIT = dict(step_split_radius=20)
 # accurate also readmits the flying-pixel filter's edge pixels whose codes confirm them (as tuned), which the edge sides
 # then settle: the same fields, seed 0, completeness 0.2-0.3 points higher on every rig, now within 0.8 points of
 # GC(7)'s on each, for 0.001-0.003 mm of MAE; real captures 0-2 the same plate RMS (edge-readmit-side-cuda-seed0.md,
@@ -119,7 +122,8 @@ _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 800 iteration
         grid_gradient="finite_difference_4",
         grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, surface_weight=1.0,
         surface_after=1.0, surface_in_front=True, free_space=0.5, variance_lr_factor=4.0, edge_readmit=True,
-        **_DOUBT_RAYS, **_DEFAULT_EXTRACTION, **_EDGE_SIDE, **_HOLE_FILL, **_EDGE_BAND, **_LENS, **_LENS_HASHGRID,
+        **_DOUBT_RAYS, **_DEFAULT_EXTRACTION, **_STEP_SPLIT, **_EDGE_SIDE, **_HOLE_FILL, **_EDGE_BAND, **_LENS,
+        **_LENS_HASHGRID,
         **_GPU_DENOISE, **_HASHGRID)
 _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations of the paper's batch, levels "
         "coarse to fine, NeuS's variance at 4x the rate, with tuned's surface term and extraction and a free-space "
@@ -127,8 +131,8 @@ _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations
         "accurate as tuned on simulated scans and as the full 40-image decode on real ones (GPU default)",
         matmul="tf32", compile=False, iters=2000, grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2,
         grid_level_every=100, variance_lr_factor=4.0, surface_weight=1.0, surface_after=1.0, free_space=1.0,
-        edge_readmit=True, **_DEFAULT_EXTRACTION, **_EDGE_SIDE, **_HOLE_FILL, **_EDGE_BAND, **_LENS, **_LENS_HASHGRID,
-        **_GPU_DENOISE, **_HASHGRID)
+        edge_readmit=True, **_DEFAULT_EXTRACTION, **_STEP_SPLIT, **_EDGE_SIDE, **_HOLE_FILL, **_EDGE_BAND, **_LENS,
+        **_LENS_HASHGRID, **_GPU_DENOISE, **_HASHGRID)
 _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4-tap gradient), photometric depth "
         "refinement (+-3 mm, where the pattern model fits the images), the search repair in groups (grown), the "
         "uniform-code fill, the edge-aware denoising (5x5 windows) and the edge band (2 pixels): better MAE in less time "

@@ -210,8 +210,9 @@ class ExtractionConfig:
 
     stages: tuple[str, ...] = option(StageList(DEFAULT_STAGES), "the extraction's stages in the order they run, "
                                      "comma-separated (slwarp.neural.extraction.STAGES); edge_filter, search_repair, "
-                                     "search_doubt, refine_range, uniform_fill, repair_grow, edge_side_radius, "
-                                     "denoise_radius, hole_fill and edge_band_radius add or remove theirs", resumable=True)
+                                     "search_doubt, refine_range, uniform_fill, repair_grow, step_split_radius, "
+                                     "edge_side_radius, denoise_radius, hole_fill and edge_band_radius add or remove "
+                                     "theirs", resumable=True)
     # below 16 cells a cell spans more than 1/16 of the working volume: no scene's surface survives it
     mc_resolution: int = option(384, "marching-cubes cells along the volume's longest side", min=16, resumable=True)
     depth_method: Literal["mesh", "sphere"] = option("mesh", "depth by ray casting the marching-cubes mesh, or by "
@@ -277,6 +278,14 @@ class ExtractionConfig:
                                       "median relative misfit of the lit pixels at the depth before refinement is above "
                                       "this (simulated scans 0.015-0.022, the real capture 0.026; 0: always refine)",
                                       min=0.0, resumable=True)
+    step_split_radius: int = option(0, "after the repair and the fill: a pixel between two surfaces along an image "
+                                    "axis (lines fitted to the depths this many to this + 16 pixels away on each side "
+                                    "disagree at it by more than edge_filter footprints) takes the side line whose "
+                                    "codes fit its window best: the ramps a smooth field draws across a small depth "
+                                    "step (0: off)", min=0, resumable=True)
+    step_split_margin: float = option(0.9, "step split: a side line is taken when its window's code residual is at "
+                                      "most this times that of the map's own depths", above=0.0, max=1.0,
+                                      resumable=True)
     edge_side_radius: int = option(0, "after the repair and the fill: each pixel with a depth across a depth edge "
                                    "(a jump above edge_filter footprints) within this many pixels keeps its depth, "
                                    "takes the one across or is dropped, as its codes fit them (0: off)", min=0,

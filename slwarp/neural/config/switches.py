@@ -14,7 +14,7 @@ __all__ = ["DEFAULT_STAGES", "STAGE_ORDER", "STAGE_SWITCHES", "check_stages", "s
 # the extraction's stages (slwarp.neural.extraction.stages) in the order a preset lists them: an option that switches
 # a stage on (STAGE_SWITCHES) puts it at its place in this order, after the stages that come before it here
 STAGE_ORDER = ("marching_cubes", "depth", "depth_range", "flying_pixel", "confidence", "search_repair", "search_doubt",
-               "refine", "uniform_fill", "repair_grow", "edge_side", "denoise", "hole_fill", "edge_band")
+               "refine", "uniform_fill", "repair_grow", "step_split", "edge_side", "denoise", "hole_fill", "edge_band")
 # the stages of an extraction that names none: the mesh, its depth, the depth range, the flying-pixel filter and the
 # confidence map with its filter
 DEFAULT_STAGES = ("marching_cubes", "depth", "depth_range", "flying_pixel", "confidence")
@@ -23,7 +23,8 @@ DEFAULT_STAGES = ("marching_cubes", "depth", "depth_range", "flying_pixel", "con
 # rule; while it runs, search_doubt says whether the doubt rule stays when the repair is switched off: sync_stages)
 STAGE_SWITCHES = {"edge_filter": "flying_pixel", "search_repair": "search_repair", "search_doubt": "search_doubt",
                   "refine_range": "refine", "uniform_fill": "uniform_fill", "repair_grow": "repair_grow",
-                  "edge_side_radius": "edge_side", "denoise_radius": "denoise", "hole_fill": "hole_fill",
+                  "step_split_radius": "step_split", "edge_side_radius": "edge_side", "denoise_radius": "denoise",
+                  "hole_fill": "hole_fill",
                   "edge_band_radius": "edge_band"}
 _SEARCH_STAGES = ("search_repair", "search_doubt")
 

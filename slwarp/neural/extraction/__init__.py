@@ -14,7 +14,8 @@ A new stage is one subclass of `stages.Stage` (its settings: extraction options 
 - `confidence`: per-pixel confidence maps of a depth map (the photometric term, which the training shares, is
   `slwarp.neural.pattern_model`'s).
 - `repair`: the search repair, its doubt rule and its growth; `fill`: the uniform-code fill; `edges`: the pixels beside
-  a depth edge settled by their codes.
+  a depth edge settled by their codes; `steps`: the ramps a smooth field draws across a small depth step split into
+  the two surfaces.
 """
 from .runner import build_stages, extract_depth, run_stages
 from .stages import STAGES, Stage

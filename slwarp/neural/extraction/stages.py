@@ -24,6 +24,7 @@ from ..pattern_model import photometric_confidence, refine_where_model_fits, ref
 from .confidence import depth_confidence
 from .edges import settle_edge_sides
 from .fill import fill_uniform_codes
+from .steps import split_ramps
 from .repair import doubt_by_search, grow_repair, repair_by_search, scaled_min_component
 from .state import FATE, State, evaluating, register_fate
 from .surface import (denoise_depth, extract_mesh, edge_band_masks, fill_pinholes, flying_pixel_filter, mesh_depth,
@@ -293,6 +294,28 @@ class RepairGrow(Stage):
             return state.replace(info={"repair_grown": 0})
         depth, grown = grow_repair(state.depth, state.fate == FATE["repaired"], state.inputs)
         return state.replace(depth=depth, info={"repair_grown": int(grown.sum())})
+
+
+@dataclass(frozen=True)
+class StepSplit(Stage):
+    """Each pixel between two surfaces along an image axis (lines fitted to the depths step_split_radius to
+    step_split_radius + 16 pixels away on each side disagree at it by more than edge_filter pixel footprints) takes
+    the side line whose codes fit its window best, where that fit is at most step_split_margin times the map's own
+    (steps.split_ramps): the ramps a smooth field draws across a step a few projector rows deep. info step_split
+    (pixels switched). Does nothing without edge_filter."""
+
+    name = "step_split"
+    marks = "split"
+    step_split_radius: int
+    step_split_margin: float
+    edge_filter: float
+
+    def __call__(self, state: State) -> State:
+        if self.edge_filter <= 0 or self.step_split_radius <= 0:
+            return state.replace(info={"step_split": 0})
+        depth, switched = split_ramps(state.depth, state.inputs, self.step_split_radius, self.edge_filter,
+                                      self.step_split_margin)
+        return state.replace(depth=depth, info={"step_split": int(switched.sum())})
 
 
 @dataclass(frozen=True)
