@@ -116,8 +116,8 @@ _preset("tiny", "a 3x48 field for 300 iterations: tests", iters=300, rays=256, n
         init_iters=100, search_step_mm=2.0, search_stride=3, mc_resolution=128, checkpoint_every=100, log_every=25)
 _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 800 iterations of 1024 rays, levels switched on "
         "quickly, two up-sampling steps, NeuS's variance at 4x the rate, half the rays on the start's doubtful pixels for "
-        "half the run, with tuned's surface term (on both sides of the map) and extraction and a free-space term: a "
-        "depth map as soon as possible (GPU)",
+        "half the run, with tuned's surface term (on both sides of the map) and extraction, a free-space term and the "
+        "small depth steps split out of the field's ramps: a depth map as soon as possible (GPU)",
         matmul="tf32", compile=False, iters=800, init_iters=200, rays=1024, up_sample_steps=2, grid_levels=8,
         grid_gradient="finite_difference_4",
         grid_start_levels=2, grid_level_every=50, mc_resolution=256, checkpoint_every=1000, surface_weight=1.0,
@@ -126,8 +126,8 @@ _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 800 iteration
         **_LENS_HASHGRID,
         **_GPU_DENOISE, **_HASHGRID)
 _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations of the paper's batch, levels "
-        "coarse to fine, NeuS's variance at 4x the rate, with tuned's surface term and extraction and a free-space "
-        "term, through a lens with a halo NeuS's variance at 16x and the Eikonal weight at 0.5: seconds a scan, as "
+        "coarse to fine, NeuS's variance at 4x the rate, with tuned's surface term and extraction, a free-space "
+        "term and the small depth steps split out of the field's ramps, through a lens with a halo NeuS's variance at 16x and the Eikonal weight at 0.5: seconds a scan, as "
         "accurate as tuned on simulated scans and as the full 40-image decode on real ones (GPU default)",
         matmul="tf32", compile=False, iters=2000, grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2,
         grid_level_every=100, variance_lr_factor=4.0, surface_weight=1.0, surface_after=1.0, free_space=1.0,
