@@ -261,7 +261,8 @@ def ensure_dir(path) -> Path:
 FATE_COLOURS = {"measured": (0.55, 0.55, 0.55), "repaired": (0.2, 0.4, 1.0), "filled": (0.3, 0.85, 0.95),
                 "no_contrast": (0.0, 0.0, 0.0), "no_surface": (1.0, 1.0, 1.0), "out_of_range": (0.85, 0.2, 0.85),
                 "flying_pixel": (1.0, 0.55, 0.0), "low_confidence": (0.9, 0.1, 0.1), "search_doubt": (1.0, 0.9, 0.1),
-                "edge_side": (0.6, 0.3, 0.1), "interpolated": (0.75, 0.9, 0.75), "edge_band": (0.75, 0.45, 0.55)}
+                "edge_side": (0.6, 0.3, 0.1), "interpolated": (0.75, 0.9, 0.75), "edge_band": (0.75, 0.45, 0.55),
+                "split": (0.45, 0.3, 0.9)}
 
 
 def _legend_panel(entries: list[tuple[tuple[int, int, int], str]], height: int, title: str | None = None) -> np.ndarray:
