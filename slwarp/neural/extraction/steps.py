@@ -9,12 +9,13 @@ ramp has none.
 
 How: along each image axis, a line is fitted to the depths on each side of a pixel, `radius` to `radius + SIDE_PX`
 pixels away; where both fits are good and their extrapolations to the pixel are more than `footprints` pixel
-footprints apart and the pixel's depth lies between them, more than MIN_OFF_FOOTPRINTS footprints and MIN_STEP_SHARE of
-the step from each, the pixel is on a ramp between two surfaces (a depth on a line, beyond both or close to one is a
-surface's own: a step drawn sharp, a fold, a curve near a silhouette). Each surface's line is then tried over a window of the
-pixel's neighbours along that axis (2 WINDOW_PX + 1 pixels: a window sees the stripe edges a single pixel cannot)
-against the depths the map has there, by the pattern model's residual (`pattern_model.residual_at`); the pixel takes
-the line that fits best when its mean residual is at most `margin` times that of the map's own depths.
+footprints apart and the pixel's depth lies between them, more than MIN_OFF_FOOTPRINTS footprints and MIN_STEP_SHARE
+of the step from each, the pixel is on a ramp between two surfaces (a depth on a line, beyond both or close to one is
+a surface's own: a step drawn sharp, a fold, a curve near a silhouette). Each surface's line is then tried over a
+window of the pixel's neighbours along that axis (2 WINDOW_PX + 1 pixels: a window sees the stripe edges a single
+pixel cannot) against the depths the map has there, by the pattern model's residual (`pattern_model.residual_at`);
+the pixel takes the line that fits best when its mean residual is at most `margin` times that of the map's own
+depths.
 """
 from __future__ import annotations
 
