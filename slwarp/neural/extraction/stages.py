@@ -24,9 +24,9 @@ from ..pattern_model import photometric_confidence, refine_where_model_fits, ref
 from .confidence import depth_confidence
 from .edges import settle_edge_sides
 from .fill import fill_uniform_codes
-from .steps import split_ramps
 from .repair import doubt_by_search, grow_repair, repair_by_search, scaled_min_component
 from .state import FATE, State, evaluating, register_fate
+from .steps import split_ramps
 from .surface import (denoise_depth, extract_mesh, edge_band_masks, fill_pinholes, flying_pixel_filter, mesh_depth,
                       readmit_edge_pixels, sphere_trace_depth)
 
