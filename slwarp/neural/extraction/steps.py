@@ -80,38 +80,41 @@ def side_lines(depth: torch.Tensor, axis: int, side: int, start: int, length: in
     return torch.where(enough, a, nan), torch.where(enough, b, nan), torch.where(enough, rms, nan), s0
 
 
+def _residuals(index: torch.Tensor, depths: torch.Tensor, inputs: ModelInputs) -> torch.Tensor:
+    """[P] float32: `residual_at` of pixels index [P] at depths [P] mm, NaN where a depth is not finite and above 0;
+    in chunks of _CHUNK pairs."""
+    r = torch.full((index.numel(),), float("nan"), dtype=torch.float32, device=index.device)
+    sel = torch.nonzero(torch.isfinite(depths) & (depths > 0)).squeeze(1)
+    for lo in range(0, sel.numel(), _CHUNK):
+        s = sel[lo: lo + _CHUNK]
+        r[s] = residual_at(index[s], depths[s], *inputs.model).float()
+    return r
+
+
 def _window_residuals(pix: torch.Tensor, lines: list[tuple[torch.Tensor, torch.Tensor]], own: torch.Tensor,
                       axis: int, shape, inputs: ModelInputs) -> torch.Tensor:
     """[len(lines) + 1, P]: the mean pattern-model residual over each pixel's window along `axis` (offsets -WINDOW_PX
     .. WINDOW_PX, the pixels with a depth in `own` [H*W]) of each line (a, b) [P] and, last, of own's depths."""
     H, W = shape
     y, x = pix // W, pix % W
-    idx, which, depths, keep = [], [], [], []
+    idx, depths, use = [], [], []
     for j in range(-WINDOW_PX, WINDOW_PX + 1):
         yy, xx = (y + j, x) if axis == 0 else (y, x + j)
         inside = (yy >= 0) & (yy < H) & (xx >= 0) & (xx < W)
         q = torch.where(inside, yy * W + xx, torch.zeros_like(yy))
-        zq = own[q]
-        use = inside & torch.isfinite(zq)
-        for c, (a, b) in enumerate(lines):
-            idx.append(q)
-            depths.append((a + b * j).float())
-            which.append(c)
-            keep.append(use)
         idx.append(q)
-        depths.append(zq)
-        which.append(len(lines))
-        keep.append(use)
-    n_hyp = len(lines) + 1
-    P = pix.numel()
-    idx_all, z_all, keep_all = torch.stack(idx), torch.stack(depths), torch.stack(keep)  # [(2w+1) n_hyp, P]
-    flat_keep = keep_all.reshape(-1) & torch.isfinite(z_all.reshape(-1)) & (z_all.reshape(-1) > 0)
-    sel = torch.nonzero(flat_keep).squeeze(1)
-    r = torch.full((idx_all.numel(),), float("nan"), dtype=torch.float32, device=pix.device)
-    for lo in range(0, sel.numel(), _CHUNK):
-        s = sel[lo: lo + _CHUNK]
-        r[s] = residual_at(idx_all.reshape(-1)[s], z_all.reshape(-1)[s], *inputs.model).float()
-    r = r.reshape(2 * WINDOW_PX + 1, n_hyp, P)
+        use.append(inside & torch.isfinite(own[q]))
+        depths.append(torch.stack([(a + b * j).float() for a, b in lines]))
+    q, use = torch.stack(idx), torch.stack(use)  # [2w + 1, P]
+    z = torch.stack(depths)  # [2w + 1, lines, P]
+    z = torch.where(use[:, None], z, torch.full_like(z, float("nan")))
+    r_lines = _residuals(q[:, None].expand_as(z).reshape(-1), z.reshape(-1), inputs).reshape(z.shape)
+    # the map's own depths: each window pixel's residual once, however many windows hold it
+    mine = torch.unique(q[use])
+    r_map = torch.full_like(own, float("nan"))
+    r_map[mine] = _residuals(mine, own[mine], inputs)
+    r_own = torch.where(use, r_map[q], torch.full_like(r_map[q], float("nan")))
+    r = torch.cat([r_lines, r_own[:, None]], dim=1)  # [2w + 1, lines + 1, P]
     ok = torch.isfinite(r)
     total = torch.where(ok, r, torch.zeros_like(r)).sum(0)
     count = ok.sum(0)
