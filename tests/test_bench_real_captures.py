@@ -69,3 +69,30 @@ def test_an_extraction_variant_continues_its_presets_checkpoint_and_does_not_tra
     assert timings["v"]["train_s"] < 0.25 * timings["base"]["train_s"]
     assert "doubt_confidence: 0.8" in (variant["out"] / "config.yaml").read_text()
     assert (base["out"] / "train" / "checkpoint.pt").is_file()  # the preset's own run is left as it was
+
+
+def test_the_coverage_counts_the_full_decodes_pixels_given_a_depth_within_2_mm():
+    import numpy as np
+
+    from slwarp.scans.scanner import Camera
+
+    full = np.full((4, 5), np.nan, np.float32)
+    full[:2] = 1500.0  # 10 pixels of the full decode
+    depth = np.full_like(full, np.nan)
+    depth[0] = 1501.5  # 5 within 2 mm
+    depth[1, :2] = 1505.0  # 2 off by 5 mm
+    depth[1, 2] = 1498.0  # 1 at exactly 2 mm
+    depth[3] = 1400.0  # 5 where the full decode has none: not counted
+    region = np.zeros(full.shape, bool)
+    region[0] = True
+    cam = Camera(5, 4, [[1000.0, 0, 2.0], [0, 1000.0, 1.5], [0, 0, 1]])
+    m = real_captures.capture_metrics(depth, {"full_decode": full, "region": region}, cam)
+    assert m["agree_coverage"] == 0.6
+    rows = [_row(0, "fast", 0.5, agree_coverage=m["agree_coverage"]), _row(0, "GC(7)-interp, same 7 images", 2.0,
+                                                                           agree_coverage=0.55)]
+    doc = {"date": "2026-11-29", "device": "Test GPU", "command": "c", "depth_range_mm": [800.0, 2600.0],
+           "frames": real_captures.SEVEN_ROWS, "rows": rows}
+    md = real_captures.markdown(doc, [0], ["GC(7)-interp, same 7 images", "fast"]).splitlines()
+    at = md.index("## The full decode's pixels with a depth within 2 mm of it")
+    assert md[at + 4] == "| GC(7)-interp, same 7 images | 55.0% | 55.0% |"
+    assert md[at + 5] == "| fast | 60.0% | 60.0% |"
