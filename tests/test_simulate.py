@@ -308,6 +308,25 @@ def test_rods_scene_has_thin_rods_in_front():
     assert 0.005 < on_rod.mean() < 0.05
 
 
+def test_waves_scene_is_a_closed_sheet_whose_front_follows_its_two_sines():
+    objs = {o.name: o for o in build_scene("waves")}
+    sheet = objs["waves"].mesh
+    assert sheet.is_watertight and sheet.is_winding_consistent and sheet.volume > 0
+    cam, proj = make_rig("small")
+    scan = simulate(list(objs.values()), cam, proj, named_set("whiteblack", proj.width, proj.height), IDEAL)
+    # the ground truth at every pixel whose ray meets the front: z = 700 + 15 sin(2 pi x / 120) + 10 sin(2 pi y / 90)
+    from slwarp.neural.depth_maps import depth_to_points
+
+    z = scan.gt_depth
+    x, y, _ = depth_to_points(z, cam).T  # the pixel's ray (lens distortion included) at the found depth
+    z = z[np.isfinite(z)]
+    front = (z < 740.0) & (np.abs(x) < 270.0) & (np.abs(y) < 210.0)
+    assert front.sum() > 0.8 * cam.width * cam.height  # the sheet fills most of the view
+    model = 700.0 + 15.0 * np.sin(2 * np.pi * x / 120.0) + 10.0 * np.sin(2 * np.pi * y / 90.0)
+    assert np.percentile(np.abs(z - model)[front], 99) < 0.1  # flat triangles 2 mm wide between the vertices
+    assert z[front].min() < 680.0 and z[front].max() > 720.0
+
+
 def test_lens_halo_lifts_dark_stripes_near_bright_ones_and_keeps_the_light(device):
     """SimOptions.halo: the projected pattern is (1 - halo) x itself + halo x its blur over halo_sigma projector px
     (scans.scanner.with_halo, the model the neural method shares): on a flat plate a dark stripe's pixels rise near

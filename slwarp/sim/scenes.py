@@ -15,9 +15,13 @@ through marching cubes); nothing is downloaded.
     rods      thin rods (2.5 mm diameter, 560 to 680 mm away: about 2 camera pixels wide on the small rig,
               7 on the default rig) in front of two spheres and the wall: thin structures, the shadows
               they cast and their occlusion edges
+    waves     a sheet 700 mm away rippled in both image directions (15 and 10 mm deep, 120 and 90 mm
+              periods; slopes up to 45 deg) before the wall: a smooth surface whose depth changes
+              everywhere, along and across the epipolar lines of every rig
 
 The first six (`SIX_SCENES`) are the original benchmark set and never change (published results depend
-on them); `checker` and `rods` cover what users meet beyond it.
+on them); `checker`, `rods` and `waves` cover what users meet beyond it. Means over "the 8 scenes" in results
+before 2026-11-29 are over the first eight (`waves` came later).
 """
 from __future__ import annotations
 
@@ -26,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 SIX_SCENES = ("spheres", "torus", "boxes", "bunny", "vase", "steps")
-SCENE_NAMES = SIX_SCENES + ("checker", "rods")
+SCENE_NAMES = SIX_SCENES + ("checker", "rods", "waves")
 TEXTURE_KINDS = ("sine", "checker")
 DEFAULT_SCENE = "bunny"
 
@@ -140,6 +144,32 @@ def _vase(center, height=300.0, sections=256):
     return mesh
 
 
+def _waves(z0: float = 700.0, half=(280.0, 220.0), depth=(15.0, 10.0), period=(120.0, 90.0), thickness=10.0,
+           n=(281, 221)):
+    """A closed slab (mm) whose face toward the camera is z = z0 + depth[0] sin(2 pi x / period[0]) + depth[1]
+    sin(2 pi y / period[1]) over |x| <= half[0], |y| <= half[1] (n[0] x n[1] vertices), its back `thickness`
+    mm behind it, flat."""
+    import trimesh
+
+    x, y = np.linspace(-half[0], half[0], n[0]), np.linspace(-half[1], half[1], n[1])
+    X, Y = np.meshgrid(x, y)  # [ny, nx]
+    Z = z0 + depth[0] * np.sin(2 * np.pi * X / period[0]) + depth[1] * np.sin(2 * np.pi * Y / period[1])
+    front = np.stack([X, Y, Z], -1).reshape(-1, 3)
+    back = np.stack([X, Y, np.full_like(Z, z0 + max(depth[0] + depth[1], 0.0) + thickness)], -1).reshape(-1, 3)
+    ny, nx = X.shape
+    idx = np.arange(ny * nx).reshape(ny, nx)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    faces = [np.stack([a, b, d], 1), np.stack([a, d, c], 1)]  # the front face's triangles
+    off = ny * nx
+    faces += [np.stack([a, d, b], 1) + off, np.stack([a, c, d], 1) + off]  # the back, the other way round
+    ring = np.concatenate([idx[0, :], idx[1:, -1], idx[-1, -2::-1], idx[-2:0:-1, 0]])  # the border, once round
+    r0, r1 = ring, np.roll(ring, -1)
+    faces += [np.stack([r0, r0 + off, r1], 1), np.stack([r1, r0 + off, r1 + off], 1)]
+    mesh = trimesh.Trimesh(np.concatenate([front, back]), np.concatenate(faces), process=True)
+    mesh.fix_normals()  # outward, whichever way the border ran
+    return mesh
+
+
 def build_scene(name: str) -> list[SceneObject]:
     """The objects of a built-in scene (camera frame, mm)."""
     import trimesh
@@ -208,6 +238,8 @@ def build_scene(name: str) -> list[SceneObject]:
         ]
         objs += [SceneObject(f"rod_{i}", _rod(p0, p1), 0.7) for i, (p0, p1) in enumerate(rods)]
         return objs
+    if name == "waves":
+        return [_wall(tilt_deg=4.0), SceneObject("waves", _waves(), 0.7)]
     raise ValueError(f"unknown scene {name!r}; built-in scenes: {', '.join(SCENE_NAMES)}")
 
 
