@@ -143,7 +143,7 @@ def capture_metrics(depth: np.ndarray, ref: dict, camera) -> dict:
     return {**exact, "plane_rms_mm": rms, "quadric_rms_mm": quadric_rms(pts), "plate_coverage": n / max(int(region.sum()), 1),
             "agree_median_mm": float(np.median(diff)) if diff.size else float("nan"),
             "agree_over_2mm": float((diff > AGREE_MM).mean()) if diff.size else float("nan"),
-            "agree_coverage": float((diff <= AGREE_MM).sum() / max(int(np.isfinite(ref["full_decode"]).sum()), 1)),
+            "agree_coverage": float((diff <= AGREE_MM).sum()) / max(int(np.isfinite(ref["full_decode"]).sum()), 1),
             "pixels_with_depth": float(np.isfinite(depth).mean())}
 
 
@@ -337,7 +337,7 @@ def markdown(doc: dict, captures: list[int], methods: list[str]) -> str:
         vals = [by.get((c, m), {}).get("plane_rms_mm", float("nan")) for c in captures]
         lines.append(f"| {m} | " + " | ".join(f"{v:.3f}" for v in vals) + f" | {np.mean(vals):.3f} |")
     # completeness that counts right depths only: GC(7)'s extra pixels on the real captures are mostly wrong (capture
-    # 0: of the 46,900 pixels it has and `fast` drops, 13% lie within 2 mm of the full decode; docs/accuracy.md, 36)
+    # 0: of the 46,900 pixels it has and `fast` drops, 13% lie within 2 mm of the full decode; docs/accuracy.md, section 36)
     if any("agree_coverage" in r for r in doc["rows"]):
         lines += ["", f"## The full decode's pixels with a depth within {AGREE_MM:g} mm of it", "",
                   f"| method | {head} | mean |", "|---|" + "---:|" * (len(captures) + 1)]

@@ -24,9 +24,9 @@ from pathlib import Path
 import numpy as np
 
 
-def stage_maps_of_run(run: Path, scan) -> tuple[dict, np.ndarray]:
-    """({stage: depth [H, W] mm after it}, the final fate [H, W]) of a finished run's extraction replayed from a copy
-    of its checkpoint (no training step: the checkpoint holds the final iteration)."""
+def stage_maps_of_run(run: Path, scan) -> dict:
+    """{stage: depth [H, W] mm after it} of a finished run's extraction replayed from a copy of its checkpoint (no
+    training step: the checkpoint holds the final iteration)."""
     from bench.gross_errors import stage_maps
     from slwarp.neural.config import load_config
     from slwarp.neural.training.trainer import Trainer
@@ -35,8 +35,7 @@ def stage_maps_of_run(run: Path, scan) -> tuple[dict, np.ndarray]:
         shutil.copytree(run / "train", Path(tmp) / "train")
         trainer = Trainer(scan, load_config(run / "config.yaml"), out_dir=Path(tmp) / "train", resume=True)
         trainer.train()
-        maps, ex = stage_maps(trainer)
-    return maps, ex.fate
+        return stage_maps(trainer)[0]
 
 
 def drop_rows(maps: dict, reference: np.ndarray, other: np.ndarray | None, tol_mm: float) -> list[dict]:
@@ -107,9 +106,11 @@ def main(argv=None) -> int:
             raise SystemExit(f"{args.scan}: the scan has no ground truth; give --reference reference.npz")
         reference = np.asarray(scan.gt_depth, np.float32)
     else:
+        if not Path(args.reference).is_file():
+            raise SystemExit(f"{args.reference}: no such reference file (bench.real_captures prepare writes them)")
         ref = np.load(args.reference)
         reference, other = ref["full_decode"], ref["gc7"]
-    maps, _ = stage_maps_of_run(run, scan)
+    maps = stage_maps_of_run(run, scan)
     rows = drop_rows(maps, reference, other, args.tol)
     ex = exchange(maps[list(maps)[-1]], other, reference, args.tol) if other is not None else None
     if args.json:
