@@ -23,8 +23,8 @@ ignored).
 (`python -m slwarp reconstruct SCAN --config PRESET.yaml --out DIR --quiet`), spread over the visible GPUs, and
 reports per capture: the plate's RMS distance to its fitted plane (mm; the calibration alone bends the plate by
 about 0.4 mm RMS), the same about a quadric (local error), the plate's coverage, the agreement with the full decode
-over the whole image (median |difference| and the share above 2 mm where both have depth), the command's wall
-time, and what the extraction decided about the photometric refinement (refined or not, the misfit its gate saw, the
+over the whole image (median |difference| and the share above 2 mm where both have depth; the share of the full
+decode's pixels given a depth within 2 mm of it), the pixels with depth, the command's wall time, and what the extraction decided about the photometric refinement (refined or not, the misfit its gate saw, the
 held-out check's word); beside the full decode, the pattern model's misfit of the 7 images at that depth (what the
 gate compares with `refine_max_misfit`). The two classical references are reported the same way. Writes
 <out>/<stem>.json and .md.
