@@ -26,14 +26,21 @@ import numpy as np
 
 def stage_maps_of_run(run: Path, scan) -> dict:
     """{stage: depth [H, W] mm after it} of a finished run's extraction replayed from a copy of its checkpoint (no
-    training step: the checkpoint holds the final iteration)."""
+    training step: the checkpoint holds the final iteration), with the frames and the depth range the run used (its
+    checkpoint's identity)."""
     from bench.gross_errors import stage_maps
     from slwarp.neural.config import load_config
+    from slwarp.neural.training.checkpoint import read_checkpoint
     from slwarp.neural.training.trainer import Trainer
 
+    identity = read_checkpoint(run / "train" / "checkpoint.pt").get("identity") or {}
+    if identity.get("frames"):
+        scan = scan.select([name for name, _ in identity["frames"]])
+    depth_range = tuple(identity["depth_range"]) if identity.get("depth_range") else None
     with tempfile.TemporaryDirectory() as tmp:
         shutil.copytree(run / "train", Path(tmp) / "train")
-        trainer = Trainer(scan, load_config(run / "config.yaml"), out_dir=Path(tmp) / "train", resume=True)
+        trainer = Trainer(scan, load_config(run / "config.yaml"), out_dir=Path(tmp) / "train", resume=True,
+                          depth_range=depth_range)
         trainer.train()
         return stage_maps(trainer)[0]
 

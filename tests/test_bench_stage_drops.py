@@ -30,3 +30,35 @@ def test_each_stage_is_scored_by_the_depths_it_dropped():
 def test_a_folder_without_a_finished_run_is_refused(tmp_path):
     with pytest.raises(SystemExit, match="not a finished run"):
         stage_drops.main([str(tmp_path), "--scan", str(tmp_path)])
+
+
+def test_a_runs_extraction_replayed_on_its_own_frames_drops_what_the_run_dropped(tmp_path):
+    import json
+
+    from slwarp.neural.config import preset
+    from slwarp.neural.reconstruct import reconstruct
+    from slwarp.scans.scan import load_scan
+    from slwarp.sim.simulate import SimOptions, simulate_scene
+
+    folder = tmp_path / "scan"
+    simulate_scene("spheres", "random6+gray7", rig="small", options=SimOptions(seed=3)).save(folder)
+    scan = load_scan(folder)
+    cfg = preset("tiny", device="cpu", iters=20, init="sphere", init_iters=10, rays=64, mc_resolution=32)
+    res = reconstruct(scan.select("rand*"), cfg, out_dir=tmp_path / "run", progress=False)
+    res.wait_written()
+    out = tmp_path / "drops.json"
+    # the scan holds 13 frames, the run trained on 6: the replay takes the run's frames from its checkpoint
+    assert stage_drops.main([str(tmp_path / "run"), "--scan", str(folder), "--json", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    # each stage's drops as the run counted them (by the fate it gives them; the first stage's, against the lit
+    # pixels, are no row), and the replay's final map the run's
+    from slwarp.neural.extraction.runner import build_stages
+
+    fates = {st.name: st.drops or st.name for st in build_stages(cfg.extraction)}
+    run_dropped = json.loads((tmp_path / "run" / "timings.json").read_text())["dropped"]
+    first = fates["depth"]
+    assert {fates[r["stage"]]: r["dropped"] for r in doc["rows"]} == \
+        {k: v for k, v in run_dropped.items() if v and k != first}
+    final = int(np.isfinite(np.load(tmp_path / "run" / "depth.npy")).sum())
+    assert doc["rows"] and list(doc["pixels_with_depth"].values())[-1] == final
+    assert all(0.0 <= r["right_share"] <= 1.0 for r in doc["rows"] if r["with_reference"])
