@@ -147,8 +147,8 @@ def _vase(center, height=300.0, sections=256):
 def _waves(z0: float = 700.0, half=(280.0, 220.0), depth=(15.0, 10.0), period=(120.0, 90.0), thickness=10.0,
            n=(281, 221)):
     """A closed slab (mm) whose face toward the camera is z = z0 + depth[0] sin(2 pi x / period[0]) + depth[1]
-    sin(2 pi y / period[1]) over |x| <= half[0], |y| <= half[1] (n[0] x n[1] vertices), its back `thickness`
-    mm behind it, flat."""
+    sin(2 pi y / period[1]) over |x| <= half[0], |y| <= half[1] (n[0] x n[1] vertices); its back is flat, `thickness`
+    mm behind the front's farthest point."""
     import trimesh
 
     x, y = np.linspace(-half[0], half[0], n[0]), np.linspace(-half[1], half[1], n[1])
