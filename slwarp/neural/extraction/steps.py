@@ -113,7 +113,8 @@ def _window_residuals(pix: torch.Tensor, lines: list[tuple[torch.Tensor, torch.T
     mine = torch.unique(q[use])
     r_map = torch.full_like(own, float("nan"))
     r_map[mine] = _residuals(mine, own[mine], inputs)
-    r_own = torch.where(use, r_map[q], torch.full_like(r_map[q], float("nan")))
+    r_own = r_map[q]
+    r_own = torch.where(use, r_own, torch.full_like(r_own, float("nan")))
     r = torch.cat([r_lines, r_own[:, None]], dim=1)  # [2w + 1, lines + 1, P]
     ok = torch.isfinite(r)
     total = torch.where(ok, r, torch.zeros_like(r)).sum(0)
