@@ -10,7 +10,11 @@ the run is left as it was). --reference: `gt` (the scan's ground truth), or a re
 on the pixels the stages dropped). One row per stage that dropped pixels: how many, how many the reference has, the
 share of those whose depth before the stage lay within --tol mm of it (a high share: the stage dropped right
 depths), and GC(7)'s share within --tol there; then the pixels GC(7) has and the final map lacks, and the reverse.
-Diagnosis: the figures are for finding causes (docs/accuracy.md, section 36).
+With --support K, whether the final map's neighbours would vouch for the drops still without depth (a readmission
+by neighbour support, tried on paper before it is built). Diagnosis: the figures are for finding causes
+(docs/accuracy.md, sections 36 and 37).
+
+    python -m bench.stage_drops RUN --scan SCAN --reference gt --support 6
 """
 from __future__ import annotations
 
@@ -19,6 +23,7 @@ import json
 import shutil
 import sys
 import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -67,6 +72,49 @@ def drop_rows(maps: dict, reference: np.ndarray, other: np.ndarray | None, tol_m
     return rows
 
 
+def support_rows(maps: dict, reference: np.ndarray, tol_mm: float, min_kept: int) -> list[dict]:
+    """Would the final map's neighbours vouch for what a stage dropped? Per stage with drops still without depth at
+    the end: lost (how many, the reference has them), supported (those with at least `min_kept` of their 8
+    neighbours holding a depth in the final map and their own depth before the stage within tol_mm of those
+    neighbours' median), right (of the supported, within tol_mm of the reference), their MAE and largest error (mm).
+    A readmission by neighbour support gives back right depths only where `right` is near `supported`."""
+    names = list(maps)
+    final = maps[names[-1]]
+    kept = np.isfinite(final)
+    H, W = final.shape
+    pad = np.pad(np.where(kept, final, np.nan), 1, constant_values=np.nan)
+    around = np.stack([pad[1 + dy: 1 + dy + H, 1 + dx: 1 + dx + W] for dy in (-1, 0, 1) for dx in (-1, 0, 1)
+                       if dy or dx])
+    n_kept = np.isfinite(around).sum(0)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN neighbourhoods: no median, no support
+        median = np.nanmedian(around, 0)
+    rows = []
+    for before_name, name in zip(names, names[1:]):
+        before = maps[before_name]
+        lost = np.isfinite(before) & ~np.isfinite(maps[name]) & ~kept & np.isfinite(reference)
+        if not lost.any():
+            continue
+        err = np.abs(before - reference)
+        sup = lost & (n_kept >= min_kept) & (np.abs(before - median) <= tol_mm)
+        rows.append({"stage": name, "lost": int(lost.sum()), "lost_right": int((lost & (err <= tol_mm)).sum()),
+                     "supported": int(sup.sum()), "supported_right": int((sup & (err <= tol_mm)).sum()),
+                     "supported_mae": float(err[sup].mean()) if sup.any() else None,
+                     "supported_max": float(err[sup].max()) if sup.any() else None})
+    return rows
+
+
+def support_markdown(rows: list[dict], tol_mm: float, min_kept: int) -> str:
+    lines = [f"| stage | lost at the end (the reference has) | of them right | with {min_kept}+ neighbours kept, "
+             f"within {tol_mm:g} mm of their median | of those right | their MAE / largest error mm |",
+             "|---|---:|---:|---:|---:|---|"]
+    for r in rows:
+        err = "-" if r["supported_mae"] is None else f"{r['supported_mae']:.2f} / {r['supported_max']:.1f}"
+        lines.append(f"| {r['stage']} | {r['lost']} | {r['lost_right']} | {r['supported']} | {r['supported_right']} "
+                     f"| {err} |")
+    return "\n".join(lines)
+
+
 def exchange(final: np.ndarray, other: np.ndarray, reference: np.ndarray, tol_mm: float) -> dict:
     """The pixels `other` has and `final` lacks (only_other, and the share of those the reference has within tol_mm
     of other's depth), and the reverse (only_final, its share within tol_mm of the reference)."""
@@ -99,6 +147,10 @@ def main(argv=None) -> int:
     p.add_argument("--scan", required=True, help="the scan folder the run reconstructed")
     p.add_argument("--reference", default="gt", help="'gt' (the scan's ground truth) or a real capture's reference.npz")
     p.add_argument("--tol", type=float, default=2.0, help="a depth within this many mm of the reference is right")
+    p.add_argument("--support", type=int, default=0, metavar="K",
+                   help="also: of each stage's drops still without depth at the end, those that K or more of their 8 "
+                        "neighbours would vouch for (kept in the final map, their median within --tol), and how "
+                        "many of those are right (a readmission by neighbour support, tried on paper)")
     p.add_argument("--json", help="also write the rows to this JSON file")
     args = p.parse_args(argv)
     from slwarp.scans.scan import load_scan
@@ -120,12 +172,16 @@ def main(argv=None) -> int:
     maps = stage_maps_of_run(run, scan)
     rows = drop_rows(maps, reference, other, args.tol)
     ex = exchange(maps[list(maps)[-1]], other, reference, args.tol) if other is not None else None
+    support = support_rows(maps, reference, args.tol, args.support) if args.support > 0 else None
     if args.json:
         Path(args.json).write_text(json.dumps({
             "command": "python -m bench.stage_drops " + " ".join(argv if argv is not None else sys.argv[1:]),
-            "tol_mm": args.tol, "rows": rows, "exchange": ex,
+            "tol_mm": args.tol, "rows": rows, "exchange": ex, "support_min_kept": args.support or None,
+            "support": support,
             "pixels_with_depth": {k: int(np.isfinite(v).sum()) for k, v in maps.items()}}, indent=1))
     print(markdown(rows, ex, args.tol))
+    if support is not None:
+        print("\n" + support_markdown(support, args.tol, args.support))
     return 0
 
 

@@ -62,3 +62,25 @@ def test_a_runs_extraction_replayed_on_its_own_frames_drops_what_the_run_dropped
     final = int(np.isfinite(np.load(tmp_path / "run" / "depth.npy")).sum())
     assert doc["rows"] and list(doc["pixels_with_depth"].values())[-1] == final
     assert all(0.0 <= r["right_share"] <= 1.0 for r in doc["rows"] if r["with_reference"])
+
+
+def test_neighbour_support_counts_the_drops_the_final_maps_neighbours_vouch_for():
+    ref = np.full((5, 5), 1000.0, np.float32)
+    depth = ref.copy()
+    depth[2, 2] = 1000.5  # a right depth in the middle of a flat patch
+    depth[0, 0] = 1030.0  # a wrong depth in a corner (3 neighbours only)
+    depth[4, 2] = 1000.0  # a right depth on the edge (5 neighbours)
+    after = depth.copy()
+    after[2, 2] = after[0, 0] = after[4, 2] = np.nan  # the stage drops all three
+    final = after.copy()
+    rows = stage_drops.support_rows({"depth": depth, "stage": after, "last": final}, ref, 2.0, 5)
+    assert rows == [{"stage": "stage", "lost": 3, "lost_right": 2, "supported": 2, "supported_right": 2,
+                     "supported_mae": 0.25, "supported_max": 0.5}]
+    # with 8 neighbours asked, only the middle one; a dropped depth far from its neighbours' median is never vouched
+    assert stage_drops.support_rows({"depth": depth, "stage": after, "last": final}, ref, 2.0, 8)[0]["supported"] == 1
+    far = depth.copy()
+    far[2, 2] = 1010.0
+    row = stage_drops.support_rows({"depth": far, "stage": after, "last": final}, ref, 2.0, 5)[0]
+    assert row["supported"] == 1 and row["lost_right"] == 1  # (4, 2) only; (2, 2) is off its neighbours and wrong
+    md = stage_drops.support_markdown(rows, 2.0, 5)
+    assert "| stage | 3 | 2 | 2 | 2 | 0.25 / 0.5 |" in md
