@@ -78,15 +78,14 @@ def support_rows(maps: dict, reference: np.ndarray, tol_mm: float, min_kept: int
     neighbours holding a depth in the final map and their own depth before the stage within tol_mm of those
     neighbours' median), right (of the supported, within tol_mm of the reference), their MAE and largest error (mm).
     A readmission by neighbour support gives back right depths only where `right` is near `supported`."""
+    from slwarp.neural.depth_maps import neighbour_stack
+
     names = list(maps)
     final = maps[names[-1]]
     kept = np.isfinite(final)
-    H, W = final.shape
-    pad = np.pad(np.where(kept, final, np.nan), 1, constant_values=np.nan)
-    around = np.stack([pad[1 + dy: 1 + dy + H, 1 + dx: 1 + dx + W] for dy in (-1, 0, 1) for dx in (-1, 0, 1)
-                       if dy or dx])
+    around = neighbour_stack(final)  # [8, H, W], NaN where a neighbour has no depth
     n_kept = np.isfinite(around).sum(0)
-    with np.errstate(all="ignore"), warnings.catch_warnings():
+    with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN neighbourhoods: no median, no support
         median = np.nanmedian(around, 0)
     rows = []
