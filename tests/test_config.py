@@ -60,7 +60,7 @@ FLAT_PRESETS = {
                  denoise_footprints=8.0, edge_side_radius=1, hole_fill=7, edge_readmit=True, edge_band_radius=3,
                  step_split_radius=20, stages=STEP_SPLIT_STAGES, pattern_halo="auto",
                  refine_through_halo=False, lens_variance_lr_factor=16.0, lens_lambda_reg=0.5, **HASHGRID),
-    "accurate": dict(matmul="tf32", compile=False, iters=2000, grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2, grid_level_every=100, variance_lr_factor=4.0, refine_range=3.0,
+    "accurate": dict(matmul="tf32", compile=False, iters=2000, rays=1024, grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2, grid_level_every=100, variance_lr_factor=4.0, refine_range=3.0,
                      refine_max_misfit=0.024, search_doubt=True, search_repair=True, repair_min_component=100, repair_grow=True,
                      surface_weight=1.0, surface_after=1.0, free_space=1.0, uniform_fill=True, edge_readmit=True,
                      denoise_radius=4,

@@ -95,6 +95,17 @@ _CPU_EDGE_BAND = {**_EDGE_BAND, "edge_band_radius": 2}
 # end, MAE rose 30-54% (the flat surfaces' rays went to the doubt). Real captures 0-2 (real-captures-cuda-doubt-rays.md):
 # plate RMS 0.523 / 0.294 / 0.297 -> 0.534 / 0.305 / 0.298 mm, below the full decode's mean (0.431) and GC(7) on each
 _DOUBT_RAYS = dict(doubt_rays=0.5, doubt_rays_until=0.5)
+# accurate trains on 1024 rays a step instead of the paper's 2048 (2.0 million rays in all instead of 4.1 over a 1280 x
+# 1024 camera's 1.3 million pixels). The simulator's 9 scenes, seed 0, one H200 (accuracy-cuda-accurate-ingredients.md:
+# the default rig, both in one sweep; -rays1024-rigs.md against accuracy-cuda-nine-scenes.md): mean MAE 0.088 / 0.089 /
+# 0.067 / 0.139 -> 0.084 / 0.084 / 0.063 / 0.127 mm on the default / vertical / oblique / rolled rigs, median 6-13%
+# lower (most of the 10-30% by which accurate's exceeded fast's), RMSE 0.00-0.13 mm higher (still 0.40-0.72 below
+# GC(7)'s), completeness 0.07-0.11 points lower; real captures 0-2 plate RMS 0.521 / 0.313 / 0.328 -> 0.506 / 0.285 /
+# 0.308 mm (real-captures-cuda-accurate-rays1024.md; the acceptance captures 3-4, checked afterwards: 0.555 / 0.360 ->
+# 0.602 / 0.352); the fresh command 10.8-12.1 -> 9.0-10.3 s on one H200 host (command-wall-cuda-h200-accurate-rays*.md).
+# The other ways it differs from fast (two up-sampling steps, the surface term in front, the level schedule, the
+# marching cubes' cells) moved none of this
+_ACCURATE_RAYS = 1024
 # what the hash-grid presets share
 _HASHGRID = dict(field="hashgrid", lr=1e-3, lr_decay="cosine", lambda_sc=0.0, grid_table_lr_factor=10.0)
 
@@ -125,11 +136,12 @@ _preset("fast", "hash-grid field (8 levels, 4-tap gradient), 200 + 800 iteration
         **_DOUBT_RAYS, **_DEFAULT_EXTRACTION, **_STEP_SPLIT, **_EDGE_SIDE, **_HOLE_FILL, **_EDGE_BAND, **_LENS,
         **_LENS_HASHGRID,
         **_GPU_DENOISE, **_HASHGRID)
-_preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations of the paper's batch, levels "
+_preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations of 1024 rays, levels "
         "coarse to fine, NeuS's variance at 4x the rate, with tuned's surface term and extraction, a free-space "
         "term and the small depth steps split out of the field's ramps, through a lens with a halo NeuS's variance at 16x and the Eikonal weight at 0.5: seconds a scan, as "
         "accurate as tuned on simulated scans and as the full 40-image decode on real ones (GPU default)",
-        matmul="tf32", compile=False, iters=2000, grid_levels=8, grid_gradient="finite_difference_4", grid_start_levels=2,
+        matmul="tf32", compile=False, iters=2000, rays=_ACCURATE_RAYS, grid_levels=8, grid_gradient="finite_difference_4",
+        grid_start_levels=2,
         grid_level_every=100, variance_lr_factor=4.0, surface_weight=1.0, surface_after=1.0, free_space=1.0,
         edge_readmit=True, **_DEFAULT_EXTRACTION, **_STEP_SPLIT, **_EDGE_SIDE, **_HOLE_FILL, **_EDGE_BAND, **_LENS,
         **_LENS_HASHGRID, **_GPU_DENOISE, **_HASHGRID)
