@@ -68,7 +68,7 @@ FLAT_PRESETS = {
                      stages=STEP_SPLIT_STAGES, pattern_halo="auto", refine_through_halo=False,
                      lens_variance_lr_factor=16.0, lens_lambda_reg=0.5,
                      **HASHGRID),
-    "cpu-hashgrid": dict(free_space=1.0, refine_range=3.0, refine_max_misfit=0.024, search_doubt=True, search_repair=True, repair_min_component=100, repair_grow=True, uniform_fill=True,
+    "cpu-hashgrid": dict(refine_range=3.0, refine_max_misfit=0.024, search_doubt=True, search_repair=True, repair_min_component=100, repair_grow=True, uniform_fill=True,
                          denoise_radius=2, denoise_footprints=4.0, doubt_confidence=0.9, min_confidence=0.65, edge_side_radius=1,
                          hole_fill=7, edge_band_radius=2, stages=EDGE_BAND_STAGES,
                          grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2, search_step_mm=2.0,

@@ -63,14 +63,6 @@ _CPU_MIN_CONFIDENCE = 0.65
 # points lower; real captures 0-2 the same plate RMS, 0.3-1.2 points fewer pixels with depth
 # (real-captures-cuda-cpu-default-doubt09.md)
 _CPU_DOUBT_CONFIDENCE = 0.9
-# cpu-hashgrid trains with the free-space term at 1 (accurate's weight): on the small and small-vertical rigs' 9 scenes
-# (2-core CPU, 2026-11-29, accuracy-cpu-small-free-space.md against accuracy-cpu-readmit-split-small.md) RMSE 1.819 /
-# 1.479 -> 1.404 / 1.436 mm, now below GC(7)'s 1.486 / 1.585 (the vase's and the bunny's few gross depths), mean MAE
-# 0.262 / 0.251 -> 0.259 / 0.251, completeness +0.02 points, the same time; on the four small rigs trained on an H200
-# as a proxy (accuracy-cuda-small-cpu-training.md) RMSE lower on each, MAE lower on three. Real captures 0-2 (run on
-# the GPU, real-captures-cuda-cpu-default-free-space.md): plate RMS 0.520 / 0.324 / 0.261 -> 0.493 / 0.341 / 0.301 mm,
-# mean 0.369 -> 0.378, still below the full decode's 0.431 and GC(7)'s on each capture
-_CPU_FREE_SPACE = 1.0
 # the pinholes closed (extraction.stages.HoleFill): a pixel without depth, 7 of whose 8 neighbours hold depths on one
 # plane, takes the plane's depth. The same fields, seed 0, every rig (4 x H200, accuracy-cuda-hole-fill-seed0.md):
 # completeness +0.17-0.24 points for fast and accurate on every rig (fast now within 1 point of GC(7) on each), MAE +0
@@ -155,12 +147,11 @@ _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations
         **_LENS_HASHGRID, **_GPU_DENOISE, **_HASHGRID)
 _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4-tap gradient), photometric depth "
         "refinement (+-3 mm, where the pattern model fits the images), the search repair in groups (grown), the "
-        "uniform-code fill, the edge-aware denoising (5x5 windows), the edge band (2 pixels) and a free-space term: better "
-        "MAE in less time than cpu (small rig)",
+        "uniform-code fill, the edge-aware denoising (5x5 windows) and the edge band (2 pixels): better MAE in less time "
+        "than cpu (small rig)",
         grid_gradient="finite_difference_4", iters=1500, rays=384, n_samples=24, n_importance=16, up_sample_steps=2,
         search_step_mm=2.0, mc_resolution=192, checkpoint_every=250, log_every=25, grid_levels=8, grid_log2_table=15,
         denoise_radius=2, denoise_footprints=4.0, doubt_confidence=_CPU_DOUBT_CONFIDENCE, min_confidence=_CPU_MIN_CONFIDENCE,
-        free_space=_CPU_FREE_SPACE,
         **_DEFAULT_EXTRACTION, **_EDGE_SIDE, **_HOLE_FILL, **_CPU_EDGE_BAND, **_LENS, **_LENS_HASHGRID, **_HASHGRID)
 
 # the preset a run gets when it names none, per device type
