@@ -141,8 +141,7 @@ _preset("accurate", "hash-grid field (8 levels, 4-tap gradient), 2000 iterations
         "term and the small depth steps split out of the field's ramps, through a lens with a halo NeuS's variance at 16x and the Eikonal weight at 0.5: seconds a scan, as "
         "accurate as tuned on simulated scans and as the full 40-image decode on real ones (GPU default)",
         matmul="tf32", compile=False, iters=2000, rays=_ACCURATE_RAYS, grid_levels=8, grid_gradient="finite_difference_4",
-        grid_start_levels=2,
-        grid_level_every=100, variance_lr_factor=4.0, surface_weight=1.0, surface_after=1.0, free_space=1.0,
+        grid_start_levels=2, grid_level_every=100, variance_lr_factor=4.0, surface_weight=1.0, surface_after=1.0, free_space=1.0,
         edge_readmit=True, **_DEFAULT_EXTRACTION, **_STEP_SPLIT, **_EDGE_SIDE, **_HOLE_FILL, **_EDGE_BAND, **_LENS,
         **_LENS_HASHGRID, **_GPU_DENOISE, **_HASHGRID)
 _preset("cpu-hashgrid", "cpu with the hash-grid field (8 levels, 2^15 entries, 4-tap gradient), photometric depth "
