@@ -31,27 +31,30 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def design_one(rig: str, count: int, folder: str, iterations: int, device: str, seed: int, pixels: int = 4096,
-               window: int = 0, window_step: int = 1) -> dict:
+               window: int = 0, window_step: int = 1, blur_spread: float | None = None) -> dict:
     """Design `count` patterns for `rig` into folder (reused when its design.json says the same options); window:
     DesignOptions.window (the depth search's window the objective scores; 0: each pixel alone); window_step: camera
-    px between the window's pixels (the set's roles carry it, so the sweep's search uses the same step)."""
+    px between the window's pixels (the set's roles carry it, so the sweep's search uses the same step); blur_spread:
+    NoiseModel.blur_spread (None: its default)."""
     import torch
 
     from slwarp.cli.design import write_design
-    from slwarp.design import DesignOptions, design_patterns
+    from slwarp.design import DesignOptions, NoiseModel, design_patterns
     from slwarp.sim.rigs import DEPTH_RANGE_MM, make_rig
 
     out = Path(folder)
     done = out / "design.json"
     key = {"rig": rig, "count": count, "iterations": iterations, "seed": seed, "pixels": pixels,
-           **({"window": window} if window else {}), **({"window_step": window_step} if window_step > 1 else {})}
+           **({"window": window} if window else {}), **({"window_step": window_step} if window_step > 1 else {}),
+           **({"blur_spread": blur_spread} if blur_spread is not None else {})}
     if done.is_file():
         prev = json.loads(done.read_text())
         if prev.get("key") == key:
             return prev
     camera, projector = make_rig(rig)
+    noise = NoiseModel() if blur_spread is None else NoiseModel(blur_spread=blur_spread)
     opts = DesignOptions(count=count, iterations=iterations, seed=seed, pixels=pixels, window=window,
-                         window_step=window_step)
+                         window_step=window_step, noise=noise)
     if device.startswith("cuda"):
         torch.cuda.set_device(torch.device(device))
     res = design_patterns(camera, projector, DEPTH_RANGE_MM, opts, device=device, baselines=())
@@ -72,6 +75,8 @@ def main(argv=None) -> int:
                     help="design for the depth search's windows: their radius in camera px (2), 0: each pixel alone")
     ap.add_argument("--window-step", type=int, default=1,
                     help="camera px between the window's pixels (the sets' roles say it: the search uses the same)")
+    ap.add_argument("--blur-spread", type=float, default=None,
+                    help="the design's camera blur spread (slwarp design-patterns --blur-spread; default: its default)")
     ap.add_argument("--without-random6", action="store_true", help="no neural runs on random 6 (the designs and Gray code only)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--designs", default=None, help="folder of the designs (default <out>/designs)")
@@ -102,7 +107,7 @@ def main(argv=None) -> int:
     workers = min(len(todo), 6 if cuda else (args.workers or 1))
     with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
         futs = {(r, k): pool.submit(design_one, r, k, str(designs / r / f"design{k}"), args.iterations, dev, args.seed,
-                                          args.pixels, args.window, args.window_step)
+                                          args.pixels, args.window, args.window_step, args.blur_spread)
                 for r, k in todo}
         made = {}
         for (r, k), f in futs.items():

@@ -47,7 +47,8 @@ def cmd_design(args) -> int:
     device = torch_device(args.device or "auto")
     try:
         noise = NoiseModel(ambient=args.ambient, modulation=_pair(args.modulation, "--modulation"),
-                           read_noise=args.read_noise, full_well=args.full_well, blur_px=args.blur_px)
+                           read_noise=args.read_noise, full_well=args.full_well, blur_px=args.blur_px,
+                           blur_spread=args.blur_spread)
         steps, pixels = CPU_STEPS if device.type == "cpu" else GPU_STEPS
         steps = steps if args.iterations is None else args.iterations
         window, window_step = default_window(args.count, camera.width) if args.window is None else (args.window, 1)
@@ -196,6 +197,9 @@ def _add_design(p):
                         "many pixels over twice the span); the set's roles record it and reconstruct searches with it")
     p.add_argument("--binary", action="store_true", help="black and white patterns (DLP projectors): sharpened during the descent, rounded at the end")
     p.add_argument("--blur-px", type=float, default=1.0, help="the camera's view of the pattern: Gaussian sigma in projector px (default 1)")
+    p.add_argument("--blur-spread", type=float, default=2.0,
+                   help="the camera's blur may be up to this factor off --blur-px either way (defocus changes with "
+                        "depth): the design is scored over that range; 1: exactly --blur-px (default 2)")
     p.add_argument("--ambient", type=float, default=0.08, help="ambient offset up to this, full scale (default 0.08)")
     p.add_argument("--modulation", default="0.15,0.8", help="LO,HI range of the pattern's modulation at the camera, full scale (default 0.15,0.8)")
     p.add_argument("--read-noise", type=float, default=0.004, help="camera read noise std, full scale (default 0.004)")

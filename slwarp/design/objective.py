@@ -46,13 +46,19 @@ class NoiseModel:
 
     ambient: the offset a is drawn from [0, ambient]; modulation (lo, hi): b drawn from it (albedo x fall-off x
     projector power); read_noise: Gaussian std; full_well: electrons at full scale (shot noise); blur_px: Gaussian
-    sigma of the projector's defocus and the camera pixel's footprint, in projector px."""
+    sigma of the projector's defocus and the camera pixel's footprint, in projector px, as the decoder models it;
+    blur_spread: the blur the camera really sees lies anywhere in [blur_px / spread, blur_px x spread] (1: exactly
+    blur_px). Why: defocus changes with depth and a pixel's footprint with the surface's slant, while a decoder
+    models one blur; a design scored with the decoder's blur only may hang a code on a detail one projector pixel
+    wide, which the camera sees at another strength (default rig, design of 4: one such column put 1,191 pixels of
+    the spheres 490 mm off, their code matching a nearer depth better than their own)."""
 
     ambient: float = 0.08
     modulation: tuple[float, float] = (0.15, 0.8)
     read_noise: float = 0.004
     full_well: float = 6000.0
     blur_px: float = 1.0
+    blur_spread: float = 2.0
 
     def __post_init__(self):
         lo, hi = self.modulation
@@ -60,6 +66,15 @@ class NoiseModel:
             raise ValueError(f"modulation range must satisfy 0 < lo <= hi <= 1, got {self.modulation}")
         if self.ambient < 0 or self.read_noise < 0 or self.full_well <= 0 or self.blur_px < 0:
             raise ValueError("ambient, read noise and blur must be >= 0 and full well > 0")
+        if not self.blur_spread >= 1.0:
+            raise ValueError(f"the blur's spread must be >= 1 (1: the blur exactly as modelled), got {self.blur_spread}")
+
+    def observed_blurs(self, u: float | None = None) -> tuple[float, ...]:
+        """The blurs (projector px) the camera is scored with: blur_px x spread^u for one draw u in [-1, 1], or,
+        without one, the range's ends and middle (a validation's fixed set)."""
+        if u is not None:
+            return (self.blur_px * self.blur_spread ** u,)
+        return tuple(dict.fromkeys(self.blur_px * self.blur_spread ** e for e in (-1.0, 0.0, 1.0)))
 
 
 def _epipolar_segments(camera, projector, depth_range, grid: int = 24):
@@ -198,9 +213,10 @@ class CodeModel:
 
 
 def miss_loss(patterns: torch.Tensor, batch: Batch, noise: NoiseModel, *, tol_px: float = 2.0,
-              softness: float = 1.0, backend: str = "warp", details: bool = False):
-    """The expected miss (see the module docstring) of patterns [K, Hp, Wp] in [0, 1] (already blurred as the camera
-    sees them) on one batch: a 0-d tensor, differentiable in the patterns. With windows (batch.uv_true [M, Wn, 2],
+              softness: float = 1.0, backend: str = "warp", details: bool = False, observed: torch.Tensor | None = None):
+    """The expected miss (see the module docstring) of patterns [K, Hp, Wp] in [0, 1] (already blurred as the decoder
+    models them) on one batch: a 0-d tensor, differentiable in the patterns. observed [K, Hp, Wp]: the patterns as the
+    camera sees them (another blur; default: `patterns`), from which the observations come. With windows (batch.uv_true [M, Wn, 2],
     Wn > 1) each hypothesis' distance sums over the window's lit pixels, each normalised by its own min and max, as
     the depth search's cost. details=True also returns {"miss_rate": share of pixels whose most probable hypothesis
     is > tol_px away, "pixels": M}."""
@@ -209,7 +225,8 @@ def miss_loss(patterns: torch.Tensor, batch: Batch, noise: NoiseModel, *, tol_px
     K = patterns.shape[0]
     M, Hn = batch.dist.shape
     Wn = batch.uv_true.shape[1]
-    code_true = reproject_patterns(patterns, batch.uv_true.reshape(-1, 2), backend=backend).reshape(M, Wn, K)
+    seen = patterns if observed is None else observed
+    code_true = reproject_patterns(seen, batch.uv_true.reshape(-1, 2), backend=backend).reshape(M, Wn, K)
     clean = batch.offset[:, None, None] + batch.modulation[:, None, None] * code_true
     # the virtual scanner's noise: read noise and shot noise of the clean intensity, clipped to the sensor's range
     sd = torch.sqrt(noise.read_noise ** 2 + clean.detach().clamp_min(0.0) / noise.full_well)

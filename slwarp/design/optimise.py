@@ -160,12 +160,18 @@ def _smooth_start(K: int, L: int, scale_px: float, generator: torch.Generator, d
 
 
 def evaluate_patterns(model: CodeModel, patterns: torch.Tensor, batch, opts: DesignOptions) -> dict:
-    """{"loss", "miss_rate"} of patterns [K, Hp, Wp] (unblurred, as projected) on a batch."""
+    """{"loss", "miss_rate"} of patterns [K, Hp, Wp] (unblurred, as projected) on a batch: the mean over the blurs
+    the camera may see (NoiseModel.observed_blurs), decoded with the modelled one."""
+    losses, misses = [], []
     with torch.no_grad():
-        seen = blur_patterns(patterns, opts.noise.blur_px)
-        loss, info = miss_loss(seen, batch, opts.noise, tol_px=opts.tol_px, softness=opts.softness,
-                               backend=_backend(opts.backend, patterns.device), details=True)
-    return {"loss": float(loss), "miss_rate": info["miss_rate"]}
+        modelled = blur_patterns(patterns, opts.noise.blur_px)
+        for sigma in opts.noise.observed_blurs():
+            loss, info = miss_loss(modelled, batch, opts.noise, tol_px=opts.tol_px, softness=opts.softness,
+                                   backend=_backend(opts.backend, patterns.device), details=True,
+                                   observed=blur_patterns(patterns, sigma))
+            losses.append(float(loss))
+            misses.append(info["miss_rate"])
+    return {"loss": float(np.mean(losses)), "miss_rate": float(np.mean(misses))}
 
 
 def design_patterns(camera, projector, depth_range, opts: DesignOptions, *, device="cpu", baselines=("random6",),
@@ -230,7 +236,13 @@ def design_patterns(camera, projector, depth_range, opts: DesignOptions, *, devi
             if beta > 0.0:
                 pats = torch.sigmoid(beta * (pats - 0.5))
             seen = blur_patterns(pats, opts.noise.blur_px)
-            loss = miss_loss(seen, batch, opts.noise, tol_px=opts.tol_px, softness=opts.softness, backend=opts.backend)
+            # the camera's blur drawn anew each step: codes that only the modelled blur reads right are misses
+            observed = None
+            if opts.noise.blur_spread > 1.0:
+                u = 2.0 * float(torch.rand((), generator=g, device=device)) - 1.0
+                observed = blur_patterns(pats, opts.noise.observed_blurs(u)[0])
+            loss = miss_loss(seen, batch, opts.noise, tol_px=opts.tol_px, softness=opts.softness, backend=opts.backend,
+                             observed=observed)
             theta.grad = None
             loss.backward()
             adam.step()
