@@ -5,7 +5,8 @@ uniform in projector px along the line), the camera sees
 
     o_n = a + b P~_n(pi(x*)) + noise_n                  n = 1..K frames
 
-P~ the patterns blurred by the projector's defocus (`blur_px`), a the ambient offset, b the modulation (albedo,
+P~ the patterns blurred by the projector's defocus (`blur_px`; the camera's view at a blur drawn from a spread around
+it, `NoiseModel.blur_spread`, the hypotheses' codes at `blur_px`), a the ambient offset, b the modulation (albedo,
 fall-off, projector power), the noise the virtual scanner's (read noise and shot noise). A decoder that knows neither
 a nor b normalises by the observation's own min and max, o^ = (o - min o) / (max o - min o), which is the pattern
 model's offset and modulation (slwarp.neural.pattern_model) that the depth search and the neural SDF use, and
