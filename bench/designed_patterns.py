@@ -46,13 +46,14 @@ def design_one(rig: str, count: int, folder: str, iterations: int, device: str, 
     done = out / "design.json"
     key = {"rig": rig, "count": count, "iterations": iterations, "seed": seed, "pixels": pixels,
            **({"window": window} if window else {}), **({"window_step": window_step} if window_step > 1 else {}),
-           **({"blur_spread": blur_spread} if blur_spread is not None else {})}
+           # always named: a design made before the spread (no such key) is made again
+           "blur_spread": NoiseModel().blur_spread if blur_spread is None else blur_spread}
     if done.is_file():
         prev = json.loads(done.read_text())
         if prev.get("key") == key:
             return prev
     camera, projector = make_rig(rig)
-    noise = NoiseModel() if blur_spread is None else NoiseModel(blur_spread=blur_spread)
+    noise = NoiseModel(blur_spread=key["blur_spread"])
     opts = DesignOptions(count=count, iterations=iterations, seed=seed, pixels=pixels, window=window,
                          window_step=window_step, noise=noise)
     if device.startswith("cuda"):
